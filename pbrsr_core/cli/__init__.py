@@ -20,7 +20,7 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
-_COMMAND_MODULES: list[str] = []
+_COMMAND_MODULES: list[str] = ["upscale"]
 
 
 def _register_all() -> None:

@@ -1,0 +1,117 @@
+"""`pbrsr upscale`, `pbrsr eval` and `pbrsr demo`."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from ..options import UpscaleOptions
+from .progressbar import progress_bar
+
+console = Console()
+
+
+def _print_report(report: dict, out_dir: Path) -> None:
+    t = Table(title="stage timings (s)")
+    t.add_column("stage")
+    t.add_column("seconds", justify="right")
+    for k, v in report["timings"].items():
+        t.add_row(k, f"{v:.2f}")
+    console.print(t)
+    console.print(f"result:  {out_dir / report['input']}")
+    console.print(f"maps:    {out_dir / 'maps'}")
+    console.print(f"report:  {out_dir / 'report.json'}")
+    console.print(f"preview: {out_dir / 'preview.png'}")
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    def upscale(
+        input: Annotated[Path, typer.Argument(help=".glb, .gltf or .zip holding one .gltf")],
+        out: Annotated[Path, typer.Option("-o", "--out", help="output folder")],
+        scale: Annotated[int, typer.Option(help="2, 4 or 8")] = 4,
+        method: Annotated[str, typer.Option(help="pbrsr, direct or bicubic")] = "pbrsr",
+        preset: Annotated[str, typer.Option(help="fast, balanced, quality, paper")] = "balanced",
+        prior: Annotated[str, typer.Option(help="bicubic, rrdn-thick, spandrel:<path>")] = (
+            "rrdn-thick"
+        ),
+        envmap: Annotated[str | None, typer.Option(help=".hdr/.exr environment")] = None,
+        seed: Annotated[int, typer.Option()] = 0,
+        image_format: Annotated[str, typer.Option("--format", help="same, png, png16, exr, "
+                                                  "jpeg")] = "same",
+        device: Annotated[str, typer.Option(help="auto, cpu, cuda, cuda:N")] = "auto",
+        overwrite: Annotated[bool, typer.Option(help="replace an existing output folder")] = False,
+        quiet: Annotated[bool, typer.Option("-q", "--quiet")] = False,
+    ) -> None:
+        """Upscale every PBR texture of an asset."""
+        from pydantic import ValidationError
+
+        from ..errors import InvalidOptions
+        from ..pipeline import upscale_asset
+
+        if not input.is_file():
+            raise InvalidOptions(f"input file '{input}' does not exist")
+        try:
+            options = UpscaleOptions(
+                scale=scale, method=method, preset=preset, prior=prior, envmap=envmap,
+                seed=seed, image_format=image_format, device=device,
+            )
+        except ValidationError as exc:
+            msgs = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+            raise InvalidOptions(msgs) from None
+        if overwrite and out.exists():
+            shutil.rmtree(out)
+        with progress_bar(not quiet) as cb:
+            report = upscale_asset(input, out, options, progress=cb)
+        if not quiet:
+            _print_report(report, out)
+
+    @app.command(name="eval")
+    def eval_cmd(
+        pred: Annotated[Path, typer.Argument(help="upscaled asset")],
+        gt: Annotated[Path, typer.Argument(help="ground-truth asset (same structure)")],
+        resolution: Annotated[int, typer.Option(help="render size of evaluation views")] = 256,
+        views: Annotated[int, typer.Option(help="evaluation views (paper: 240)")] = 240,
+        envmap: Annotated[list[Path] | None, typer.Option(help="environment maps")] = None,
+        json_out: Annotated[Path | None, typer.Option("--json", help="write JSON here")] = None,
+    ) -> None:
+        """Per-map PSNR/SSIM and render PSNR of PRED against GT."""
+        from ..metrics import evaluate
+
+        res = evaluate(pred, gt, resolution=resolution, envmaps=envmap, num_views=views)
+        t = Table(title=f"{pred.name} vs {gt.name}")
+        t.add_column("metric")
+        t.add_column("value", justify="right")
+        for k, v in res.items():
+            t.add_row(k, f"{v:.3f}" if k.endswith("psnr") else f"{v:.4f}")
+        console.print(t)
+        if json_out:
+            json_out.write_text(json.dumps(res, indent=2))
+
+    @app.command()
+    def demo(
+        out: Annotated[Path, typer.Option("-o", "--out", help="output folder")] = Path("out/demo"),
+        preset: Annotated[str, typer.Option(help="fast, balanced, quality")] = "fast",
+        method: Annotated[str, typer.Option(help="pbrsr, direct or bicubic")] = "pbrsr",
+        size: Annotated[int, typer.Option(help="LR texture size of the demo asset")] = 128,
+    ) -> None:
+        """Make the built-in procedural demo asset and upscale it x4 in-process."""
+        from ..asset import make_demo_asset
+        from ..pipeline import upscale_asset
+
+        if out.exists():
+            shutil.rmtree(out)
+        out.mkdir(parents=True)
+        src = make_demo_asset(out / "input" / "demo.glb", size=size)
+        console.print(f"demo asset: {src} ({size}x{size} textures), method {method}, "
+                      f"preset {preset}")
+        options = UpscaleOptions(method=method, preset=preset)
+        with progress_bar() as cb:
+            report = upscale_asset(src, out / "result", options, progress=cb)
+        _print_report(report, out / "result")

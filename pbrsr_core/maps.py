@@ -1,0 +1,69 @@
+"""Which images of an asset are maps to upscale, and their conversions between the stored
+encoding (numpy, as in the file) and the optimisation space (torch, linear colour)."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import torch
+
+from .asset.model import SRGB_ROLES, Asset, ImageData
+from .colour import linear_to_srgb, srgb_to_linear
+
+
+def kind_of(roles: set[str]) -> str:
+    """How an image is treated: ``normal``, ``colour`` (sRGB baseColor/emissive) or ``data``
+    (metallicRoughness / occlusion, linear)."""
+    if "normal" in roles:
+        return "normal"
+    if roles & SRGB_ROLES:
+        return "colour"
+    return "data"
+
+
+def role_label(roles: set[str]) -> str:
+    """A short label for file names and reports: ``base_color``, ``orm``, ``normal``..."""
+    if {"metallic_roughness", "occlusion"} <= roles:
+        return "orm"
+    return "+".join(sorted(roles)) if roles else "unused"
+
+
+def upscalable_images(asset: Asset) -> list[ImageData]:
+    """Images some material slot uses, in glTF order (each once, however often shared)."""
+    return [img for img in asset.images if img.roles]
+
+
+def to_param(image: ImageData) -> torch.Tensor:
+    """Stored pixels -> optimisation space (H, W, C): colour RGB linearised (alpha stays)."""
+    px = torch.from_numpy(np.ascontiguousarray(image.pixels, dtype=np.float32))
+    return encoded_to_param(px, kind_of(image.roles))
+
+
+def encoded_to_param(px: torch.Tensor, kind: str) -> torch.Tensor:
+    if kind != "colour":
+        return px.clone()
+    out = px.clone()
+    c = min(3, px.shape[-1])
+    out[..., :c] = srgb_to_linear(px[..., :c])
+    return out
+
+
+def param_to_encoded(t: torch.Tensor, kind: str) -> np.ndarray:
+    """Optimisation space -> stored encoding, float32 numpy in [0, 1], finite."""
+    t = torch.nan_to_num(t.detach().float().cpu(), nan=0.0, posinf=1.0, neginf=0.0)
+    if kind == "colour":
+        t = t.clone()
+        c = min(3, t.shape[-1])
+        t[..., :c] = linear_to_srgb(t[..., :c])
+    return t.clamp(0.0, 1.0).numpy().astype(np.float32)
+
+
+def safe_stem(name: str) -> str:
+    stem = re.sub(r"\.[A-Za-z0-9]{2,4}$", "", name.rsplit("/", 1)[-1])
+    stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", stem).strip("._") or "image"
+    return stem[:60]
+
+
+def map_file_stem(image: ImageData) -> str:
+    return f"{image.index:02d}_{role_label(image.roles)}_{safe_stem(image.name)}"

@@ -1,0 +1,42 @@
+"""What a user asks of one upscale run; the same model serves the CLI, the API and the worker."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+Method = Literal["pbrsr", "direct", "bicubic"]
+ImageFormat = Literal["same", "png", "png16", "exr", "jpeg"]
+
+
+class UpscaleOptions(BaseModel):
+    """Options of one run. Unknown fields are refused, so a typo is an error, not a default."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    scale: Literal[2, 4, 8] = Field(4, description="Upscaling factor of every texture.")
+    method: Method = Field(
+        "pbrsr",
+        description="pbrsr: the PBR-SR optimizer; direct: the prior applied to each map; "
+        "bicubic: plain bicubic interpolation.",
+    )
+    preset: str = Field("balanced", description="fast, balanced, quality or paper (pbrsr only).")
+    prior: str = Field(
+        "rrdn-thick",
+        description="Image SR prior: bicubic, rrdn-thick, spandrel:<weights path>, "
+        "diffusion:<model dir>.",
+    )
+    envmap: str | None = Field(
+        None, description="Environment map for rendering: a .hdr/.exr path, or None for the "
+        "built-in procedural environment."
+    )
+    seed: int = Field(0, ge=0, description="Random seed; same seed and device give the same result.")
+    image_format: ImageFormat = Field(
+        "same", description="Output image format; 'same' keeps each input image's format "
+        "(bit depth never below the input's)."
+    )
+    device: str = Field("auto", description="auto, cpu, cuda or cuda:N.")
+    unwrap_missing_uvs: bool = Field(
+        True, description="Unwrap meshes without UVs with xatlas; when false they are refused."
+    )

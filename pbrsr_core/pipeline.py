@@ -1,0 +1,271 @@
+"""One upscale run, for every method: load, upscale the maps, write the bundle.
+
+The bundle written into ``out_dir``:
+``<input file name>`` the upscaled asset in the input's form; ``maps/`` every HR map as an
+image; ``report.json``; ``preview.png`` (before/after under two environments) and
+``previews/{before,after}_<env>.png``. The bundle is written into a sibling staging folder and
+renamed into place, so nobody ever sees half of one.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from . import __version__
+from .asset import detect_kind, extract_zip, load_asset, save_asset, write_image
+from .asset.model import Asset
+from .device import resolve_device
+from .errors import LimitExceeded, PbrsrError, StorageError, UnprocessableAsset
+from .limits import Limits
+from .maps import encoded_to_param, kind_of, map_file_stem, param_to_encoded, role_label, to_param
+from .maps import upscalable_images
+from .options import UpscaleOptions
+from .preview import write_previews
+from .prior import load_prior
+from .prior.direct import bicubic_map, upscale_map
+from .progress import Progress, ProgressFn, emit
+from .render.light import EnvLight
+
+
+class StageTimer:
+    """Wall seconds per named stage, in order."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
+
+
+def _resolve_input(input_path: Path, work_dir: Path, limits: Limits) -> Path:
+    kind = detect_kind(input_path)
+    if kind == "zip":
+        return extract_zip(input_path, work_dir / "unzipped", limits)
+    return input_path
+
+
+def _check_output_size(images, scale: int, limits: Limits) -> None:
+    for img in images:
+        if max(img.width, img.height) * scale > limits.max_output_dim:
+            raise LimitExceeded(
+                f"image '{img.name}' is {img.width}x{img.height}; x{scale} would be "
+                f"{img.width * scale}x{img.height * scale}, over the output limit of "
+                f"{limits.max_output_dim} pixels per side"
+            )
+
+
+def load_light(envmap: str | None) -> EnvLight:
+    return EnvLight.procedural() if not envmap else EnvLight.from_file(Path(envmap))
+
+
+def _upscale_maps(
+    asset: Asset,
+    options: UpscaleOptions,
+    device: torch.device,
+    timer: StageTimer,
+    progress: ProgressFn | None,
+    work_dir: Path,
+) -> tuple[dict[int, np.ndarray], dict]:
+    """HR maps (stored encoding) for every used image, and method-specific report fields."""
+    images = upscalable_images(asset)
+    s = options.scale
+    if options.method == "bicubic":
+        with timer("upscale"):
+            return {img.index: bicubic_map(img.pixels, kind_of(img.roles), s) for img in images}, {}
+
+    with timer("load_prior"):
+        emit(progress, Progress(stage="load_prior", message=options.prior))
+        prior = load_prior(options.prior, device)
+    if options.method == "direct":
+        out = {}
+        with timer("prior"):
+            for n, img in enumerate(images):
+                emit(progress, Progress(stage="prior", step=n, total=len(images)))
+                out[img.index] = upscale_map(prior, img.pixels, kind_of(img.roles), s)
+        return out, {}
+
+    # pbrsr: init = prior on colour maps, bicubic on the rest (paper 3.1)
+    from .optim.pbrsr import optimize_pbrsr
+    from .optim.presets import get_preset
+
+    config = get_preset(options.preset)
+    with timer("init"):
+        init, lr = {}, {}
+        for n, img in enumerate(images):
+            emit(progress, Progress(stage="init", step=n, total=len(images)))
+            kind = kind_of(img.roles)
+            hr = (
+                upscale_map(prior, img.pixels, kind, s)
+                if kind == "colour"
+                else bicubic_map(img.pixels, kind, s)
+            )
+            init[img.index] = encoded_to_param(torch.from_numpy(hr), kind)
+            lr[img.index] = to_param(img)
+    with timer("load_light"):
+        light = load_light(options.envmap).to(device)
+    from .scene import make_scene
+
+    scene = make_scene(asset, device)
+    result = optimize_pbrsr(
+        scene.mesh,
+        asset.materials,
+        {k: v.to(device) for k, v in lr.items()},
+        {k: v.to(device) for k, v in init.items()},
+        {img.index: set(img.roles) for img in images},
+        scale=s,
+        prior=prior,
+        light=light,
+        config=config,
+        device=device,
+        progress=progress,
+        cache_dir=work_dir / "pseudo_gt",
+        seed=options.seed,
+    )
+    for k, v in result.timings.items():
+        timer.seconds[k] = timer.seconds.get(k, 0.0) + v
+    out = {
+        i: param_to_encoded(result.maps[i], kind_of(asset.images[i].roles)) for i in result.maps
+    }
+    return out, result.report()
+
+
+def upscale_asset(
+    input_path: Path,
+    out_dir: Path,
+    options: UpscaleOptions,
+    *,
+    progress: ProgressFn | None = None,
+    limits: Limits = Limits(),
+    work_dir: Path | None = None,
+) -> dict:
+    """Upscale every texture of the asset at ``input_path`` into a bundle at ``out_dir``.
+
+    ``out_dir`` must not exist or be empty. ``work_dir`` keeps per-job intermediates (unzipped
+    input, cached pseudo-GT) so a retried job reuses them; by default a temporary folder.
+    Returns the report (also written to ``out_dir/report.json``).
+    """
+    input_path, out_dir = Path(input_path), Path(out_dir)
+    if out_dir.exists() and any(out_dir.iterdir()):
+        raise StorageError(f"output folder '{out_dir.name}' exists and is not empty")
+    timer = StageTimer()
+    t_start = time.perf_counter()
+    torch.manual_seed(options.seed)
+    device = resolve_device(options.device)
+    own_work = work_dir is None
+    work = Path(tempfile.mkdtemp(prefix="pbrsr-work-")) if own_work else Path(work_dir)
+    work.mkdir(parents=True, exist_ok=True)
+    try:
+        with timer("load"):
+            emit(progress, Progress(stage="load"))
+            asset_path = _resolve_input(input_path, work, limits)
+            asset = load_asset(asset_path, limits, unwrap_missing_uvs=options.unwrap_missing_uvs)
+            images = upscalable_images(asset)
+            if not images:
+                raise UnprocessableAsset(
+                    "nothing to upscale: no material of this asset uses a texture"
+                )
+            _check_output_size(images, options.scale, limits)
+        hr, method_report = _upscale_maps(asset, options, device, timer, progress, work)
+        emit(progress, Progress(stage="export"))
+        with timer("export"):
+            report = _write_bundle(
+                asset, asset_path.name, hr, out_dir, options, timer, method_report, device,
+                t_start,
+            )
+        emit(progress, Progress(stage="done", step=1, total=1))
+        return report
+    finally:
+        if own_work:
+            shutil.rmtree(work, ignore_errors=True)
+
+
+def _write_bundle(
+    asset: Asset,
+    file_name: str,
+    hr: dict[int, np.ndarray],
+    out_dir: Path,
+    options: UpscaleOptions,
+    timer: StageTimer,
+    method_report: dict,
+    device: torch.device,
+    t_start: float,
+) -> dict:
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
+    try:
+        save_asset(asset, stage / file_name, hr, options.image_format)
+        maps_dir = stage / "maps"
+        maps_dir.mkdir()
+        map_files = {}
+        for i, px in hr.items():
+            img = asset.images[i]
+            bits = 16 if img.bit_depth >= 16 else 8
+            name = f"{map_file_stem(img)}.png"
+            write_image(maps_dir / name, px, bits, "png")
+            map_files[i] = f"maps/{name}"
+        with timer("preview"):
+            previews = write_previews(asset, hr, stage, device, options.envmap)
+        report = {
+            "pbrsr_version": __version__,
+            "input": file_name,
+            "options": options.model_dump(),
+            "device": str(device),
+            "images": [
+                {
+                    "index": img.index,
+                    "name": img.name,
+                    "roles": sorted(img.roles),
+                    "label": role_label(img.roles),
+                    "lr_size": [img.width, img.height],
+                    "hr_size": [int(hr[img.index].shape[1]), int(hr[img.index].shape[0])],
+                    "bit_depth": img.bit_depth,
+                    "file": map_files[img.index],
+                }
+                for img in asset.images
+                if img.index in hr
+            ],
+            "timings": {k: round(v, 3) for k, v in timer.seconds.items()},
+            "wall_seconds": round(time.perf_counter() - t_start, 3),
+            "previews": previews,
+            **method_report,
+        }
+        (stage / "report.json").write_text(json.dumps(report, indent=2, default=_json_default))
+        if out_dir.exists():
+            out_dir.rmdir()  # empty, checked at the start
+        os.replace(stage, out_dir)
+        return report
+    except OSError as exc:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise StorageError(f"could not write the result: {exc.strerror or exc}") from exc
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, torch.Tensor):
+        return o.tolist()
+    if isinstance(o, (set, tuple)):
+        return list(o)
+    if isinstance(o, Path):
+        return o.name
+    if isinstance(o, PbrsrError):
+        return o.message
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
