@@ -2,13 +2,8 @@
 
 from __future__ import annotations
 
-import os
-
 import pytest
 import torch
-
-os.environ.setdefault("PBRSR_CACHE_DIR", os.path.join(os.path.dirname(__file__), "..", ".cache",
-                                                      "pbrsr"))
 
 
 @pytest.fixture(autouse=True)
