@@ -1,0 +1,601 @@
+"""The PBR-SR optimiser (paper section 3; METHOD.md): Adam over the HR maps and per-view weight
+maps, minimising ``L_robust + lambda_pbr L_pbr + lambda_tv L_tv`` against pseudo-GT renders.
+
+Stages (each timed and reported through ``progress``):
+
+1. ``gbuffers``: choose the training views (paper sphere or texel coverage, views.py), pick the
+   render resolution, rasterise every view once at the HR render resolution and at the LR one
+   (res / scale). G-buffers never change while only textures are optimised.
+2. ``pseudo_gt``: render each view from the init maps at LR resolution, tonemap, upscale by the
+   prior; cached (pseudo_gt.py).
+3. ``optimize``: per step, render ``batch_views`` whole views (or ``pixels_per_step`` random
+   covered pixels across all views, ``sampling="pixels"``), compute the losses (losses.py),
+   step Adam, project maps to valid ranges.
+
+Parameters: one tensor per image in ``init_maps`` (an image shared by several materials is one
+parameter; constant factors are not parameters). Only channels some material role reads get
+gradients (alpha and unused channels keep their init), and with ``mask_unseen`` texels outside
+every visible triangle's UV footprint keep their init.
+
+Weight maps W_i are stored directly in [0, 1] (init 1) and clamped back into [0, 1] after each
+step (projected gradient), rather than through a sigmoid: W = 1 is reachable, and at W = 1 the
+regulariser's gradient vanishes, so W only moves where the pixel loss pushes it.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..asset.model import Material, Mesh
+from ..errors import UnprocessableAsset
+from ..progress import Eta, Progress, ProgressFn, emit
+from ..render import camera as cam
+from . import views as vsel
+from .losses import (
+    MapGroup,
+    consistency_psnr,
+    pbr_consistency,
+    robust_pixel_terms,
+    sample_weights,
+    tv_loss,
+    upsample_weights,
+)
+from .presets import PbrsrConfig
+from .pseudo_gt import content_hash, dequantize, load_cached, quantize, store_cached
+
+PROBE_RES = 128  # side of the low-resolution renders used to select views and measure density
+BACKGROUND = 0.0
+
+
+# ---------------------------------------------------------------------------------------------
+# Maps: which channels are which PBR map, projection to valid ranges
+# ---------------------------------------------------------------------------------------------
+
+
+def map_groups(roles: set[str], channels: int, config: PbrsrConfig) -> list[MapGroup]:
+    """The PBR maps inside one image, from the roles that read it (glTF packing: occlusion R,
+    roughness G, metallic B; colour and normal RGB). Channels beyond the image's are dropped."""
+    spec: list[tuple[str, tuple[int, ...], float]] = []
+    if "base_color" in roles:
+        spec.append(("base_color", (0, 1, 2), config.w_other))
+    if "emissive" in roles:
+        spec.append(("emissive", (0, 1, 2), config.w_other))
+    if "normal" in roles:
+        spec.append(("normal", (0, 1, 2), config.w_other))
+    if "occlusion" in roles:
+        spec.append(("occlusion", (0,), config.w_other))
+    if "metallic_roughness" in roles:
+        spec.append(("roughness", (1,), config.w_other))
+        spec.append(("metallic", (2,), config.w_metallic))
+    out, taken = [], set()
+    for name, ch, w in spec:
+        ch = tuple(c for c in ch if c < channels and c not in taken)
+        if ch:
+            taken.update(ch)
+            out.append(MapGroup(name, ch, w))
+    return out
+
+
+@torch.no_grad()
+def project_(t: torch.Tensor, is_normal: bool) -> None:
+    """In place: values into [0, 1]; for normal maps the decoded n = 2t - 1 gets z >= 1e-3 and
+    unit length (a zero-length normal becomes (0, 0, 1)), then is re-encoded. NaN -> 0."""
+    torch.nan_to_num_(t, nan=0.0, posinf=1.0, neginf=0.0)
+    t.clamp_(0.0, 1.0)
+    if is_normal and t.shape[-1] >= 3:
+        n = t[..., :3] * 2.0 - 1.0
+        n[..., 2].clamp_(min=1e-3)
+        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        t[..., :3] = (n * 0.5 + 0.5).clamp(0.0, 1.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# G-buffer helpers (generic over the renderer's GBuffer dataclass fields)
+# ---------------------------------------------------------------------------------------------
+
+
+def _num_pixels(gb) -> int:
+    return int(gb.pix.shape[0])
+
+
+def subset_gbuffer(gb, idx: torch.Tensor):
+    """The G-buffer restricted to covered pixels ``idx`` (indices into its P entries)."""
+    p = _num_pixels(gb)
+    changes = {}
+    for f in fields(gb):
+        v = getattr(gb, f.name)
+        if isinstance(v, torch.Tensor) and v.ndim >= 1 and v.shape[0] == p:
+            changes[f.name] = v[idx]
+        elif isinstance(v, dict) and all(
+            isinstance(x, torch.Tensor) and x.shape[0] == p for x in v.values()
+        ):
+            changes[f.name] = {k: x[idx] for k, x in v.items()}
+    return replace(gb, **changes)
+
+
+def concat_gbuffers(gbs: list):
+    """One G-buffer holding the covered pixels of several (same-resolution) G-buffers."""
+    first = gbs[0]
+    p = _num_pixels(first)
+    changes = {}
+    for f in fields(first):
+        v = getattr(first, f.name)
+        if isinstance(v, torch.Tensor) and v.ndim >= 1 and v.shape[0] == p:
+            changes[f.name] = torch.cat([getattr(g, f.name) for g in gbs])
+        elif isinstance(v, dict) and all(
+            isinstance(x, torch.Tensor) and x.shape[0] == p for x in v.values()
+        ):
+            changes[f.name] = {k: torch.cat([getattr(g, f.name)[k] for g in gbs]) for k in v}
+    return replace(first, **changes)
+
+
+def render_srgb(gb, materials, textures, light, shade_mod) -> torch.Tensor:
+    """Shade the covered pixels of ``gb`` and tonemap: (P, 3) sRGB."""
+    rgba = shade_mod.shade(gb, materials, textures, light)
+    return shade_mod.tonemap(rgba[:, :3])
+
+
+# ---------------------------------------------------------------------------------------------
+# Result
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class PbrsrResult:
+    """What one run produced. ``maps``: image index -> (sH, sW, C) float32 HR map in
+    optimisation space (valid ranges). ``history``: one dict per logged iteration (``it``,
+    ``losses``, ``time``). ``timings``: seconds per stage. ``views``: the training views.
+    ``coverage``: per image, fraction of UV-covered texels a view sees. ``consistency_psnr``:
+    ``"<image>:<map>"`` -> PSNR (dB) of AvgPool_s(HR) against LR."""
+
+    maps: dict[int, torch.Tensor]
+    history: list[dict] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+    views: list[dict] = field(default_factory=list)
+    coverage: dict[int, float] = field(default_factory=dict)
+    consistency_psnr: dict[str, float] = field(default_factory=dict)
+    render_res: int = 0
+    optimized: dict[int, list[str]] = field(default_factory=dict)
+    seen_masks: dict[int, torch.Tensor] = field(default_factory=dict)
+    config: dict = field(default_factory=dict)
+
+    def report(self) -> dict:
+        """JSON-serialisable summary for ``report.json``."""
+        return {
+            "config": self.config,
+            "timings_s": {k: round(v, 3) for k, v in self.timings.items()},
+            "render_resolution": self.render_res,
+            "views": self.views,
+            "num_views": len(self.views),
+            "coverage": {str(k): round(v, 4) for k, v in self.coverage.items()},
+            "optimized_maps": {str(k): v for k, v in self.optimized.items()},
+            "consistency_psnr_db": {k: round(v, 3) for k, v in self.consistency_psnr.items()},
+            "history": self.history,
+        }
+
+
+# ---------------------------------------------------------------------------------------------
+# The optimiser
+# ---------------------------------------------------------------------------------------------
+
+
+def _check_inputs(lr_maps, init_maps, roles, scale):
+    if scale < 1:
+        raise UnprocessableAsset(f"scale must be >= 1, got {scale}")
+    if not init_maps:
+        raise UnprocessableAsset("nothing to optimise: no texture maps were given")
+    for i, t in init_maps.items():
+        if i not in lr_maps:
+            raise UnprocessableAsset(f"image {i} has an init map but no LR map")
+        lr = lr_maps[i]
+        if t.ndim != 3 or lr.ndim != 3:
+            raise UnprocessableAsset(f"image {i}: maps must be (H, W, C)")
+        want = (lr.shape[0] * scale, lr.shape[1] * scale, lr.shape[2])
+        if tuple(t.shape) != want:
+            raise UnprocessableAsset(
+                f"image {i}: the init map is {tuple(t.shape)}, expected {want} (LR x{scale})"
+            )
+        if not roles.get(i):
+            raise UnprocessableAsset(f"image {i} has no material role")
+
+
+def _camera_dict(c: cam.Camera) -> dict:
+    return {
+        "eye": [round(float(x), 5) for x in c.eye],
+        "fov_deg": c.fov_deg,
+        "resolution": list(c.resolution),
+    }
+
+
+def _choose_views(mesh, materials, images, sizes, scale, config, rasterize):
+    """Cameras (at the HR render resolution) and a summary for the report."""
+    info: dict = {"mode": config.view_mode}
+    if config.view_mode == "orbit":
+        cams = cam.orbit_cameras(
+            config.n_elev,
+            config.n_azim,
+            config.distance,
+            config.fov_deg,
+            PROBE_RES,
+            config.elev_range_deg,
+        )
+        probe = cams[:: max(1, len(cams) // 8)][:8]
+    else:
+        cand = vsel.sphere_cameras(config.n_candidates, config.distance, config.fov_deg, PROBE_RES)
+        chosen, sel_info = vsel.select_coverage_views(
+            mesh,
+            materials,
+            images,
+            cand,
+            rasterize,
+            max_views=config.max_views,
+            min_new_texels=config.min_new_texels,
+            image_sizes=sizes,
+        )
+        cams = [cand[k] for k in chosen]
+        probe = cams
+        info.update(candidates=len(cand), gains=[round(g, 4) for g in sel_info["gains"]])
+    if config.render_res is not None:
+        res = max(scale, int(round(config.render_res / scale)) * scale)
+    else:
+        fps = [vsel.median_footprint(rasterize(c), materials, sizes) for c in probe]
+        res = vsel.texel_density_resolution(
+            fps,
+            PROBE_RES,
+            texel_footprint=config.texel_footprint,
+            scale=scale,
+            min_res=config.min_render_res,
+            max_res=config.max_render_res,
+        )
+        info["probe_footprints"] = [None if f is None else round(f, 3) for f in fps]
+    return [vsel.with_resolution(c, res) for c in cams], res, info
+
+
+def optimize_pbrsr(
+    mesh: Mesh,
+    materials: list[Material],
+    lr_maps: dict[int, torch.Tensor],
+    init_maps: dict[int, torch.Tensor],
+    roles: dict[int, set[str]],
+    *,
+    scale: int,
+    prior,
+    light,
+    config: PbrsrConfig,
+    device: torch.device,
+    progress: ProgressFn | None = None,
+    cache_dir: Path | None = None,
+    seed: int = 0,
+    cameras: list[cam.Camera] | None = None,
+    reference_maps: dict[int, torch.Tensor] | None = None,
+) -> PbrsrResult:
+    """Optimise the HR maps of the images in ``init_maps`` (see the module docstring).
+
+    Maps are keyed by glTF image index, (H, W, C) float32: colour maps linear, data maps as
+    stored, normals encoded in [0, 1]; ``lr_maps`` (H, W, C), ``init_maps`` (sH, sW, C).
+    ``mesh`` is normalised to unit size. ``prior.upscale((N, 3, h, w) sRGB, scale)`` makes the
+    pseudo-GT. Test/benchmark hooks: ``cameras`` replaces view selection (their resolution is
+    the HR render resolution, a multiple of ``scale``); ``reference_maps`` replaces the
+    pseudo-GT by renders of those maps at the HR resolution (an oracle target, no prior).
+    ``progress`` may raise ``Cancelled``; it propagates.
+    """
+    from ..render import raster, shade  # imported here: the renderer is a heavy import
+
+    _check_inputs(lr_maps, init_maps, roles, scale)
+    if reference_maps is None and hasattr(prior, "check_scale"):
+        prior.check_scale(scale)
+    torch.manual_seed(seed)
+    gen = torch.Generator().manual_seed(seed)
+    timings: dict[str, float] = {}
+    mesh = mesh.to(device)
+    images = sorted(init_maps)
+    hr_sizes = {i: (int(init_maps[i].shape[0]), int(init_maps[i].shape[1])) for i in images}
+    groups = {i: map_groups(roles[i], int(init_maps[i].shape[2]), config) for i in images}
+
+    def rasterize(c):
+        return raster.rasterize(mesh, c).to(device)
+
+    # ---- 1. views and G-buffers -------------------------------------------------------------
+    t0 = time.perf_counter()
+    emit(progress, Progress(stage="gbuffers", message="choosing views"))
+    if cameras is not None:
+        if not cameras:
+            raise UnprocessableAsset("no training views were given")
+        res = int(cameras[0].resolution[0])
+        hr_cams, view_info = list(cameras), {"mode": "given"}
+    else:
+        hr_cams, res, view_info = _choose_views(
+            mesh, materials, images, hr_sizes, scale, config, rasterize
+        )
+    gbs, lr_gbs = [], []
+    n_views = len(hr_cams)
+    for k, c in enumerate(hr_cams):
+        h, w = c.resolution
+        if h % scale or w % scale:
+            raise UnprocessableAsset(f"render resolution {w}x{h} is not a multiple of x{scale}")
+        gbs.append(rasterize(c))
+        if reference_maps is None:
+            lr_gbs.append(rasterize(vsel.with_resolution(c, (h // scale, w // scale))))
+        emit(progress, Progress(stage="gbuffers", step=k + 1, total=n_views))
+    keep = [k for k in range(n_views) if _num_pixels(gbs[k]) > 0]
+    if not keep:
+        raise UnprocessableAsset("no training view sees the mesh; is the mesh empty?")
+    hr_cams = [hr_cams[k] for k in keep]
+    gbs = [gbs[k] for k in keep]
+    lr_gbs = [lr_gbs[k] for k in keep] if lr_gbs else []
+    n_views = len(gbs)
+    seen = vsel.seen_texels(mesh, materials, gbs, hr_sizes)
+    islands = {i: vsel.uv_texel_mask(mesh, materials, i, hr_sizes[i]) for i in images}
+    coverage = {
+        i: float((seen[i] & islands[i]).sum()) / max(int(islands[i].sum()), 1) for i in images
+    }
+    timings["gbuffers"] = time.perf_counter() - t0
+
+    # ---- 2. pseudo-GT -----------------------------------------------------------------------
+    t0 = time.perf_counter()
+    init_dev = {i: init_maps[i].detach().to(device, torch.float32) for i in images}
+    lr_dev = {i: lr_maps[i].detach().to(device, torch.float32) for i in images}
+    # images a material samples but that are not optimised render from their LR map
+    static = {
+        i: t.detach().to(device, torch.float32) for i, t in lr_maps.items() if i not in init_dev
+    }
+    for i in images:  # valid ranges from the start (the init is bicubic: normals not unit)
+        project_(init_dev[i], "normal" in roles[i])
+    targets: list[np.ndarray] = []
+    with torch.no_grad():
+        if reference_maps is not None:
+            ref = {**static, **{i: t.to(device, torch.float32) for i, t in reference_maps.items()}}
+            for k, gb in enumerate(gbs):
+                img = shade.to_image(
+                    gb,
+                    render_srgb(gb, materials, ref, light, shade),
+                    torch.full((3,), BACKGROUND, device=device),
+                )
+                targets.append(quantize(img))
+                emit(progress, Progress(stage="pseudo_gt", step=k + 1, total=n_views))
+        else:
+            common = content_hash(
+                init_dev,
+                static,
+                mesh,
+                materials,
+                light,
+                getattr(prior, "name", type(prior)),
+                scale,
+                BACKGROUND,
+            )
+            tex0 = {**static, **init_dev}
+            for k, (c, lgb) in enumerate(zip(hr_cams, lr_gbs, strict=True)):
+                key = content_hash(common, c.world_to_cam, c.proj, c.resolution)
+                q = load_cached(key, cache_dir)
+                if q is None:
+                    bg = torch.full((3,), BACKGROUND, device=device)
+                    lr_img = shade.to_image(
+                        lgb, render_srgb(lgb, materials, tex0, light, shade), bg
+                    )
+                    up = prior.upscale(lr_img.permute(2, 0, 1)[None].contiguous(), scale)
+                    q = quantize(up[0].permute(1, 2, 0))
+                    store_cached(key, q, cache_dir)
+                targets.append(q)
+                emit(progress, Progress(stage="pseudo_gt", step=k + 1, total=n_views))
+    timings["pseudo_gt"] = time.perf_counter() - t0
+
+    # ---- 3. optimise ------------------------------------------------------------------------
+    t0 = time.perf_counter()
+    params = {i: init_dev[i].clone().requires_grad_(True) for i in images}
+    grad_masks = {}
+    for i in images:
+        h, w, c = init_dev[i].shape
+        ch = torch.zeros(c, dtype=torch.bool, device=device)
+        for g in groups[i]:
+            ch[list(g.channels)] = True
+        texel = (
+            torch.from_numpy(seen[i]).to(device)
+            if config.mask_unseen
+            else torch.ones(h, w, dtype=torch.bool, device=device)
+        )
+        grad_masks[i] = (texel[..., None] & ch).to(torch.float32)
+    wres = config.weight_map_res
+    wmaps = torch.ones(n_views, wres, wres, device=device, requires_grad=True)
+    opt = torch.optim.Adam(
+        [
+            {"params": [params[i] for i in images], "lr": config.lr},
+            {"params": [wmaps], "lr": config.weight_map_lr},
+        ]
+    )
+    tgt_dev = [dequantize(q, device).reshape(-1, 3) for q in targets]
+    npix = [_num_pixels(gb) for gb in gbs]
+    offsets = torch.tensor([0, *np.cumsum(npix).tolist()], dtype=torch.long)
+    order: list[int] = []
+    history: list[dict] = []
+    eta = Eta(config.iterations)
+
+    def consistency_metrics() -> dict[str, float]:
+        return {
+            f"{i}:{g.name}": consistency_psnr(params[i].detach(), lr_dev[i], scale, g)
+            for i in images
+            for g in groups[i]
+        }
+
+    for it in range(config.iterations):
+        textures = {**static, **params}
+        if config.sampling == "views":
+            while len(order) < config.batch_views:
+                order.extend(torch.randperm(n_views, generator=gen).tolist())
+            batch, order = order[: config.batch_views], order[config.batch_views :]
+            sq_all, w_all, v_all, cov_all = [], [], [], []
+            for b, v in enumerate(batch):
+                gb = gbs[v]
+                h, w = gb.resolution
+                pred = render_srgb(gb, materials, textures, light, shade)
+                sq = ((pred - tgt_dev[v][gb.pix]) ** 2).sum(-1)
+                full = torch.zeros(h * w, dtype=sq.dtype, device=device).index_put((gb.pix,), sq)
+                cov = torch.zeros(h * w, dtype=torch.bool, device=device)
+                cov[gb.pix] = True
+                wup = upsample_weights(wmaps[v : v + 1], (h, w)).reshape(-1)
+                sq_all.append(full)
+                w_all.append(wup)
+                cov_all.append(cov)
+                v_all.append(torch.full((h * w,), b, dtype=torch.long, device=device))
+            l_pix, l_reg = robust_pixel_terms(
+                torch.cat(sq_all),
+                torch.cat(w_all),
+                torch.cat(v_all),
+                len(batch),
+                torch.cat(cov_all),
+            )
+        else:
+            total = int(offsets[-1])
+            n = min(config.pixels_per_step, total)
+            flat = torch.randint(total, (n,), generator=gen).sort().values
+            vid = torch.searchsorted(offsets[1:], flat, right=True)
+            local = flat - offsets[vid]
+            present = torch.unique(vid).tolist()
+            subs, tg, vv, xy = [], [], [], []
+            for j, v in enumerate(present):
+                sel = local[vid == v].to(device)
+                sub = subset_gbuffer(gbs[v], sel)
+                subs.append(sub)
+                tg.append(tgt_dev[v][sub.pix])
+                h, w = gbs[v].resolution
+                px = (sub.pix % w).to(torch.float32)
+                py = torch.div(sub.pix, w, rounding_mode="floor").to(torch.float32)
+                xy.append(torch.stack([(2 * px + 1) / w - 1, (2 * py + 1) / h - 1], -1))
+                vv.append(torch.full((sel.shape[0],), j, dtype=torch.long, device=device))
+            pred = render_srgb(concat_gbuffers(subs), materials, textures, light, shade)
+            sq = ((pred - torch.cat(tg)) ** 2).sum(-1)
+            vcat = torch.cat(vv)
+            wsel = wmaps[torch.tensor(present, device=device)]
+            wv = sample_weights(wsel, vcat, torch.cat(xy))
+            l_pix, l_reg = robust_pixel_terms(sq, wv, vcat, len(present))
+            batch = present
+
+        l_pbr = sum(
+            pbr_consistency(params[i], lr_dev[i], scale, groups[i], config.lambda_ssim)[0]
+            for i in images
+        )
+        l_tv = sum(tv_loss(params[i], groups[i]) for i in images)
+        loss = (
+            config.lambda_pix * l_pix
+            + config.lambda_reg * l_reg
+            + config.lambda_pbr * l_pbr
+            + config.lambda_tv * l_tv
+        )
+        opt.zero_grad(set_to_none=False)
+        loss.backward()
+        for i in images:
+            g = params[i].grad
+            torch.nan_to_num_(g, nan=0.0, posinf=0.0, neginf=0.0)
+            g.mul_(grad_masks[i])
+        torch.nan_to_num_(wmaps.grad, nan=0.0, posinf=0.0, neginf=0.0)
+        opt.step()
+        with torch.no_grad():
+            for i in images:
+                project_(params[i], "normal" in roles[i])
+            wmaps.clamp_(0.0, 1.0)
+
+        done = it + 1
+        if done % config.log_every == 0 or done == config.iterations or it == 0:
+            losses = {
+                "total": float(loss),
+                "pix": float(l_pix),
+                "reg": float(l_reg),
+                "pbr": float(l_pbr),
+                "tv": float(l_tv),
+            }
+            metrics = consistency_metrics()
+            history.append(
+                {
+                    "it": done,
+                    "losses": losses,
+                    "time": round(time.perf_counter() - t0, 4),
+                    "views": list(batch) if config.sampling == "views" else len(batch),
+                }
+            )
+            emit(
+                progress,
+                Progress(
+                    stage="optimize",
+                    step=done,
+                    total=config.iterations,
+                    losses=losses,
+                    metrics=metrics,
+                    eta_s=eta(done),
+                ),
+            )
+    timings["optimize"] = time.perf_counter() - t0
+
+    maps = {i: params[i].detach().clone() for i in images}
+    return PbrsrResult(
+        maps=maps,
+        history=history,
+        timings=timings,
+        views=[{**_camera_dict(c), "pixels": n} for c, n in zip(hr_cams, npix, strict=True)],
+        coverage=coverage,
+        consistency_psnr=consistency_metrics(),
+        render_res=res,
+        optimized={i: [g.name for g in groups[i]] for i in images},
+        seen_masks={i: torch.from_numpy(seen[i] & islands[i]) for i in images},
+        config={**config.to_dict(), "views": view_info, "seed": seed, "scale": scale},
+    )
+
+
+def dilate_islands(map_: torch.Tensor | np.ndarray, covered_mask, pixels: int):
+    """Pad UV islands: texels outside ``covered_mask`` within ``pixels`` steps of it take the
+    mean of their already-filled 8-neighbours, ring by ring, so mipmaps and bilinear filtering
+    near island borders do not pull in unrelated texels.
+
+    ``map_`` (H, W, C) numpy or torch (returned in the same type, dtype, device);
+    ``covered_mask`` (H, W) bool. Covered texels are never changed.
+    """
+    is_np = isinstance(map_, np.ndarray)
+    t = torch.from_numpy(np.ascontiguousarray(map_)) if is_np else map_
+    if t.ndim != 3:
+        raise ValueError(f"map must be (H, W, C), got {tuple(t.shape)}")
+    m = (
+        torch.as_tensor(
+            np.asarray(covered_mask) if not isinstance(covered_mask, torch.Tensor) else covered_mask
+        )
+        .to(t.device)
+        .bool()
+    )
+    if m.shape != t.shape[:2]:
+        raise ValueError(f"mask {tuple(m.shape)} does not match map {tuple(t.shape[:2])}")
+    dtype = t.dtype
+    x = t.to(torch.float64).permute(2, 0, 1)[None].clone()
+    filled = m.to(torch.float64)[None, None]
+    x = x * filled
+    k = torch.ones(1, 1, 3, 3, dtype=torch.float64, device=t.device)
+    c = x.shape[1]
+    for _ in range(max(int(pixels), 0)):
+        if bool(filled.all()):
+            break
+        num = torch.nn.functional.conv2d(x, k.expand(c, 1, 3, 3), padding=1, groups=c)
+        den = torch.nn.functional.conv2d(filled, k, padding=1)
+        new = (den > 0) & (filled == 0)
+        if not bool(new.any()):
+            break
+        x = torch.where(new, num / den.clamp_min(1.0), x)
+        filled = torch.where(new, torch.ones_like(filled), filled)
+    out = x[0].permute(1, 2, 0)
+    orig = t.to(torch.float64)
+    keep = (filled[0, 0] > 0)[..., None]
+    out = torch.where(keep, out, orig)  # texels beyond the padding keep their value
+    out = torch.where(m[..., None], orig, out).to(dtype)
+    return out.cpu().numpy() if is_np else out
+
+
+__all__ = [
+    "PbrsrResult",
+    "concat_gbuffers",
+    "dilate_islands",
+    "map_groups",
+    "optimize_pbrsr",
+    "project_",
+    "subset_gbuffer",
+]

@@ -1,0 +1,185 @@
+"""Named sets of numbers for the PBR-SR optimiser.
+
+``paper`` reproduces every default of the paper (METHOD.md "Defaults the paper gives"). The
+CPU presets ``fast`` / ``balanced`` / ``quality`` keep the paper's losses and lambdas and change
+only how much work is done: fewer views chosen for texel coverage instead of a fixed sphere,
+a render resolution that follows texel density (one pixel ~ one HR texel, capped), fewer
+iterations with a larger Adam step (the paper's 1e-4 over 2000 steps moves a texel by at most
+0.2; 1e-4 over 150 steps would barely move anything). They target roughly 1 / 3 / 10 minutes
+for a 128 -> 512 demo asset on a 2-core CPU; the lead retunes them from ``pbrsr bench
+upscale``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, replace
+from typing import Literal
+
+from ..errors import InvalidOptions
+
+
+@dataclass(frozen=True)
+class PbrsrConfig:
+    """Every number of one PBR-SR run (see the module docstring for how presets differ)."""
+
+    name: str = "custom"
+    # --- views --------------------------------------------------------------------------
+    view_mode: Literal["orbit", "coverage"] = "coverage"
+    """orbit: the fixed n_elev x n_azim sphere (the paper); coverage: greedily chosen from
+    ``n_candidates`` sphere views for new texels (views.py)."""
+    n_elev: int = 15
+    n_azim: int = 50
+    elev_range_deg: tuple[float, float] = (-60.0, 60.0)
+    distance: float = 3.25
+    """Camera distance around the mesh normalised to unit size (largest extent 1)."""
+    fov_deg: float = 10.0
+    n_candidates: int = 96
+    """coverage mode: candidate views on a Fibonacci sphere."""
+    max_views: int = 24
+    """coverage mode: at most this many views are kept."""
+    min_new_texels: float = 0.002
+    """coverage mode: stop adding views once the best adds less than this fraction of the
+    texels (per image, averaged)."""
+    # --- resolution -----------------------------------------------------------------------
+    render_res: int | None = 1024
+    """Pseudo-GT / optimisation render side in pixels; None = from texel density."""
+    min_render_res: int = 64
+    max_render_res: int = 1024
+    texel_footprint: float = 1.0
+    """Texel-density rule: aim for this many HR texels per pixel (median over covered
+    pixels); 1.0 = one pixel per HR texel."""
+    # --- optimisation ---------------------------------------------------------------------
+    iterations: int = 2000
+    batch_views: int = 4
+    lr: float = 1e-4
+    lr_weight_maps: float | None = None
+    """Adam step of the per-view weight maps; None = ``lr`` (the paper uses one lr)."""
+    sampling: Literal["views", "pixels"] = "views"
+    """views: each step renders ``batch_views`` whole views (the paper); pixels: each step
+    shades ``pixels_per_step`` random covered pixels drawn across all views."""
+    pixels_per_step: int = 65536
+    weight_map_res: int = 64
+    mask_unseen: bool = True
+    """Texels no training view sees keep their init (their gradient is zeroed)."""
+    # --- losses (paper 3.5) ---------------------------------------------------------------
+    lambda_pix: float = 100.0
+    lambda_reg: float = 0.5
+    lambda_ssim: float = 10.0
+    lambda_pbr: float = 10.0
+    lambda_tv: float = 0.5
+    w_metallic: float = 0.1
+    w_other: float = 1.0
+    # --- bookkeeping ----------------------------------------------------------------------
+    log_every: int = 10
+    eval_views: int = 240
+    """Evaluation views the benchmark uses (the paper's 6 x 40); not used in training."""
+
+    def __post_init__(self) -> None:
+        checks = [
+            (self.iterations >= 0, "iterations must be >= 0"),
+            (self.batch_views >= 1, "batch_views must be >= 1"),
+            (self.lr > 0, "lr must be > 0"),
+            (self.weight_map_res >= 1, "weight_map_res must be >= 1"),
+            (self.pixels_per_step >= 1, "pixels_per_step must be >= 1"),
+            (self.n_elev >= 1 and self.n_azim >= 1, "n_elev and n_azim must be >= 1"),
+            (self.max_views >= 1 and self.n_candidates >= 1, "view counts must be >= 1"),
+            (0 < self.fov_deg < 180, "fov_deg must be in (0, 180)"),
+            (self.distance > 0, "distance must be > 0"),
+            (self.render_res is None or self.render_res >= 8, "render_res must be >= 8"),
+            (8 <= self.min_render_res <= self.max_render_res, "bad min/max render resolution"),
+            (self.log_every >= 1, "log_every must be >= 1"),
+        ]
+        for ok, msg in checks:
+            if not ok:
+                raise InvalidOptions(f"PBR-SR config '{self.name}': {msg}")
+
+    @property
+    def weight_map_lr(self) -> float:
+        return self.lr if self.lr_weight_maps is None else self.lr_weight_maps
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def with_(self, **changes) -> PbrsrConfig:
+        """A copy with some numbers changed (e.g. ``with_(iterations=50)``)."""
+        return replace(self, **changes)
+
+
+PAPER = PbrsrConfig(
+    name="paper",
+    view_mode="orbit",  # 15 x 50 = 750 views at distance 3.25, FoV 10 (paper)
+    n_elev=15,
+    n_azim=50,
+    distance=3.25,
+    fov_deg=10.0,
+    render_res=1024,  # pseudo-GT 1024x1024 (paper; its ablation: higher is better)
+    iterations=2000,
+    batch_views=4,
+    lr=1e-4,  # Adam, constant
+    sampling="views",
+    mask_unseen=False,  # the paper optimises every texel
+    eval_views=240,
+)
+
+# CPU presets. Shared rationale:
+# * fov 30 at distance 3.25 frames the whole unit-size mesh (bounding-sphere radius <= 0.87 <
+#   3.25 tan 15 deg), so a few views cover it; the paper's FoV 10 sees only the central part.
+# * render_res None: resolution from texel density, one pixel per HR texel, capped by
+#   max_render_res (the cost of a step is proportional to the pixels shaded).
+# * lr: large enough that the planned iterations can move a texel by ~0.1-0.5.
+FAST = PbrsrConfig(
+    name="fast",
+    view_mode="coverage",
+    n_candidates=48,  # candidate views rasterised at low resolution for selection
+    max_views=8,  # few views: pseudo-GT costs one prior call per view
+    fov_deg=30.0,
+    render_res=None,
+    max_render_res=384,
+    iterations=80,
+    batch_views=2,
+    lr=5e-3,  # 80 steps x 5e-3: a texel can move by up to 0.4
+    mask_unseen=True,
+    log_every=5,
+)
+
+BALANCED = PbrsrConfig(
+    name="balanced",
+    view_mode="coverage",
+    n_candidates=64,
+    max_views=16,
+    fov_deg=30.0,
+    render_res=None,
+    max_render_res=512,  # 512: one pixel per texel on a 512 map seen face-on
+    iterations=200,
+    batch_views=2,
+    lr=3e-3,
+    mask_unseen=True,
+    log_every=10,
+)
+
+QUALITY = PbrsrConfig(
+    name="quality",
+    view_mode="coverage",
+    n_candidates=96,
+    max_views=32,
+    fov_deg=30.0,
+    render_res=None,
+    max_render_res=768,
+    iterations=500,
+    batch_views=3,
+    lr=2e-3,
+    mask_unseen=True,
+    log_every=10,
+)
+
+PRESETS: dict[str, PbrsrConfig] = {p.name: p for p in (FAST, BALANCED, QUALITY, PAPER)}
+
+
+def get_preset(name: str) -> PbrsrConfig:
+    """The preset called ``name`` (fast, balanced, quality, paper)."""
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise InvalidOptions(
+            f"unknown preset {name!r}: choose one of {', '.join(PRESETS)}"
+        ) from None
