@@ -187,7 +187,9 @@ def median_footprint(gb, materials: list[Material], image_sizes: dict[int, tuple
     """Median HR texels spanned by one pixel over the covered pixels of ``gb`` for the images in
     ``image_sizes`` (largest of the two screen axes), or None when nothing is textured."""
     vals = []
-    mats = gb.mat.detach().cpu().long()
+    if gb.num_pixels == 0:
+        return None
+    mats = (gb.mat if gb.mat is not None else torch.zeros_like(gb.tri)).detach().cpu().long()
     for i, (h, w) in image_sizes.items():
         for mi, ref in image_refs(materials, i):
             if ref.texcoord not in gb.uv_grad:
