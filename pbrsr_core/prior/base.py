@@ -1,0 +1,147 @@
+"""The image SR prior interface.
+
+A :class:`Prior` maps a batch of sRGB-encoded LDR images in [0, 1], shape (N, 3, H, W), to
+(N, 3, s*H, s*W) for each scale ``s`` in ``prior.scales``. Any H and W work: images are padded
+inside to what the network needs, and large images run through overlapping tiles with blended
+seams (:mod:`pbrsr_core.prior.tiling`). The output is clamped to [0, 1] and never NaN, lives on
+the input's device, and is an ordinary tensor (computed under ``torch.inference_mode`` but
+returned as a normal tensor, so it can serve as a loss target).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+
+import torch
+import torch.nn.functional as F
+
+from ..errors import UnprocessableAsset
+from .tiling import count_tiles, default_tile_size, run_tiled
+
+TileProgress = Callable[[int, int], None]
+"""``progress(done, total)`` in tiles; raise :class:`pbrsr_core.errors.Cancelled` to stop."""
+
+
+class Prior(ABC):
+    """Base class of every prior. Subclasses set ``name``, ``scales``, ``device`` and
+    implement :meth:`_forward`; they may set ``pad_multiple``/``min_size`` (network input
+    size requirements), ``bytes_per_pixel`` (estimated peak memory per LR input pixel, for the
+    default tile size) and ``default_overlap`` (LR pixels shared by neighbouring tiles)."""
+
+    name: str = ""
+    scales: tuple[int, ...] = ()
+    device: torch.device = torch.device("cpu")
+    pad_multiple: int = 1
+    min_size: int = 1
+    bytes_per_pixel: float = 4096.0
+    default_overlap: int = 16
+
+    def __init__(self) -> None:
+        self.tile_size: int | None = None  # LR pixels; None: chosen from free memory
+        self.tile_overlap: int | None = None  # LR pixels; None: default_overlap
+
+    # -- to implement ------------------------------------------------------------------
+    @abstractmethod
+    def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
+        """Run the network: x (B, 3, h, w) float32 on ``self.device``, h and w already
+        multiples of ``pad_multiple`` and at least ``min_size``; returns (B, 3, s*h, s*w)."""
+
+    def num_parameters(self) -> int:
+        """Trainable parameter count (0 for classical interpolation)."""
+        return 0
+
+    # -- the public call ---------------------------------------------------------------
+    def check_scale(self, scale: int) -> None:
+        """Raise :class:`UnprocessableAsset` if this prior cannot upscale by ``scale``."""
+        if scale not in self.scales:
+            have = ", ".join(f"x{s}" for s in self.scales)
+            raise UnprocessableAsset(
+                f"the prior '{self.name}' cannot upscale x{scale}; it supports {have}"
+            )
+
+    def effective_tile(self, tile_size: int | None = None) -> int:
+        """The tile side used for a run (argument, attribute, or from free memory)."""
+        tile = tile_size or self.tile_size
+        if tile is None:
+            tile = default_tile_size(self.device, self.bytes_per_pixel)
+        return max(int(tile), self.min_size, 8)
+
+    def upscale(
+        self,
+        images: torch.Tensor,
+        scale: int,
+        *,
+        progress: TileProgress | None = None,
+        tile_size: int | None = None,
+        tile_overlap: int | None = None,
+    ) -> torch.Tensor:
+        """Upscale images (N, 3, H, W) sRGB in [0, 1] to (N, 3, s*H, s*W) in [0, 1].
+
+        ``tile_size``/``tile_overlap`` (LR pixels) override the prior's settings for this call.
+        ``progress(done, total)`` is called after every tile of every image.
+        """
+        if not isinstance(images, torch.Tensor):
+            raise TypeError(f"images must be a torch.Tensor, got {type(images).__name__}")
+        if images.ndim != 4 or images.shape[1] != 3:
+            raise ValueError(f"images must have shape (N, 3, H, W), got {tuple(images.shape)}")
+        if images.shape[0] == 0 or images.shape[2] == 0 or images.shape[3] == 0:
+            raise ValueError(f"images must not be empty, got {tuple(images.shape)}")
+        self.check_scale(scale)
+        tile = self.effective_tile(tile_size)
+        overlap = self.default_overlap if tile_overlap is None else int(tile_overlap)
+        if self.tile_overlap is not None and tile_overlap is None:
+            overlap = self.tile_overlap
+        overlap = min(overlap, tile // 2)
+        n, _, h, w = images.shape
+        total = n * count_tiles(h, w, tile, overlap)
+        done = 0
+
+        def tick() -> None:
+            nonlocal done
+            done += 1
+            if progress is not None:
+                progress(done, total)
+
+        with torch.inference_mode():
+            x = torch.nan_to_num(images.detach().float(), nan=0.0).clamp(0.0, 1.0)
+            outs = [
+                run_tiled(
+                    lambda t: self._run_padded(t, scale), x[i : i + 1], scale, tile, overlap, tick
+                )
+                for i in range(n)
+            ]
+            out = torch.cat(outs, 0)
+            out = torch.nan_to_num(out, nan=0.0, posinf=1.0, neginf=0.0).clamp_(0.0, 1.0)
+        return out.clone()  # outside inference mode: an ordinary tensor
+
+    def _run_padded(self, x: torch.Tensor, scale: int) -> torch.Tensor:
+        """Pad x (B, 3, h, w) to the network's size requirements, run, crop back."""
+        _, _, h, w = x.shape
+        ph = _padded_size(h, self.pad_multiple, self.min_size) - h
+        pw = _padded_size(w, self.pad_multiple, self.min_size) - w
+        x = x.to(self.device)
+        if ph or pw:
+            mode = "reflect" if ph < h and pw < w else "replicate"
+            x = F.pad(x, (0, pw, 0, ph), mode=mode)
+        y = self._forward(x, scale)
+        expected = (x.shape[0], 3, x.shape[2] * scale, x.shape[3] * scale)
+        if tuple(y.shape) != expected:
+            raise RuntimeError(
+                f"prior '{self.name}' returned {tuple(y.shape)} for x{scale}, expected {expected}"
+            )
+        return y[:, :, : h * scale, : w * scale]
+
+    def describe(self) -> dict:
+        """Name, scales, parameters and device for listings and reports."""
+        return {
+            "name": self.name,
+            "scales": list(self.scales),
+            "parameters": self.num_parameters(),
+            "device": str(self.device),
+        }
+
+
+def _padded_size(n: int, multiple: int, minimum: int) -> int:
+    n = max(n, minimum)
+    return -(-n // multiple) * multiple

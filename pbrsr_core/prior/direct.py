@@ -1,0 +1,116 @@
+"""The direct-prior baseline on texture maps (what the paper's image-SR baselines do), and the
+bicubic reference on the same terms.
+
+Maps are numpy (H, W, C) float32 in [0, 1] as stored (sRGB for colour maps, encoded normals).
+The prior sees three channels at a time:
+
+- colour maps (``base_color``, ``emissive``, kind ``colour``) as the sRGB images they are;
+- data maps (``metallic_roughness``/ORM, ``occlusion``, kind ``data``) as an RGB image;
+- normal maps (``normal``): the encoded RGB image is upscaled, then decoded (n = 2t - 1),
+  z clamped positive, renormalised and re-encoded;
+- 1-channel images are replicated to RGB and the mean of the result is taken back; 2-channel
+  images are grey + alpha (PNG "LA");
+- alpha (the last channel of 2- and 4-channel images) is upscaled on its own with bicubic
+  interpolation and kept. Bicubic, not the prior: alpha is coverage, not an image; a
+  photo-trained prior sharpens soft cut-out edges into halos, and it would cost one more full
+  prior pass per map.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .base import Prior, TileProgress
+from .bicubic import bicubic_upscale
+
+_NORMAL = {"normal"}
+_MIN_Z = 1e-3
+
+
+def map_kind(role: str) -> str:
+    """``normal``, ``colour`` or ``data`` for a material role or an already-known kind."""
+    if role in _NORMAL:
+        return "normal"
+    if role in ("base_color", "emissive", "colour", "color"):
+        return "colour"
+    if role in ("metallic_roughness", "occlusion", "data", "orm"):
+        return "data"
+    raise ValueError(
+        f"unknown map role {role!r}: use base_color, emissive, metallic_roughness, occlusion, "
+        "normal (or the kinds colour, data, normal)"
+    )
+
+
+def _as_hwc(pixels: np.ndarray) -> np.ndarray:
+    a = np.asarray(pixels)
+    if a.ndim == 2:
+        a = a[:, :, None]
+    if a.ndim != 3 or a.shape[2] not in (1, 2, 3, 4) or a.shape[0] == 0 or a.shape[1] == 0:
+        raise ValueError(f"a map must be (H, W, C) with C in 1..4, got shape {a.shape}")
+    a = np.nan_to_num(a.astype(np.float32, copy=False), nan=0.0, posinf=1.0, neginf=0.0)
+    return np.clip(a, 0.0, 1.0)
+
+
+def _split(a: np.ndarray) -> tuple[torch.Tensor, torch.Tensor | None, int]:
+    """(H, W, C) -> colour (1, 3, H, W), alpha (1, 1, H, W) or None, colour channel count."""
+    t = torch.from_numpy(np.ascontiguousarray(a)).permute(2, 0, 1)[None]
+    c = a.shape[2]
+    n_colour = 3 if c >= 3 else 1
+    colour, alpha = t[:, :n_colour], (t[:, n_colour:] if c in (2, 4) else None)
+    if n_colour == 1:
+        colour = colour.expand(1, 3, *colour.shape[2:])
+    return colour.contiguous(), alpha, n_colour
+
+
+def _merge(rgb: torch.Tensor, alpha: torch.Tensor | None, n_colour: int, kind: str) -> np.ndarray:
+    """rgb (1, 3, sH, sW) + alpha (1, 1, sH, sW) -> (sH, sW, C) float32 in [0, 1]."""
+    if kind == "normal":
+        rgb = renormalize_encoded_normals(rgb)
+    colour = rgb if n_colour == 3 else rgb.mean(dim=1, keepdim=True)
+    parts = [colour] if alpha is None else [colour, alpha]
+    out = torch.cat(parts, 1).clamp(0.0, 1.0)[0].permute(1, 2, 0)
+    return np.ascontiguousarray(out.detach().cpu().numpy(), dtype=np.float32)
+
+
+def renormalize_encoded_normals(t: torch.Tensor) -> torch.Tensor:
+    """Encoded tangent-space normals (N, 3, H, W) in [0, 1] -> decoded, z clamped to >= 1e-3,
+    unit length, re-encoded to [0, 1]. Same shape."""
+    n = t * 2.0 - 1.0
+    n = torch.cat([n[:, :2], n[:, 2:3].clamp_min(_MIN_Z)], 1)
+    n = n / n.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    return (n + 1.0) * 0.5
+
+
+def upscale_map(
+    prior: Prior,
+    pixels: np.ndarray,
+    role: str,
+    scale: int,
+    *,
+    progress: TileProgress | None = None,
+) -> np.ndarray:
+    """Apply ``prior`` to one stored map. pixels (H, W, C) float32 in [0, 1], C in 1..4;
+    ``role`` a material role or kind (see :func:`map_kind`). Returns (s*H, s*W, C) float32
+    in [0, 1]."""
+    kind = map_kind(role)
+    a = _as_hwc(pixels)
+    colour, alpha, n_colour = _split(a)
+    rgb = prior.upscale(colour, scale, progress=progress).cpu()
+    up_alpha = None if alpha is None else bicubic_upscale(alpha, scale)
+    return _merge(rgb, up_alpha, n_colour, kind)
+
+
+def bicubic_map(pixels: np.ndarray, role: str, scale: int) -> np.ndarray:
+    """Bicubic upscaling of one stored map with the same conventions as :func:`upscale_map`
+    (every channel interpolated, clamped; normal maps renormalised). pixels (H, W, C) ->
+    (s*H, s*W, C) float32 in [0, 1]."""
+    if not isinstance(scale, int) or scale < 1:
+        raise ValueError(f"scale must be a positive integer, got {scale!r}")
+    kind = map_kind(role)
+    a = _as_hwc(pixels)
+    colour, alpha, n_colour = _split(a)
+    with torch.inference_mode():
+        rgb = bicubic_upscale(colour, scale).clamp(0.0, 1.0)
+        up_alpha = None if alpha is None else bicubic_upscale(alpha, scale)
+        return _merge(rgb, up_alpha, n_colour, kind)

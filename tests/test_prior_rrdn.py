@@ -1,0 +1,134 @@
+"""The TF.js -> torch conversion of @upscalerjs/esrgan-thick, proven on the package's own
+sample input and upscaled outputs (assets/fixture.png, assets/samples/{s}x/result.png)."""
+
+from __future__ import annotations
+
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+import torch
+import torch.nn.functional as F
+
+from pbrsr_core.errors import PriorUnavailable, UnprocessableAsset
+from pbrsr_core.prior import rrdn, tfjs
+from pbrsr_core.prior.registry import clear_cache, load_prior
+
+PKG = rrdn.package_dir()
+pytestmark = pytest.mark.skipif(
+    not (PKG / "package.json").is_file(), reason="npm package not installed (run scripts/setup)"
+)
+
+
+def _read_rgb(path) -> torch.Tensor:
+    buf = oiio.ImageBuf(str(path))
+    px = buf.get_pixels(oiio.FLOAT)
+    assert px is not None and px.ndim == 3, f"cannot read {path}"
+    return torch.from_numpy(np.ascontiguousarray(px[..., :3])).permute(2, 0, 1)[None]
+
+
+def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    mse = float(((a - b) ** 2).mean())
+    return 10.0 * np.log10(1.0 / max(mse, 1e-12))
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    mp = pytest.MonkeyPatch()
+    d = tmp_path_factory.mktemp("pbrsr-cache")
+    mp.setenv("PBRSR_CACHE_DIR", str(d))
+    clear_cache()
+    written = rrdn.install()
+    assert len(written) == len(rrdn.SCALES)
+    yield d
+    clear_cache()
+    mp.undo()
+
+
+def test_depth_to_space_matches_tf_definition():
+    s, c, h, w = 3, 2, 2, 4
+    x = torch.randn(1, s * s * c, h, w)
+    y = tfjs.depth_to_space(x, s)
+    assert y.shape == (1, c, h * s, w * s)
+    for ch in range(c):
+        for i in range(s):
+            for j in range(s):
+                # output[c, h*s+i, w*s+j] = input[(i*s+j)*C + c, h, w]
+                assert torch.equal(y[0, ch, i::s, j::s], x[0, (i * s + j) * c + ch])
+    # torch's pixel_shuffle uses another channel order: not the same operation
+    assert not torch.equal(y, F.pixel_shuffle(x, s))
+
+
+def test_graph_is_what_the_converter_supports():
+    import json
+
+    model = json.loads((PKG / "models" / "x4" / "model.json").read_text())
+    ops, kernels = tfjs.parse_graph(model)
+    kinds = {op["op"] for op in ops}
+    assert kinds == {"input", "conv", "relu", "concat", "add", "mul", "d2s"}
+    assert len(kernels) == 154 and all(k == (3, 3) for k in kernels.values())
+    assert [op["scale"] for op in ops if op["op"] == "d2s"] == [4]
+
+
+@pytest.mark.parametrize("scale", [2, 3, 4, 8])
+def test_converted_model_reproduces_package_samples(cache, scale):
+    x = _read_rgb(PKG / "assets" / "fixture.png")  # (1, 3, 128, 128)
+    ref = _read_rgb(PKG / "assets" / "samples" / f"{scale}x" / "result.png")
+    prior = load_prior("rrdn-thick", "cpu")
+    y = prior.upscale(x, scale, tile_size=512)  # one tile: the whole fixture
+    assert y.shape == ref.shape
+    psnr = _psnr(y, ref)
+    assert psnr >= 40.0, f"x{scale}: {psnr:.2f} dB against the package's own output"
+    # and it is not just bicubic: the network output is far closer than interpolation
+    bic = F.interpolate(x, scale_factor=scale, mode="bicubic").clamp(0, 1)
+    assert psnr > _psnr(bic, ref) + 10.0
+
+
+def test_torch_pixel_shuffle_order_would_fail(cache, monkeypatch):
+    """The fixture test can fail: with torch's channel order the output is garbage."""
+    x = _read_rgb(PKG / "assets" / "fixture.png")
+    ref = _read_rgb(PKG / "assets" / "samples" / "2x" / "result.png")
+    net = tfjs.load_converted(rrdn.weights_file(2))
+    monkeypatch.setattr(tfjs, "depth_to_space", F.pixel_shuffle)
+    with torch.inference_mode():
+        wrong = net(x).clamp(0, 1)
+    assert _psnr(wrong, ref) < 30.0
+
+
+def test_install_is_idempotent_and_loading_reads_only_safetensors(cache, monkeypatch):
+    assert rrdn.is_installed()
+    assert rrdn.install() == []  # second run: nothing to do
+    # loading must not touch the npm package
+    monkeypatch.setenv("PBRSR_NPM_DIR", str(cache / "no-such-dir"))
+    clear_cache()
+    prior = load_prior("rrdn-thick", "cpu")
+    assert prior.num_parameters() > 1_000_000
+    with pytest.raises(UnprocessableAsset):
+        prior.upscale(torch.rand(1, 3, 8, 8), 5)
+    clear_cache()
+
+
+def test_not_installed_names_the_command(tmp_path, monkeypatch):
+    monkeypatch.setenv("PBRSR_CACHE_DIR", str(tmp_path / "empty"))
+    clear_cache()
+    with pytest.raises(PriorUnavailable, match="pbrsr priors install rrdn-thick"):
+        load_prior("rrdn-thick", "cpu")
+    monkeypatch.setenv("PBRSR_NPM_DIR", str(tmp_path / "nothing"))
+    with pytest.raises(PriorUnavailable, match="scripts/setup"):
+        rrdn.install()
+    clear_cache()
+
+
+def test_tiled_matches_untiled_within_1e3(cache):
+    g = torch.Generator().manual_seed(1)
+    # a smooth random image with some edges, 72x72, tiles of 48 sharing 32 px at x2
+    base = torch.rand(1, 3, 9, 9, generator=g)
+    x = F.interpolate(base, size=(72, 72), mode="bicubic").clamp(0, 1)
+    x[:, :, 30:40, :] = 0.9
+    prior = load_prior("rrdn-thick", "cpu")
+    calls = []
+    whole = prior.upscale(x, 2, tile_size=128)
+    tiled = prior.upscale(
+        x, 2, tile_size=48, tile_overlap=32, progress=lambda d, t: calls.append((d, t))
+    )
+    assert calls == [(1, 4), (2, 4), (3, 4), (4, 4)]
+    assert float((whole - tiled).abs().max()) < 1e-3
