@@ -20,7 +20,7 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
-_COMMAND_MODULES: list[str] = ["upscale"]
+_COMMAND_MODULES: list[str] = ["upscale", "priors"]
 
 
 def _register_all() -> None:
