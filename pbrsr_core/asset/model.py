@@ -156,6 +156,13 @@ class Asset:
     mesh: Mesh
     source: Path
     kind: Literal["glb", "gltf"]
+    # Raw bytes of every external file the document refers to, by its (decoded) relative
+    # path, so that saving copies unchanged files byte for byte even when the source is gone.
+    resources: dict[str, bytes] = field(default_factory=dict)
+    # UVs made by unwrapping primitives that lacked a TEXCOORD their material needs:
+    # {(mesh index, primitive index): {texcoord n: (V, 2) float32 array}} in the primitive's
+    # own vertex order; saving writes them as new accessors so the output stays valid.
+    generated_uvs: dict[tuple[int, int], dict[int, np.ndarray]] = field(default_factory=dict)
 
     def material(self, index: int) -> Material:
         return DEFAULT_MATERIAL if index < 0 else self.materials[index]

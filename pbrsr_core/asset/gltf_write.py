@@ -1,0 +1,326 @@
+"""Save an :class:`Asset` with chosen images replaced, editing (not regenerating) its JSON.
+
+* ``.glb``: replaced images are embedded in the BIN chunk. The chunk is repacked: every
+  bufferView that is not a replaced image keeps its bytes (and its byteOffset modulo 4, so
+  accessor alignment holds); a replaced image's bufferView entry is rewritten in place when
+  only that image uses it, otherwise a new bufferView is appended. When something other than a
+  bufferView points into the BIN buffer (e.g. ``EXT_meshopt_compression``), the old bytes are
+  kept as they are and new images are appended instead. External files are copied.
+* ``.gltf``: replaced images become files beside it (same folder as the original file, a safe
+  version of its name, the output format's extension); images that were data URIs stay data
+  URIs; unchanged external files are copied byte for byte; buffers stay data URIs or files as
+  they were (a GLB's embedded buffer becomes ``<name>.bin``).
+
+Every file is written atomically (temp file + rename) and only inside the output's folder.
+"""
+
+from __future__ import annotations
+
+import base64
+import copy
+import json
+import os
+import struct
+import tempfile
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+
+from ..errors import InvalidOptions, StorageError
+from .gltf_read import CHUNK_BIN, CHUNK_JSON
+from .images import encode_image, output_format
+from .model import Asset, ImageData
+from .uris import encode_uri, is_data_uri, relative_path, resolve_inside, safe_stem
+
+
+def _walk_refs(obj, key: str, fn) -> None:
+    """Call ``fn(dict)`` for every dict in ``obj`` that has an int under ``key``."""
+    stack = [obj]
+    while stack:
+        o = stack.pop()
+        if isinstance(o, dict):
+            if isinstance(o.get(key), int) and not isinstance(o.get(key), bool):
+                fn(o)
+            stack.extend(o.values())
+        elif isinstance(o, list):
+            stack.extend(o)
+
+
+def _count_refs(doc: dict, key: str) -> dict[int, int]:
+    counts: dict[int, int] = {}
+
+    def inc(d):
+        counts[d[key]] = counts.get(d[key], 0) + 1
+
+    _walk_refs(doc, key, inc)
+    return counts
+
+
+def atomic_write(path: Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` through a temp file in the same folder and a rename."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".pbrsr-", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except OSError as exc:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise StorageError(f"cannot write '{path.name}': {exc.strerror or exc}") from None
+    return path
+
+
+class _Writer:
+    def __init__(self, asset: Asset, out_path: Path):
+        self.asset = asset
+        self.out_path = out_path
+        self.out_dir = out_path.parent
+        self.files: dict[str, bytes] = {}  # output-relative path -> bytes
+        self.taken: set[str] = set()
+
+    def target(self, rel: str) -> Path:
+        return resolve_inside(self.out_dir, PurePosixPath(rel), "an output file")
+
+    def unique(self, rel: str) -> str:
+        p = PurePosixPath(rel)
+        cand, k = rel, 1
+        while cand.lower() in self.taken or cand.lower() == self.out_path.name.lower():
+            cand = str(p.with_name(f"{p.stem}_{k}{p.suffix}"))
+            k += 1
+        self.taken.add(cand.lower())
+        return cand
+
+    def add_file(self, rel: str, data: bytes) -> None:
+        self.files[rel] = data
+        self.taken.add(rel.lower())
+
+    def flush(self, main: bytes) -> list[Path]:
+        written = [atomic_write(self.out_path, main)]
+        for rel, data in self.files.items():
+            written.append(atomic_write(self.target(rel), data))
+        return written
+
+
+def _encode_all(
+    asset: Asset, new_images: dict[int, np.ndarray], image_format: str
+) -> dict[int, tuple[bytes, str, str]]:
+    """{image index: (encoded bytes, mime, ext)} for every replaced image."""
+    by_index = {im.index: im for im in asset.images}
+    n_images = len(asset.document.get("images", []))
+    out = {}
+    for i, pixels in new_images.items():
+        if not isinstance(i, int) or not 0 <= i < n_images:
+            raise InvalidOptions(f"there is no image {i!r} to replace")
+        arr = np.asarray(pixels, dtype=np.float32)
+        if arr.ndim != 3 or not 1 <= arr.shape[2] <= 4:
+            raise ValueError(f"image {i}: pixels must be (H, W, C), C in 1..4; got {arr.shape}")
+        src = by_index.get(i)
+        probe = ImageData(
+            index=i,
+            name=src.name if src else f"image{i}",
+            pixels=arr,
+            bit_depth=src.bit_depth if src else 8,
+            mime=src.mime if src else "image/png",
+        )
+        fmt, bits, mime, ext = output_format(probe, image_format)
+        out[i] = (encode_image(arr, bits, fmt), mime, ext)
+    return out
+
+
+def _copy_external(w: _Writer, asset: Asset, doc: dict, replaced: set[int]) -> None:
+    """Queue every still-referenced external file (buffers, unreplaced images) for copying."""
+    for i, buf in enumerate(doc.get("buffers", [])):
+        uri = buf.get("uri")
+        if isinstance(uri, str) and not is_data_uri(uri):
+            rel = str(relative_path(uri, f"buffer {i}"))
+            w.add_file(rel, asset.resources[rel] if rel in asset.resources else asset.buffers[i])
+    for i, img in enumerate(doc.get("images", [])):
+        uri = img.get("uri")
+        if i in replaced or not isinstance(uri, str) or is_data_uri(uri):
+            continue
+        rel = str(relative_path(uri, f"image {i}"))
+        if rel in asset.resources:
+            w.add_file(rel, asset.resources[rel])
+
+
+def _image_file_name(asset: Asset, doc: dict, i: int, ext: str) -> str:
+    img = doc["images"][i]
+    uri = img.get("uri")
+    if isinstance(uri, str) and not is_data_uri(uri):
+        rel = relative_path(uri, f"image {i}")
+        parent = str(rel.parent) if str(rel.parent) != "." else ""
+        stem = safe_stem(rel.name, f"image{i}")
+    else:
+        parent = ""
+        name = img.get("name")
+        stem = safe_stem(name if isinstance(name, str) else "", f"image{i}")
+    return f"{parent}/{stem}{ext}" if parent else f"{stem}{ext}"
+
+
+def _save_gltf(asset: Asset, out_path: Path, encoded: dict) -> list[Path]:
+    doc = copy.deepcopy(asset.document)
+    w = _Writer(asset, out_path)
+    replaced = set(encoded)
+    # a GLB's embedded buffer becomes a .bin file
+    for i, buf in enumerate(doc.get("buffers", [])):
+        if "uri" not in buf:
+            rel = w.unique(f"{safe_stem(out_path.name, 'asset')}.bin")
+            buf["uri"] = encode_uri(rel)
+            w.add_file(rel, bytes(asset.buffers[i][: buf["byteLength"]]))
+    _copy_external(w, asset, doc, replaced)
+    for i in sorted(replaced):
+        data, mime, ext = encoded[i]
+        img = doc["images"][i]
+        was_data = isinstance(img.get("uri"), str) and is_data_uri(img["uri"])
+        img.pop("bufferView", None)
+        if was_data:
+            img["uri"] = f"data:{mime};base64," + base64.b64encode(data).decode("ascii")
+        else:
+            rel = w.unique(_image_file_name(asset, doc, i, ext))
+            img["uri"] = encode_uri(rel)
+            w.add_file(rel, data)
+        if mime in ("image/png", "image/jpeg") and (was_data or "mimeType" in img):
+            img["mimeType"] = mime
+        elif mime not in ("image/png", "image/jpeg"):
+            img.pop("mimeType", None)
+    main = (json.dumps(doc, indent=2, ensure_ascii=False) + "\n").encode("utf-8")
+    return w.flush(main)
+
+
+def _pad(n: int, align: int = 4) -> int:
+    return -n % align
+
+
+def _save_glb(asset: Asset, out_path: Path, encoded: dict) -> list[Path]:
+    doc = copy.deepcopy(asset.document)
+    w = _Writer(asset, out_path)
+    replaced = set(encoded)
+    # a GLB embeds only PNG/JPEG validly: other formats become files beside it
+    for i in sorted(replaced):
+        data, mime, ext = encoded[i]
+        if mime not in ("image/png", "image/jpeg"):
+            img = doc["images"][i]
+            img.pop("bufferView", None)
+            img.pop("mimeType", None)
+            rel = w.unique(_image_file_name(asset, doc, i, ext))
+            img["uri"] = encode_uri(rel)
+            w.add_file(rel, data)
+    encoded = {i: e for i, e in encoded.items() if e[1] in ("image/png", "image/jpeg")}
+    external = replaced - set(encoded)
+    replaced = set(encoded)
+    buffers = doc.setdefault("buffers", []) if (encoded or doc.get("buffers")) else []
+    has_bin = bool(buffers) and "uri" not in buffers[0]
+    if has_bin:
+        old_bin = bytes(asset.buffers[0][: buffers[0]["byteLength"]])
+    else:
+        old_bin = b""
+        if encoded:  # a new GLB-stored buffer must be buffer 0: shift every buffer index
+
+            def shift(d):
+                d["buffer"] += 1
+
+            for bv in doc.get("bufferViews", []):
+                if isinstance(bv.get("buffer"), int):
+                    shift(bv)
+            for k, v in doc.items():
+                if k != "bufferViews":
+                    _walk_refs(v, "buffer", shift)
+            buffers.insert(0, {"byteLength": 0})
+            has_bin = True
+    _copy_external(w, asset, doc, replaced | external)
+
+    views = doc.get("bufferViews", [])
+    view_refs = _count_refs(doc, "bufferView")
+    # bufferViews to refill in place with a replaced image's bytes
+    inplace: dict[int, int] = {}
+    for i in sorted(replaced):
+        bvi = doc["images"][i].get("bufferView")
+        if (
+            isinstance(bvi, int)
+            and 0 <= bvi < len(views)
+            and view_refs.get(bvi, 0) == 1
+            and views[bvi].get("buffer") == 0
+            and has_bin
+        ):
+            inplace[bvi] = i
+    outside_refs = []
+    for k, v in doc.items():
+        if k not in ("bufferViews", "buffers"):
+            _walk_refs(v, "buffer", lambda d: outside_refs.append(d) if d["buffer"] == 0 else None)
+
+    new_bin = bytearray()
+    if has_bin:
+        if outside_refs:  # keep the old bytes where they are; append new images
+            new_bin += old_bin
+            for bvi, i in inplace.items():
+                new_bin += b"\x00" * _pad(len(new_bin))
+                views[bvi]["byteOffset"] = len(new_bin)
+                views[bvi]["byteLength"] = len(encoded[i][0])
+                new_bin += encoded[i][0]
+        else:  # repack: views in their byte order, dead image bytes dropped
+            order = sorted(
+                (j for j, bv in enumerate(views) if bv.get("buffer") == 0),
+                key=lambda j: views[j].get("byteOffset", 0),
+            )
+            for j in order:
+                bv = views[j]
+                old_off = bv.get("byteOffset", 0)
+                data = (
+                    encoded[inplace[j]][0]
+                    if j in inplace
+                    else old_bin[old_off : old_off + bv["byteLength"]]
+                )
+                residue = 0 if j in inplace else old_off % 4
+                new_bin += b"\x00" * ((residue - len(new_bin)) % 4)
+                bv["byteOffset"] = len(new_bin)
+                bv["byteLength"] = len(data)
+                new_bin += data
+        placed = set(inplace.values())
+        for i in sorted(replaced - placed):
+            new_bin += b"\x00" * _pad(len(new_bin))
+            views.append(
+                {"buffer": 0, "byteOffset": len(new_bin), "byteLength": len(encoded[i][0])}
+            )
+            doc["bufferViews"] = views
+            img = doc["images"][i]
+            img.pop("uri", None)
+            img["bufferView"] = len(views) - 1
+            new_bin += encoded[i][0]
+        for i in replaced:
+            doc["images"][i]["mimeType"] = encoded[i][1]
+        buffers[0]["byteLength"] = len(new_bin)
+
+    json_bytes = json.dumps(doc, separators=(",", ":"), ensure_ascii=False).encode("utf-8")
+    json_bytes += b" " * _pad(len(json_bytes))
+    body = struct.pack("<II", len(json_bytes), CHUNK_JSON) + json_bytes
+    if has_bin:
+        bin_bytes = bytes(new_bin) + b"\x00" * _pad(len(new_bin))
+        body += struct.pack("<II", len(bin_bytes), CHUNK_BIN) + bin_bytes
+    main = struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body
+    return w.flush(main)
+
+
+def save_asset(
+    asset: Asset,
+    out_path: Path,
+    new_images: dict[int, np.ndarray] | None = None,
+    image_format: str = "same",
+) -> list[Path]:
+    """Write ``asset`` to ``out_path`` (``.glb`` or ``.gltf``, by its suffix) with the images
+    in ``new_images`` ({glTF image index: (H, W, C) float32 [0, 1] as stored}) replaced.
+
+    ``image_format``: "same", "png", "png16", "exr" or "jpeg" (see
+    :func:`pbrsr_core.asset.images.output_format`: precision never drops below the input's).
+    A ``.glb`` can embed only PNG/JPEG validly: a replaced image written as EXR/TIFF goes to a
+    file beside the ``.glb`` instead. Returns the written paths, the main file first.
+    """
+    out_path = Path(out_path)
+    suffix = out_path.suffix.lower()
+    if suffix not in (".glb", ".gltf"):
+        raise InvalidOptions(f"the output must be a .glb or .gltf file, not '{out_path.name}'")
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    encoded = _encode_all(asset, dict(new_images or {}), image_format)
+    if suffix == ".glb":
+        return _save_glb(asset, out_path, encoded)
+    return _save_gltf(asset, out_path, encoded)

@@ -1,0 +1,308 @@
+"""Texture files through OpenImageIO: PNG 8/16-bit, JPEG, EXR (half/float), TIFF.
+
+Pixels are numpy ``(H, W, C)`` float32 in [0, 1] as stored (no colour conversion here; see
+``pbrsr_core.colour``). Decisions, documented once:
+
+* The header is checked against :class:`~pbrsr_core.limits.Limits` *before* any pixel is
+  decoded (PNG and JPEG headers are parsed here, EXR/TIFF through OpenImageIO's header read),
+  so a decompression bomb costs a few bytes of reading.
+* Bytes whose magic is not PNG/JPEG/EXR/TIFF are :class:`InvalidAsset` ("not an image"), except
+  known image formats pbrsr does not take (WebP, KTX2, GIF, BMP): :class:`UnsupportedAsset`.
+* Grey images are expanded to RGB (grey+alpha to RGBA), as glTF samplers see them.
+* Alpha is read and written *unassociated* (straight), as PNG stores it.
+* EXR: NaN or infinite texels are refused (``InvalidAsset``): a texture with NaN is broken
+  and silently replacing values would hide it. Finite values are clipped to [0, 1].
+* Bit depth: 8 and 16 for integer formats; 16 for half EXR, 32 for float EXR/TIFF.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import tempfile
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import OpenImageIO as oiio
+
+from ..errors import InvalidAsset, InvalidOptions, LimitExceeded, UnsupportedAsset
+from ..limits import Limits
+from .model import ImageData
+
+ImageFormat = Literal["png", "jpeg", "exr", "tiff"]
+
+MIME = {
+    "png": "image/png",
+    "jpeg": "image/jpeg",
+    "exr": "image/x-exr",
+    "tiff": "image/tiff",
+}
+EXT = {"png": ".png", "jpeg": ".jpg", "exr": ".exr", "tiff": ".tif"}
+FORMAT_OF_MIME = {v: k for k, v in MIME.items()}
+
+_UNSUPPORTED_MAGIC = {
+    b"RIFF": "WebP",
+    b"\xabKTX": "KTX",
+    b"GIF8": "GIF",
+    b"BM": "BMP",
+    b"\x00\x00\x00\x0cjP": "JPEG 2000",
+}
+
+
+def sniff_format(head: bytes) -> ImageFormat:
+    """The image format from the first bytes; raises InvalidAsset/UnsupportedAsset."""
+    if head.startswith(b"\x89PNG\r\n\x1a\n"):
+        return "png"
+    if head.startswith(b"\xff\xd8\xff"):
+        return "jpeg"
+    if head.startswith(b"\x76\x2f\x31\x01"):
+        return "exr"
+    if head.startswith((b"II*\x00", b"MM\x00*")):
+        return "tiff"
+    for magic, what in _UNSUPPORTED_MAGIC.items():
+        if head.startswith(magic):
+            raise UnsupportedAsset(f"{what} images are not supported (use PNG, JPEG, EXR, TIFF)")
+    raise InvalidAsset("not an image (unknown file signature)")
+
+
+def _png_size(data: bytes) -> tuple[int, int]:
+    if len(data) < 24 or data[12:16] != b"IHDR":
+        raise InvalidAsset("truncated PNG header")
+    w, h = struct.unpack(">II", data[16:24])
+    return w, h
+
+
+def _jpeg_size(data: bytes) -> tuple[int, int]:
+    """Width and height from the first SOFn marker (no decoding)."""
+    i = 2
+    n = len(data)
+    while i + 4 <= n:
+        if data[i] != 0xFF:
+            i += 1
+            continue
+        marker = data[i + 1]
+        if marker == 0xFF:
+            i += 1
+            continue
+        if marker in (0x01, 0xD8) or 0xD0 <= marker <= 0xD7:
+            i += 2
+            continue
+        (seg_len,) = struct.unpack(">H", data[i + 2 : i + 4])
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            if i + 9 > n:
+                break
+            h, w = struct.unpack(">HH", data[i + 5 : i + 9])
+            return w, h
+        i += 2 + seg_len
+    raise InvalidAsset("truncated JPEG header (no frame marker)")
+
+
+def _check_dims(w: int, h: int, name: str, limits: Limits) -> None:
+    if w <= 0 or h <= 0:
+        raise InvalidAsset(f"the image '{name}' declares an empty size {w}x{h}")
+    if w > limits.max_texture_dim or h > limits.max_texture_dim:
+        raise LimitExceeded(
+            f"the image '{name}' is {w}x{h}; the limit is {limits.max_texture_dim} per side"
+        )
+
+
+def _read_with_oiio(
+    filename: str, fmt: ImageFormat, name: str, limits: Limits
+) -> tuple[np.ndarray, int, str]:
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    inp = oiio.ImageInput.open(filename, config)
+    if inp is None:
+        msg = oiio.geterror()
+        if "exceeds" in msg and "limit" in msg:
+            raise LimitExceeded(f"the image '{name}' declares a size over the limit")
+        raise InvalidAsset(
+            f"the image '{name}' cannot be read: {msg.splitlines()[0] if msg else fmt}"
+        )
+    try:
+        spec = inp.spec()
+        _check_dims(spec.width, spec.height, name, limits)
+        if spec.depth > 1 or spec.nchannels < 1 or spec.nchannels > 4:
+            raise UnsupportedAsset(
+                f"the image '{name}' has {spec.nchannels} channels/depth {spec.depth}; "
+                "pbrsr takes 1-4 channel 2D images"
+            )
+        basetype = spec.format.basetype
+        if basetype in (oiio.UINT8, oiio.INT8):
+            bit_depth = 8
+        elif basetype in (oiio.UINT16, oiio.INT16) or basetype == oiio.HALF:
+            bit_depth = 16
+        else:
+            bit_depth = 32
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        if pixels is None:
+            raise InvalidAsset(f"the image '{name}' is corrupt or truncated: {oiio.geterror()}")
+    finally:
+        inp.close()
+        oiio.geterror()  # clear any pending message so OIIO does not print it at exit
+    pixels = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, -1)
+    if fmt in ("exr", "tiff") and not np.isfinite(pixels).all():
+        raise InvalidAsset(f"the image '{name}' contains NaN or infinite values")
+    pixels = np.clip(pixels, 0.0, 1.0)
+    if pixels.shape[2] == 1:
+        pixels = np.repeat(pixels, 3, axis=2)
+    elif pixels.shape[2] == 2:
+        pixels = np.concatenate([np.repeat(pixels[..., :1], 3, axis=2), pixels[..., 1:]], axis=2)
+    return np.ascontiguousarray(pixels), bit_depth, MIME[fmt]
+
+
+def read_image(
+    data: bytes | Path, name: str, limits: Limits = Limits()
+) -> tuple[np.ndarray, int, str]:
+    """Decode one image -> ``(pixels (H, W, C) float32 [0, 1], bit_depth, mime)``.
+
+    ``data`` is the encoded bytes or a file path; ``name`` is the asset-relative label used in
+    error messages. C is 3 or 4 (grey is expanded). Raises InvalidAsset (not an image,
+    corrupt, NaN), UnsupportedAsset (a known format pbrsr does not take) and LimitExceeded
+    (dimensions over ``limits.max_texture_dim``, checked from the header before decoding).
+    """
+    if isinstance(data, (str, Path)):
+        path = Path(data)
+        with open(path, "rb") as f:
+            head = f.read(1 << 16)
+        if not head:
+            raise InvalidAsset(f"the image '{name}' is empty")
+        try:
+            fmt = sniff_format(head)
+        except InvalidAsset as exc:
+            raise InvalidAsset(f"the image '{name}' is {exc.message}") from None
+        _precheck(fmt, head, name, limits)
+        return _read_with_oiio(str(path), fmt, name, limits)
+    data = bytes(data)
+    if not data:
+        raise InvalidAsset(f"the image '{name}' is empty")
+    try:
+        fmt = sniff_format(data[:16])
+    except InvalidAsset as exc:
+        raise InvalidAsset(f"the image '{name}' is {exc.message}") from None
+    _precheck(fmt, data, name, limits)
+    fd, tmp = tempfile.mkstemp(prefix="pbrsr-img-", suffix=EXT[fmt])
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        return _read_with_oiio(tmp, fmt, name, limits)
+    finally:
+        os.unlink(tmp)
+
+
+def _precheck(fmt: ImageFormat, head: bytes, name: str, limits: Limits) -> None:
+    if fmt == "png":
+        _check_dims(*_png_size(head), name, limits)
+    elif fmt == "jpeg":
+        try:
+            w, h = _jpeg_size(head)
+        except InvalidAsset:
+            return  # frame marker beyond the first bytes read: OIIO's header read checks it
+        _check_dims(w, h, name, limits)
+
+
+def _oiio_type(fmt: ImageFormat, bit_depth: int) -> str:
+    if fmt == "jpeg":
+        if bit_depth != 8:
+            raise InvalidOptions("JPEG holds 8 bits per channel only")
+        return "uint8"
+    if fmt == "png":
+        if bit_depth not in (8, 16):
+            raise InvalidOptions("PNG holds 8 or 16 bits per channel")
+        return "uint8" if bit_depth == 8 else "uint16"
+    if fmt == "exr":
+        if bit_depth not in (16, 32):
+            raise InvalidOptions("EXR holds half (16) or float (32) channels")
+        return "half" if bit_depth == 16 else "float"
+    if fmt == "tiff":
+        return {8: "uint8", 16: "uint16", 32: "float"}[bit_depth]
+    raise InvalidOptions(f"unknown image format {fmt!r}")
+
+
+def write_image(path: Path, pixels: np.ndarray, bit_depth: int, fmt: ImageFormat) -> Path:
+    """Write ``pixels`` (H, W, C) float32 [0, 1], C in 1..4, to ``path`` atomically.
+
+    ``fmt``: "png" (8/16), "jpeg" (8, quality 95, 4:4:4; no alpha: C must be 1 or 3), "exr"
+    (16 half / 32 float, zip compression), "tiff" (8/16/32).
+    """
+    path = Path(path)
+    arr = np.asarray(pixels, dtype=np.float32)
+    if arr.ndim == 2:
+        arr = arr[..., None]
+    if arr.ndim != 3 or not 1 <= arr.shape[2] <= 4 or arr.shape[0] < 1 or arr.shape[1] < 1:
+        raise ValueError(f"pixels must be (H, W, C) with C in 1..4, got {arr.shape}")
+    if fmt == "jpeg" and arr.shape[2] in (2, 4):
+        raise InvalidOptions("JPEG has no alpha channel; write PNG for images with alpha")
+    if not np.isfinite(arr).all():
+        raise ValueError("pixels contain NaN or infinite values")
+    arr = np.ascontiguousarray(np.clip(arr, 0.0, 1.0))
+    h, w, c = arr.shape
+    spec = oiio.ImageSpec(w, h, c, _oiio_type(fmt, bit_depth))
+    spec.attribute("oiio:UnassociatedAlpha", 1)
+    if fmt == "jpeg":
+        spec.attribute("Compression", "jpeg:95")
+        spec.attribute("jpeg:subsampling", "4:4:4")
+    elif fmt == "exr" or fmt == "tiff":
+        spec.attribute("compression", "zip")
+    fd, tmp = tempfile.mkstemp(prefix=".pbrsr-", suffix=EXT[fmt], dir=path.parent)
+    os.close(fd)
+    try:
+        out = oiio.ImageOutput.create(tmp)
+        if out is None or not out.open(tmp, spec):
+            raise OSError(f"cannot write image: {oiio.geterror()}")
+        ok = out.write_image(arr)
+        out.close()
+        if not ok:
+            raise OSError(f"cannot write image: {oiio.geterror()}")
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def encode_image(pixels: np.ndarray, bit_depth: int, fmt: ImageFormat) -> bytes:
+    """The encoded bytes of :func:`write_image`'s file (for embedding in a GLB/data URI)."""
+    with tempfile.TemporaryDirectory(prefix="pbrsr-enc-") as d:
+        p = write_image(Path(d) / f"image{EXT[fmt]}", pixels, bit_depth, fmt)
+        return p.read_bytes()
+
+
+def output_format(image: ImageData, requested: str = "same") -> tuple[ImageFormat, int, str, str]:
+    """The output ``(fmt, bit_depth, mime, ext)`` for ``image`` under ``requested``.
+
+    ``requested`` is "same", "png", "png16", "exr" or "jpeg". Precision never drops below the
+    input's: a request that would lose precision is *upgraded* (not refused): 16-bit input asked
+    as "png"/"jpeg" gives 16-bit PNG; 32-bit float input asked as anything but "exr" gives a
+    float EXR. An image with alpha asked as "jpeg" gives PNG (JPEG has no alpha).
+    """
+    src = FORMAT_OF_MIME.get(image.mime, "png")
+    depth = image.bit_depth
+    if requested == "same":
+        fmt, bits = src, depth
+    elif requested == "png":
+        fmt, bits = "png", 8
+    elif requested == "png16":
+        fmt, bits = "png", 16
+    elif requested == "exr":
+        fmt, bits = "exr", max(16, depth)
+    elif requested == "jpeg":
+        fmt, bits = "jpeg", 8
+    else:
+        raise InvalidOptions(
+            f"unknown image format {requested!r}: use same, png, png16, exr or jpeg"
+        )
+    if fmt == "jpeg" and image.channels == 4:
+        fmt = "png"
+    if depth > bits:
+        if depth >= 32:
+            fmt, bits = "exr", 32
+        else:
+            fmt, bits = "png", 16
+    if fmt == "exr" and bits < 16:
+        bits = 16
+    if fmt == "tiff" and bits not in (8, 16, 32):
+        bits = 32
+    return fmt, bits, MIME[fmt], EXT[fmt]
