@@ -25,6 +25,7 @@ regulariser's gradient vanishes, so W only moves where the pixel loss pushes it.
 from __future__ import annotations
 
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
@@ -46,7 +47,7 @@ from .losses import (
     upsample_weights,
 )
 from .presets import PbrsrConfig
-from .pseudo_gt import content_hash, dequantize, load_cached, quantize, store_cached
+from .pseudo_gt import content_hash, load_cached, mapped, quantize, store_cached
 
 PROBE_RES = 128  # side of the low-resolution renders used to select views and measure density
 BACKGROUND = 0.0
@@ -138,6 +139,53 @@ def render_srgb(gb, materials, textures, light, shade_mod) -> torch.Tensor:
     """Shade the covered pixels of ``gb`` and tonemap: (P, 3) sRGB."""
     rgba = shade_mod.shade(gb, materials, textures, light)
     return shade_mod.tonemap(rgba[:, :3])
+
+
+def gbuffer_bytes(gb) -> int:
+    """Bytes held by a G-buffer's tensors."""
+    n = 0
+    for f in fields(gb):
+        v = getattr(gb, f.name)
+        vals = v.values() if isinstance(v, dict) else [v]
+        n += sum(t.numel() * t.element_size() for t in vals if isinstance(t, torch.Tensor))
+    return n
+
+
+class GBufferStore:
+    """The G-buffers of a fixed list of cameras, rasterised once each and kept while they fit
+    in ``max_bytes`` (least recently used ones are dropped and rasterised again on demand: the
+    paper's 750 views at 1024^2 would need ~80 GB). Records covered pixel counts and the
+    triangles each view sees on the first pass."""
+
+    def __init__(self, cameras: list, rasterize, max_bytes: int):
+        self.cameras = cameras
+        self.rasterize = rasterize
+        self.max_bytes = max_bytes
+        self.items: OrderedDict[int, object] = OrderedDict()
+        self.bytes = 0
+        self.npix: dict[int, int] = {}
+        self.visible: dict[int, torch.Tensor] = {}
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def get(self, k: int):
+        gb = self.items.get(k)
+        if gb is not None:
+            self.items.move_to_end(k)
+            return gb
+        gb = self.rasterize(self.cameras[k])
+        if k not in self.npix:
+            self.npix[k] = _num_pixels(gb)
+            self.visible[k] = vsel.visible_triangles([gb])
+        size = gbuffer_bytes(gb)
+        if size <= self.max_bytes:
+            self.items[k] = gb
+            self.bytes += size
+            while self.bytes > self.max_bytes:
+                _, old = self.items.popitem(last=False)
+                self.bytes -= gbuffer_bytes(old)
+        return gb
 
 
 # ---------------------------------------------------------------------------------------------
@@ -312,24 +360,30 @@ def optimize_pbrsr(
         hr_cams, res, view_info = _choose_views(
             mesh, materials, images, hr_sizes, scale, config, rasterize
         )
-    gbs, lr_gbs = [], []
-    n_views = len(hr_cams)
-    for k, c in enumerate(hr_cams):
+    for c in hr_cams:
         h, w = c.resolution
         if h % scale or w % scale:
             raise UnprocessableAsset(f"render resolution {w}x{h} is not a multiple of x{scale}")
-        gbs.append(rasterize(c))
-        if reference_maps is None:
-            lr_gbs.append(rasterize(vsel.with_resolution(c, (h // scale, w // scale))))
-        emit(progress, Progress(stage="gbuffers", step=k + 1, total=n_views))
-    keep = [k for k in range(n_views) if _num_pixels(gbs[k]) > 0]
+    budget = int(config.gbuffer_cache_mb) * 2**20
+    probe = GBufferStore(hr_cams, rasterize, budget)
+    for k in range(len(hr_cams)):
+        probe.get(k)
+        emit(progress, Progress(stage="gbuffers", step=k + 1, total=len(hr_cams)))
+    keep = [k for k in range(len(hr_cams)) if probe.npix[k] > 0]
     if not keep:
         raise UnprocessableAsset("no training view sees the mesh; is the mesh empty?")
+    vis = torch.unique(torch.cat([probe.visible[k] for k in keep]))
     hr_cams = [hr_cams[k] for k in keep]
-    gbs = [gbs[k] for k in keep]
-    lr_gbs = [lr_gbs[k] for k in keep] if lr_gbs else []
-    n_views = len(gbs)
-    seen = vsel.seen_texels(mesh, materials, gbs, hr_sizes)
+    gbs = GBufferStore(hr_cams, rasterize, budget)
+    for j, k in enumerate(keep):  # move what is already rasterised; nothing is redone
+        gbs.npix[j], gbs.visible[j] = probe.npix[k], probe.visible[k]
+        if k in probe.items:
+            gbs.items[j] = probe.items[k]
+            gbs.bytes += gbuffer_bytes(probe.items[k])
+    del probe
+    n_views = len(hr_cams)
+    npix = [gbs.npix[k] for k in range(n_views)]
+    seen = {i: vsel.uv_texel_mask(mesh, materials, i, hr_sizes[i], vis) for i in images}
     islands = {i: vsel.uv_texel_mask(mesh, materials, i, hr_sizes[i]) for i in images}
     coverage = {
         i: float((seen[i] & islands[i]).sum()) / max(int(islands[i].sum()), 1) for i in images
@@ -350,7 +404,8 @@ def optimize_pbrsr(
     with torch.no_grad():
         if reference_maps is not None:
             ref = {**static, **{i: t.to(device, torch.float32) for i, t in reference_maps.items()}}
-            for k, gb in enumerate(gbs):
+            for k in range(n_views):
+                gb = gbs.get(k)
                 img = shade.to_image(
                     gb,
                     render_srgb(gb, materials, ref, light, shade),
@@ -370,10 +425,12 @@ def optimize_pbrsr(
                 BACKGROUND,
             )
             tex0 = {**static, **init_dev}
-            for k, (c, lgb) in enumerate(zip(hr_cams, lr_gbs, strict=True)):
+            for k, c in enumerate(hr_cams):
                 key = content_hash(common, c.world_to_cam, c.proj, c.resolution)
                 q = load_cached(key, cache_dir)
                 if q is None:
+                    h, w = c.resolution
+                    lgb = rasterize(vsel.with_resolution(c, (h // scale, w // scale)))
                     bg = torch.full((3,), BACKGROUND, device=device)
                     lr_img = shade.to_image(
                         lgb, render_srgb(lgb, materials, tex0, light, shade), bg
@@ -381,7 +438,8 @@ def optimize_pbrsr(
                     up = prior.upscale(lr_img.permute(2, 0, 1)[None].contiguous(), scale)
                     q = quantize(up[0].permute(1, 2, 0))
                     store_cached(key, q, cache_dir)
-                targets.append(q)
+                # on disk: read through a memory map (750 paper targets are ~4.7 GB)
+                targets.append(mapped(key, cache_dir, q))
                 emit(progress, Progress(stage="pseudo_gt", step=k + 1, total=n_views))
     timings["pseudo_gt"] = time.perf_counter() - t0
 
@@ -408,8 +466,11 @@ def optimize_pbrsr(
             {"params": [wmaps], "lr": config.weight_map_lr},
         ]
     )
-    tgt_dev = [dequantize(q, device).reshape(-1, 3) for q in targets]
-    npix = [_num_pixels(gb) for gb in gbs]
+
+    def target(v: int, pix: torch.Tensor) -> torch.Tensor:  # (P, 3) pseudo-GT at pixels
+        q = np.asarray(targets[v].reshape(-1, 3)[pix.cpu().numpy()], dtype=np.float32)
+        return (torch.from_numpy(q) / 65535.0).to(device)
+
     offsets = torch.tensor([0, *np.cumsum(npix).tolist()], dtype=torch.long)
     order: list[int] = []
     history: list[dict] = []
@@ -430,10 +491,10 @@ def optimize_pbrsr(
             batch, order = order[: config.batch_views], order[config.batch_views :]
             sq_all, w_all, v_all, cov_all = [], [], [], []
             for b, v in enumerate(batch):
-                gb = gbs[v]
+                gb = gbs.get(v)
                 h, w = gb.resolution
                 pred = render_srgb(gb, materials, textures, light, shade)
-                sq = ((pred - tgt_dev[v][gb.pix]) ** 2).sum(-1)
+                sq = ((pred - target(v, gb.pix)) ** 2).sum(-1)
                 full = torch.zeros(h * w, dtype=sq.dtype, device=device).index_put((gb.pix,), sq)
                 cov = torch.zeros(h * w, dtype=torch.bool, device=device)
                 cov[gb.pix] = True
@@ -459,10 +520,10 @@ def optimize_pbrsr(
             subs, tg, vv, xy = [], [], [], []
             for j, v in enumerate(present):
                 sel = local[vid == v].to(device)
-                sub = subset_gbuffer(gbs[v], sel)
+                sub = subset_gbuffer(gbs.get(v), sel)
                 subs.append(sub)
-                tg.append(tgt_dev[v][sub.pix])
-                h, w = gbs[v].resolution
+                tg.append(target(v, sub.pix))
+                h, w = sub.resolution
                 px = (sub.pix % w).to(torch.float32)
                 py = torch.div(sub.pix, w, rounding_mode="floor").to(torch.float32)
                 xy.append(torch.stack([(2 * px + 1) / w - 1, (2 * py + 1) / h - 1], -1))
@@ -502,11 +563,11 @@ def optimize_pbrsr(
         done = it + 1
         if done % config.log_every == 0 or done == config.iterations or it == 0:
             losses = {
-                "total": float(loss),
-                "pix": float(l_pix),
-                "reg": float(l_reg),
-                "pbr": float(l_pbr),
-                "tv": float(l_tv),
+                "total": float(loss.detach()),
+                "pix": float(l_pix.detach()),
+                "reg": float(l_reg.detach()),
+                "pbr": float(l_pbr.detach()),
+                "tv": float(l_tv.detach()),
             }
             metrics = consistency_metrics()
             history.append(

@@ -70,6 +70,8 @@ class PbrsrConfig:
     w_metallic: float = 0.1
     w_other: float = 1.0
     # --- bookkeeping ----------------------------------------------------------------------
+    gbuffer_cache_mb: int = 2048
+    """G-buffers kept in memory (LRU); views beyond are rasterised again when used."""
     log_every: int = 10
     eval_views: int = 240
     """Evaluation views the benchmark uses (the paper's 6 x 40); not used in training."""

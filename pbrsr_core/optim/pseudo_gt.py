@@ -153,3 +153,15 @@ def store_cached(key: str, value: np.ndarray, cache_dir: Path | None) -> None:
         os.replace(tmp, _disk_path(cache_dir, key))
     except OSError:
         pass
+
+
+def mapped(key: str, cache_dir: Path | None, fallback: np.ndarray) -> np.ndarray:
+    """A read-only memory map of the disk copy of ``key`` when there is one, else
+    ``fallback`` (so many large targets need not all sit in memory)."""
+    if cache_dir is None:
+        return fallback
+    try:
+        m = np.load(_disk_path(cache_dir, key), mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError):
+        return fallback
+    return m if m.shape == fallback.shape and m.dtype == fallback.dtype else fallback
