@@ -1,0 +1,228 @@
+"""Every ``PBRSR_*`` environment variable of the service and the workers, in one place.
+
+``Settings`` is read from the environment (and an optional ``.env`` file) by pydantic-settings
+and validated when it is built, so a bad value stops ``pbrsr serve`` / ``pbrsr worker`` at
+start-up with a message naming the variable. The API takes it through the
+:func:`get_settings` dependency (cached; tests override it), the worker builds it once.
+docs/SERVICE.md has the table of every variable; keep the two in step (a test checks).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from functools import lru_cache
+from pathlib import Path
+from typing import Annotated
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+from .limits import Limits
+
+_MB = 1024 * 1024
+_DEVICE_RE = re.compile(r"^(auto|cpu|cuda|cuda:\d+)$")
+_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+
+
+def _default_storage() -> Path:
+    base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(base) / "pbrsr"
+
+
+def _split_csv(value: object) -> object:
+    """``"a, b,,c"`` -> ``["a", "b", "c"]``; lists pass through; ``""``/None -> ``[]``."""
+    if value is None:
+        return []
+    if isinstance(value, str):
+        return [part.strip() for part in value.split(",") if part.strip()]
+    return value
+
+
+class Settings(BaseSettings):
+    """Configuration of the job service and its workers (env prefix ``PBRSR_``)."""
+
+    model_config = SettingsConfigDict(
+        env_prefix="PBRSR_", env_file=".env", extra="ignore", case_sensitive=False
+    )
+
+    # -- where things live --------------------------------------------------------------
+    redis_url: str = Field("redis://127.0.0.1:6379/0", description="Redis for the job queue.")
+    storage_dir: Path = Field(
+        default_factory=_default_storage,
+        description="Root of job storage (jobs/<id>/input, output, result.zip); a shared "
+        "NFS path when API and workers run on different machines.",
+    )
+    queue: str = Field("pbrsr", description="RQ queue name (workers and API must agree).")
+    key_prefix: str = Field(
+        "pbrsr", description="Prefix of pbrsr's own Redis keys (job index, cancel flags)."
+    )
+    cache_dir: Path | None = Field(
+        None, description="Converted prior weights (read by the prior code as PBRSR_CACHE_DIR)."
+    )
+    npm_dir: Path | None = Field(
+        None, description="node_modules holding the TF.js prior (PBRSR_NPM_DIR)."
+    )
+    models_dir: Path | None = Field(
+        None,
+        description="Folder of extra prior weights a job may name as 'spandrel:<file>' or "
+        "'diffusion:<folder>'; unset = only built-in priors.",
+    )
+    envmap_dir: Path | None = Field(
+        None,
+        description="Folder of environment maps a job may name (options.envmap = file name); "
+        "unset = only the built-in procedural environment.",
+    )
+
+    # -- worker ----------------------------------------------------------------------------
+    device: str = Field("auto", description="Worker device: auto, cpu, cuda or cuda:N.")
+    job_timeout: int = Field(6 * 3600, ge=10, description="Seconds one job may run.")
+    job_retries: int = Field(
+        2, ge=0, le=10, description="Retries of a job whose worker died (killed, OOM)."
+    )
+    heartbeat_s: float = Field(
+        10.0,
+        gt=0,
+        description="Worker heartbeat period during a job; a job whose worker is silent for "
+        "3 periods is abandoned and retried by another worker.",
+    )
+    maintenance_s: int = Field(
+        30,
+        ge=1,
+        description="How often an idle worker recovers abandoned jobs and expires old ones.",
+    )
+    progress_interval_s: float = Field(
+        1.0, gt=0, description="Least seconds between two progress writes to job.meta."
+    )
+    preload_priors: Annotated[list[str], NoDecode] = Field(
+        default_factory=lambda: ["rrdn-thick"],
+        description="Priors a worker loads at start (comma-separated; empty = none).",
+    )
+    log_level: str = Field("INFO", description="Logging level of API and workers.")
+
+    # -- API -------------------------------------------------------------------------------
+    api_keys: Annotated[list[str], NoDecode] = Field(
+        default_factory=list,
+        description="Comma-separated API keys; empty = no authentication. With keys, each "
+        "key sees only its own jobs.",
+    )
+    cors_origins: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, description="Comma-separated CORS origins; empty = CORS off."
+    )
+    retention_hours: float = Field(
+        72.0, gt=0, description="Hours a finished, failed or canceled job is kept."
+    )
+    page_size_max: int = Field(100, ge=1, le=1000, description="Largest page of GET /v1/jobs.")
+
+    # -- input limits (pbrsr_core.limits.Limits) ------------------------------------------
+    max_upload_mb: float = Field(512, gt=0, description="Largest upload (refused while streaming).")
+    max_triangles: int = Field(2_000_000, ge=1, description="Most triangles in one asset.")
+    max_texture_dim: int = Field(8192, ge=1, description="Largest input texture side (px).")
+    max_output_dim: int = Field(16384, ge=1, description="Largest output texture side (px).")
+    max_data_uri_mb: float = Field(64, gt=0, description="Largest data: URI in a .gltf.")
+    max_zip_entries: int = Field(1000, ge=1, description="Most entries in an uploaded zip.")
+    max_unpacked_mb: float = Field(1024, gt=0, description="Most bytes a zip may unpack to.")
+
+    # -- validation --------------------------------------------------------------------
+    @field_validator("api_keys", "cors_origins", "preload_priors", mode="before")
+    @classmethod
+    def _csv(cls, value: object) -> object:
+        return _split_csv(value)
+
+    @field_validator("device")
+    @classmethod
+    def _device(cls, value: str) -> str:
+        value = value.strip().lower()
+        if not _DEVICE_RE.match(value):
+            raise ValueError(f"{value!r} is not a device: use auto, cpu, cuda or cuda:N")
+        return value
+
+    @field_validator("redis_url")
+    @classmethod
+    def _redis_url(cls, value: str) -> str:
+        if not value.startswith(("redis://", "rediss://", "unix://")):
+            raise ValueError("must start with redis://, rediss:// or unix://")
+        return value
+
+    @field_validator("queue", "key_prefix")
+    @classmethod
+    def _name(cls, value: str) -> str:
+        if not _NAME_RE.match(value):
+            raise ValueError(f"{value!r}: use letters, digits, '.', '_' or '-' (at most 64)")
+        return value
+
+    @field_validator("api_keys")
+    @classmethod
+    def _keys(cls, value: list[str]) -> list[str]:
+        for key in value:
+            if len(key) < 16:
+                raise ValueError("every API key must be at least 16 characters long")
+        return value
+
+    @field_validator("cors_origins")
+    @classmethod
+    def _origins(cls, value: list[str]) -> list[str]:
+        for origin in value:
+            if origin != "*" and not origin.startswith(("http://", "https://")):
+                raise ValueError(f"CORS origin {origin!r} must be '*' or start with http(s)://")
+        return value
+
+    @field_validator("log_level")
+    @classmethod
+    def _level(cls, value: str) -> str:
+        value = value.upper()
+        if value not in {"DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"}:
+            raise ValueError("use DEBUG, INFO, WARNING, ERROR or CRITICAL")
+        return value
+
+    # -- derived -------------------------------------------------------------------------
+    def limits(self) -> Limits:
+        """The input limits every upload and job is held to."""
+        return Limits(
+            max_file_bytes=int(self.max_upload_mb * _MB),
+            max_triangles=self.max_triangles,
+            max_texture_dim=self.max_texture_dim,
+            max_output_dim=self.max_output_dim,
+            max_data_uri_bytes=int(self.max_data_uri_mb * _MB),
+            max_zip_entries=self.max_zip_entries,
+            max_unpacked_bytes=int(self.max_unpacked_mb * _MB),
+        )
+
+    @property
+    def retention_s(self) -> int:
+        return int(self.retention_hours * 3600)
+
+    @property
+    def auth_enabled(self) -> bool:
+        return bool(self.api_keys)
+
+    def prepare_storage(self) -> Path:
+        """Create the storage root and check it is writable (start-up check).
+
+        Raises ``ValueError`` naming PBRSR_STORAGE_DIR when it cannot be used.
+        """
+        root = self.storage_dir.expanduser()
+        try:
+            (root / "jobs").mkdir(parents=True, exist_ok=True)
+            (root / "uploads").mkdir(parents=True, exist_ok=True)
+            probe = root / f".write-probe-{os.getpid()}"
+            probe.write_bytes(b"ok")
+            probe.unlink()
+        except OSError as exc:
+            raise ValueError(
+                f"PBRSR_STORAGE_DIR is not a writable folder ({exc.strerror or exc})"
+            ) from None
+        return root
+
+    def export_env(self) -> None:
+        """Put the variables the core reads directly (cache and npm dirs) into os.environ."""
+        if self.cache_dir is not None:
+            os.environ["PBRSR_CACHE_DIR"] = str(self.cache_dir)
+        if self.npm_dir is not None:
+            os.environ["PBRSR_NPM_DIR"] = str(self.npm_dir)
+
+
+@lru_cache(maxsize=1)
+def get_settings() -> Settings:
+    """The process's settings (built once). FastAPI dependency; tests override it."""
+    return Settings()

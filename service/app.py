@@ -1,0 +1,77 @@
+"""The FastAPI application factory: ``uvicorn --factory service.app:create_app``."""
+
+from __future__ import annotations
+
+import logging
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+from fastapi import FastAPI
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.responses import FileResponse
+from fastapi.staticfiles import StaticFiles
+from redis import Redis
+
+from pbrsr_core import __version__
+from pbrsr_core.settings import Settings, get_settings
+
+from .problems import install_handlers
+from .routes import health, jobs, metrics
+
+STATIC_DIR = Path(__file__).parent / "static"
+log = logging.getLogger("pbrsr.service")
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """Build the app. ``settings`` defaults to the environment's (validated here: a bad
+    value or an unwritable PBRSR_STORAGE_DIR stops start-up with a clear message)."""
+    settings = settings or get_settings()
+    settings.prepare_storage()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):  # noqa: ANN202
+        yield
+        for client in app.state.redis_clients.values():
+            client.close()
+
+    app = FastAPI(
+        title="pbrsr",
+        version=__version__,
+        summary="PBR texture super-resolution for glTF/GLB assets (PBR-SR) as a job service.",
+        docs_url="/docs",
+        redoc_url=None,
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.redis_clients = {}
+
+    def metrics_redis() -> Redis:
+        client = app.state.redis_clients.get(settings.redis_url)
+        if client is None:
+            client = Redis.from_url(settings.redis_url, socket_connect_timeout=2, socket_timeout=5)
+            app.state.redis_clients[settings.redis_url] = client
+        return client
+
+    app.state.metrics_redis = metrics_redis
+    app.dependency_overrides[get_settings] = lambda: settings
+
+    install_handlers(app)
+    metrics.install_metrics(app)
+    if settings.cors_origins:
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=settings.cors_origins,
+            allow_methods=["GET", "POST", "DELETE"],
+            allow_headers=["X-API-Key", "Content-Type"],
+            expose_headers=["Location"],
+        )
+    app.include_router(jobs.router)
+    app.include_router(health.router)
+    app.include_router(metrics.router)
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+
+    @app.get("/", include_in_schema=False)
+    def dashboard() -> FileResponse:
+        return FileResponse(STATIC_DIR / "index.html", media_type="text/html")
+
+    return app

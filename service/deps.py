@@ -1,0 +1,79 @@
+"""FastAPI dependencies: settings, Redis, storage, the queue and the caller's identity."""
+
+from __future__ import annotations
+
+import hmac
+from typing import Annotated
+
+from fastapi import Depends, Request, Security
+from fastapi.security import APIKeyHeader
+from redis import Redis
+from rq import Queue
+
+from pbrsr_core.jobstore import JobIndex, JobLayout, owner_of
+from pbrsr_core.settings import Settings, get_settings
+
+from .problems import ProblemError
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+
+_api_key = APIKeyHeader(
+    name="X-API-Key",
+    auto_error=False,
+    description="Required when the server has PBRSR_API_KEYS set; each key sees only its jobs.",
+)
+
+
+def get_redis(request: Request, settings: SettingsDep) -> Redis:
+    """One client (connection pool) per app and Redis URL."""
+    clients: dict[str, Redis] = request.app.state.redis_clients
+    client = clients.get(settings.redis_url)
+    if client is None:
+        client = Redis.from_url(
+            settings.redis_url,
+            socket_connect_timeout=2,
+            socket_timeout=10,
+            health_check_interval=30,
+        )
+        clients[settings.redis_url] = client
+    return client
+
+
+RedisDep = Annotated[Redis, Depends(get_redis)]
+
+
+def get_layout(settings: SettingsDep) -> JobLayout:
+    return JobLayout(settings.storage_dir.expanduser())
+
+
+def get_index(redis: RedisDep, settings: SettingsDep) -> JobIndex:
+    return JobIndex(redis, settings.key_prefix)
+
+
+def get_queue(redis: RedisDep, settings: SettingsDep) -> Queue:
+    return Queue(settings.queue, connection=redis)
+
+
+def get_owner(settings: SettingsDep, key: Annotated[str | None, Security(_api_key)]) -> str:
+    """The caller's owner tag; 401 when keys are configured and the key is missing/unknown."""
+    if not settings.auth_enabled:
+        return owner_of(None)
+    if key:
+        given = key.encode()
+        matched = False
+        for known in settings.api_keys:  # compare with every key: no early exit to time
+            matched |= hmac.compare_digest(given, known.encode())
+        if matched:
+            return owner_of(key)
+    raise ProblemError(
+        401,
+        "unauthorized",
+        "this server needs a valid API key in the X-API-Key header",
+        headers={"WWW-Authenticate": "APIKey"},
+    )
+
+
+LayoutDep = Annotated[JobLayout, Depends(get_layout)]
+IndexDep = Annotated[JobIndex, Depends(get_index)]
+QueueDep = Annotated[Queue, Depends(get_queue)]
+OwnerDep = Annotated[str, Depends(get_owner)]

@@ -1,0 +1,243 @@
+"""``/v1/jobs``: submit, inspect, list, cancel, download."""
+
+from __future__ import annotations
+
+import contextlib
+from typing import Annotated, Any
+
+from fastapi import APIRouter, BackgroundTasks, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import FileResponse
+from rq.exceptions import InvalidJobOperation, NoSuchJobError
+from rq.job import Job
+
+from pbrsr_core.jobstore import JobIndex, JobState, check_job_id, sweep_expired
+
+from ..deps import IndexDep, LayoutDep, OwnerDep, QueueDep, RedisDep, SettingsDep
+from ..intake import create_job
+from ..problems import PROBLEM_RESPONSES, Problem, ProblemError
+from ..schemas import JobCreated, JobDetail, JobPage
+from ..uploads import receive_upload
+from ..views import detail_view, links, preview_names, state_of, summary_view, thumb_names
+
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=PROBLEM_RESPONSES)
+
+_NOT_FOUND = {404: {"model": Problem, "description": "No such job (or not yours)."}}
+
+_UPLOAD_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": ["file"],
+                    "properties": {
+                        "file": {
+                            "type": "string",
+                            "format": "binary",
+                            "description": "A .glb, a self-contained .gltf, or a .zip holding "
+                            "one .gltf with its buffers and images.",
+                        },
+                        "options": {
+                            "type": "string",
+                            "description": 'JSON object of UpscaleOptions, e.g. {"scale": 4, '
+                            '"preset": "fast", "seed": 0, "image_format": "png"}.',
+                        },
+                    },
+                }
+            }
+        },
+    }
+}
+
+
+def fetch_job(job_id: str, owner: str, redis: Any, index: JobIndex) -> Job:
+    """The caller's job, or 404 (also for someone else's job: its existence is not revealed)."""
+    if not check_job_id(job_id) or index.owner(job_id) != owner:
+        raise ProblemError(404, "not-found", "no such job")
+    try:
+        return Job.fetch(job_id, connection=redis)
+    except NoSuchJobError:
+        raise ProblemError(404, "not-found", "no such job (it may have expired)") from None
+
+
+@router.post(
+    "",
+    status_code=202,
+    response_model=JobCreated,
+    openapi_extra=_UPLOAD_BODY,
+    responses={
+        400: {"model": Problem, "description": "The file is not a readable asset."},
+        413: {"model": Problem, "description": "Over a size, triangle or texture limit."},
+        415: {"model": Problem, "description": "Not a glTF/GLB/zip, or not multipart."},
+        422: {"model": Problem, "description": "Bad options, or nothing to upscale."},
+    },
+    summary="Submit an asset to upscale",
+)
+async def submit_job(
+    request: Request,
+    response: Response,
+    settings: SettingsDep,
+    owner: OwnerDep,
+    layout: LayoutDep,
+    index: IndexDep,
+    queue: QueueDep,
+) -> JobCreated:
+    """Stream the upload to storage, check it, and queue it. Answers 202 with the job's id."""
+    limits = settings.limits()
+    dest = layout.new_upload_path()
+    upload = await receive_upload(request, dest, limits.max_file_bytes)
+    job_id = await run_in_threadpool(create_job, upload, owner, settings, layout, index, queue)
+    response.headers["Location"] = f"/v1/jobs/{job_id}"
+    return JobCreated(id=job_id, status=JobState.QUEUED, links=links(job_id, JobState.QUEUED))
+
+
+@router.get("", response_model=JobPage, summary="List your jobs")
+def list_jobs(
+    redis: RedisDep,
+    settings: SettingsDep,
+    owner: OwnerDep,
+    layout: LayoutDep,
+    index: IndexDep,
+    background: BackgroundTasks,
+    status: Annotated[JobState | None, Query(description="Only jobs in this state.")] = None,
+    offset: Annotated[int, Query(ge=0)] = 0,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 20,
+) -> JobPage:
+    """Newest first; ``offset``/``limit`` pagination; optional ``status`` filter."""
+    limit = min(limit, settings.page_size_max)
+    if index.try_sweep_lock(settings.maintenance_s):
+        background.add_task(sweep_expired, redis, index, layout, settings.retention_s)
+    if status is None:
+        ids, total = index.page(owner, offset, limit)
+        jobs = [j for j in Job.fetch_many(ids, connection=redis) if j is not None]
+    else:
+        all_ids, _ = index.page(owner, 0, 1_000_000)
+        matching = []
+        for start in range(0, len(all_ids), 500):
+            batch = Job.fetch_many(all_ids[start : start + 500], connection=redis)
+            matching.extend(j for j in batch if j is not None and state_of(j) == status)
+        total = len(matching)
+        jobs = matching[offset : offset + limit]
+    items = [summary_view(j, index, layout) for j in jobs]
+    nxt = None
+    if offset + limit < total:
+        nxt = f"/v1/jobs?offset={offset + limit}&limit={limit}"
+        if status is not None:
+            nxt += f"&status={status.value}"
+    return JobPage(items=items, total=total, offset=offset, limit=limit, next=nxt)
+
+
+@router.get("/{job_id}", response_model=JobDetail, responses=_NOT_FOUND, summary="Job status")
+def get_job(
+    job_id: str, redis: RedisDep, owner: OwnerDep, layout: LayoutDep, index: IndexDep
+) -> JobDetail:
+    """Status, stage, progress, ETA, latest losses/metrics, timings, history, error, links."""
+    return detail_view(fetch_job(job_id, owner, redis, index), index, layout)
+
+
+@router.delete(
+    "/{job_id}",
+    response_model=JobDetail,
+    status_code=202,
+    responses={**_NOT_FOUND, 204: {"description": "A finished job and its files were deleted."}},
+    summary="Cancel a job (or delete a finished one)",
+)
+def cancel_job(
+    job_id: str,
+    response: Response,
+    redis: RedisDep,
+    settings: SettingsDep,
+    owner: OwnerDep,
+    layout: LayoutDep,
+    index: IndexDep,
+) -> Any:
+    """Queued: canceled at once. Running: the worker stops within about 2 s (poll the job).
+    Finished, failed or canceled: the job and its files are deleted (204)."""
+    job = fetch_job(job_id, owner, redis, index)
+    state = state_of(job)
+    if state.is_terminal:
+        with contextlib.suppress(NoSuchJobError):
+            job.delete()
+        layout.remove(job_id)
+        index.remove(job_id)
+        return Response(status_code=204)
+    index.request_cancel(job_id, settings.job_timeout + 3600)
+    if state == JobState.QUEUED:
+        with contextlib.suppress(InvalidJobOperation):
+            job.cancel()
+        job.refresh()
+    return detail_view(job, index, layout)
+
+
+@router.get(
+    "/{job_id}/result",
+    response_class=FileResponse,
+    responses={
+        **_NOT_FOUND,
+        200: {"content": {"application/zip": {}}, "description": "The bundle."},
+        409: {"model": Problem, "description": "The job has not finished."},
+    },
+    summary="Download the bundle",
+)
+def get_result(
+    job_id: str, redis: RedisDep, owner: OwnerDep, layout: LayoutDep, index: IndexDep
+) -> FileResponse:
+    """A zip: the upscaled asset in the input's form, every HR map, report.json, previews."""
+    job = fetch_job(job_id, owner, redis, index)
+    state = state_of(job)
+    path = layout.bundle_path(job_id)
+    if state != JobState.FINISHED or not path.is_file():
+        raise ProblemError(
+            409, "not-finished", f"the job is {state.value}; the result exists once it finished"
+        )
+    name = (job.meta or {}).get("name", "asset").rsplit(".", 1)[0] or "asset"
+    scale = ((job.meta or {}).get("options") or {}).get("scale", "")
+    return FileResponse(path, media_type="application/zip", filename=f"{name}-pbrsr-x{scale}.zip")
+
+
+def _file_in(job_id: str, name: str, names: list[str], folder: Any) -> FileResponse:
+    if name not in names:  # only names that exist in the folder: never a path from the URL
+        raise ProblemError(404, "not-found", f"no file '{name[:64]}' for this job")
+    return FileResponse(folder / name, media_type="image/png")
+
+
+@router.get(
+    "/{job_id}/previews/{name}",
+    response_class=FileResponse,
+    responses={**_NOT_FOUND, 200: {"content": {"image/png": {}}}},
+    summary="A before/after render",
+)
+def get_preview(
+    job_id: str,
+    name: str,
+    redis: RedisDep,
+    owner: OwnerDep,
+    layout: LayoutDep,
+    index: IndexDep,
+) -> FileResponse:
+    """``preview.png`` (side by side) or ``before_<env>.png`` / ``after_<env>.png``."""
+    fetch_job(job_id, owner, redis, index)
+    names = preview_names(layout, job_id)
+    out = layout.output_dir(job_id)
+    folder = out if name == "preview.png" else out / "previews"
+    return _file_in(job_id, name, names, folder)
+
+
+@router.get(
+    "/{job_id}/thumbs/{name}",
+    response_class=FileResponse,
+    responses={**_NOT_FOUND, 200: {"content": {"image/png": {}}}},
+    summary="A thumbnail of one HR map",
+)
+def get_thumb(
+    job_id: str,
+    name: str,
+    redis: RedisDep,
+    owner: OwnerDep,
+    layout: LayoutDep,
+    index: IndexDep,
+) -> FileResponse:
+    fetch_job(job_id, owner, redis, index)
+    return _file_in(job_id, name, thumb_names(layout, job_id), layout.thumbs_dir(job_id))

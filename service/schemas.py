@@ -1,0 +1,89 @@
+"""Request and response bodies of the REST API (pydantic v2)."""
+
+from __future__ import annotations
+
+from datetime import datetime
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from pbrsr_core.jobstore import JobState
+
+
+class JobLinks(BaseModel):
+    """Where to go next. ``result`` is set once the job has finished."""
+
+    model_config = ConfigDict(populate_by_name=True, serialize_by_alias=True)
+
+    self_: str = Field(alias="self", description="This job.")
+    cancel: str = Field(description="DELETE this to cancel (or delete a finished job).")
+    result: str | None = Field(None, description="The bundle (a zip), once finished.")
+    previews: dict[str, str] = Field(
+        default_factory=dict, description="Before/after renders by name, once finished."
+    )
+    thumbs: dict[str, str] = Field(
+        default_factory=dict, description="Thumbnails of the HR maps by name, once finished."
+    )
+
+
+class JobCreated(BaseModel):
+    id: str
+    status: JobState
+    links: JobLinks
+
+
+class HistoryPoint(BaseModel):
+    t: float = Field(description="Seconds since the run started.")
+    stage: str
+    step: int
+    losses: dict[str, float] = Field(default_factory=dict)
+    metrics: dict[str, float] = Field(default_factory=dict)
+
+
+class JobSummary(BaseModel):
+    id: str
+    status: JobState
+    name: str = Field(description="The uploaded file's name (display only).")
+    created_at: datetime
+    started_at: datetime | None = None
+    ended_at: datetime | None = None
+    stage: str | None = Field(None, description="Current pipeline stage.")
+    fraction: float = Field(0.0, ge=0, le=1, description="Overall progress, 0..1.")
+    eta_s: float | None = Field(None, description="Seconds left, when known.")
+    error: str | None = Field(None, description="Why the job failed (no internals).")
+    cancel_requested: bool = False
+    links: JobLinks
+
+
+class JobDetail(JobSummary):
+    step: int = Field(0, description="Iteration (or item) done in the current stage.")
+    total: int = Field(0, description="Iterations (or items) in the current stage; 0 = unknown.")
+    code: str | None = Field(None, description="Slug of the error, when failed.")
+    attempt: int = Field(0, description="Run attempt (above 1 after a worker died).")
+    options: dict = Field(default_factory=dict, description="The options asked for.")
+    losses: dict[str, float] = Field(default_factory=dict, description="Latest losses.")
+    metrics: dict[str, float] = Field(
+        default_factory=dict, description="Latest metrics, e.g. consistency PSNR to the LR input."
+    )
+    timings: dict[str, float] = Field(default_factory=dict, description="Seconds per stage.")
+    history: list[HistoryPoint] = Field(
+        default_factory=list, description="Losses and metrics over time (for plots)."
+    )
+    summary: dict = Field(default_factory=dict, description="Report summary, once finished.")
+
+
+class JobPage(BaseModel):
+    items: list[JobSummary]
+    total: int = Field(description="Jobs matching the filter.")
+    offset: int
+    limit: int
+    next: str | None = Field(None, description="The next page, if any.")
+
+
+class Health(BaseModel):
+    status: str = "ok"
+
+
+class Readiness(BaseModel):
+    status: str = Field(description="'ready' or 'unavailable'.")
+    redis: bool
+    storage: bool

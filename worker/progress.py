@@ -1,0 +1,200 @@
+"""The progress callback a job hands to ``upscale_asset``: job.meta writes and cancellation.
+
+:class:`JobReporter` is a ``ProgressFn``. On every call it
+
+* checks the job's cancel flag in Redis (at most every ``cancel_check_s``, 0.25 s) and raises
+  :class:`~pbrsr_core.errors.Cancelled` when it is set - the pipeline calls back between
+  iterations, so a running job stops within about an iteration plus 0.25 s;
+* writes the job's progress to ``job.meta`` with ``save_meta()`` (which touches only the
+  meta field, never RQ's own state) at most every ``interval_s`` (1 s) and at every stage
+  change: stage, step/total, overall fraction, ETA, latest losses and metrics (consistency
+  PSNR to the LR input), per-stage timings and a decimated history for the loss/PSNR plots.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+from pbrsr_core.errors import Cancelled
+from pbrsr_core.jobstore import JobIndex, JobState
+from pbrsr_core.progress import Progress
+
+# Share of the whole run each known pipeline stage takes (roughly, for pbrsr on CPU); used
+# for the overall progress bar. Unknown stages leave the bar where it is.
+STAGE_WEIGHTS: dict[str, float] = {
+    "load": 0.03,
+    "gbuffers": 0.07,
+    "prior": 0.15,
+    "pseudo_gt": 0.10,
+    "optimize": 0.58,
+    "upscale": 0.60,
+    "export": 0.05,
+    "bundle": 0.02,
+}
+MAX_HISTORY = 400
+
+
+def _finite(values: dict[str, Any]) -> dict[str, float]:
+    out = {}
+    for key, value in (values or {}).items():
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            continue
+        if v == v and abs(v) != float("inf"):
+            out[str(key)] = v
+    return out
+
+
+class JobReporter:
+    """``ProgressFn`` for one run of one RQ job (``job``: an ``rq.job.Job``)."""
+
+    def __init__(
+        self,
+        job: Any,
+        index: JobIndex,
+        *,
+        interval_s: float = 1.0,
+        cancel_check_s: float = 0.25,
+        clock: Callable[[], float] = time.monotonic,
+    ):
+        self.job = job
+        self.index = index
+        self.interval_s = interval_s
+        self.cancel_check_s = cancel_check_s
+        self.clock = clock
+        self.t0 = clock()
+        self.last_save = -float("inf")
+        self.last_cancel_check = -float("inf")
+        self.stage: str | None = None
+        self.stage_t0 = self.t0
+        self.stages_seen: list[str] = []
+        self.timings: dict[str, float] = {}
+        self.history: list[dict[str, Any]] = []
+        self.fraction = 0.0
+        self.saves = 0
+
+    # -- lifecycle -------------------------------------------------------------------------
+    def start(self, attempt: int, worker_name: str) -> None:
+        meta = self.job.meta
+        for key in ("stage", "step", "total", "eta_s", "losses", "metrics", "error", "code"):
+            meta.pop(key, None)
+        meta.update(
+            state=JobState.RUNNING.value,
+            attempt=attempt,
+            worker=worker_name,
+            started_at=time.time(),
+            fraction=0.0,
+            timings={},
+            history=[],
+            updated_at=time.time(),
+        )
+        self.job.save_meta()
+
+    def finish(
+        self,
+        state: JobState,
+        *,
+        error: str | None = None,
+        code: str | None = None,
+        summary: dict[str, Any] | None = None,
+    ) -> None:
+        """Record the outcome in ``job.meta`` and the outcome counters."""
+        now = self.clock()
+        if self.stage is not None:
+            self.timings[self.stage] = self.timings.get(self.stage, 0.0) + now - self.stage_t0
+        meta = self.job.meta
+        meta.update(
+            state=state.value,
+            ended_at=time.time(),
+            timings={k: round(v, 3) for k, v in self.timings.items()},
+            history=self.history,
+            updated_at=time.time(),
+            eta_s=0.0 if state == JobState.FINISHED else None,
+        )
+        if state == JobState.FINISHED:
+            meta["fraction"] = 1.0
+        if error is not None:
+            meta["error"] = error
+            meta["code"] = code or "error"
+        if summary:
+            meta["summary"] = summary
+        self.job.save_meta()
+        self.index.record_outcome(state, now - self.t0 if state == JobState.FINISHED else None)
+
+    def check_cancel(self) -> None:
+        if self.index.cancel_requested(self.job.id):
+            raise Cancelled("the job was canceled")
+
+    # -- ProgressFn ------------------------------------------------------------------------
+    def __call__(self, event: Progress) -> None:
+        now = self.clock()
+        stage_changed = event.stage != self.stage
+        if stage_changed:
+            if self.stage is not None:
+                self.timings[self.stage] = self.timings.get(self.stage, 0.0) + now - self.stage_t0
+            self.stage = event.stage
+            self.stage_t0 = now
+            if event.stage not in self.stages_seen:
+                self.stages_seen.append(event.stage)
+        self.fraction = max(self.fraction, self._overall(event))
+        if now - self.last_cancel_check >= self.cancel_check_s:
+            self.last_cancel_check = now
+            self.check_cancel()
+        if stage_changed or now - self.last_save >= self.interval_s:
+            self._save(event, now)
+
+    def _overall(self, event: Progress) -> float:
+        """Fraction of the whole run done, from the stage weights (monotonic, < 1)."""
+        if event.stage not in STAGE_WEIGHTS:
+            return self.fraction
+        done = sum(STAGE_WEIGHTS.get(s, 0.0) for s in self.stages_seen if s != event.stage)
+        total = sum(STAGE_WEIGHTS.values())
+        here = STAGE_WEIGHTS[event.stage] * min(max(event.fraction, 0.0), 1.0)
+        return min((done + here) / total, 0.99)
+
+    def _eta(self, event: Progress, now: float) -> float | None:
+        if event.eta_s is not None:
+            return max(float(event.eta_s), 0.0)
+        elapsed = now - self.t0
+        if self.fraction >= 0.05 and elapsed > 0:
+            return elapsed * (1.0 - self.fraction) / self.fraction
+        return None
+
+    def _save(self, event: Progress, now: float) -> None:
+        self.last_save = now
+        losses, metrics = _finite(event.losses), _finite(event.metrics)
+        eta = self._eta(event, now)
+        if losses or metrics:
+            self.history.append(
+                {
+                    "t": round(now - self.t0, 3),
+                    "stage": event.stage,
+                    "step": event.step,
+                    "losses": losses,
+                    "metrics": metrics,
+                }
+            )
+            if len(self.history) > MAX_HISTORY:  # keep the curve's shape, halve the points
+                self.history = self.history[::2]
+        timings = dict(self.timings)
+        timings[event.stage] = timings.get(event.stage, 0.0) + now - self.stage_t0
+        meta = self.job.meta
+        meta.update(
+            state=JobState.RUNNING.value,
+            stage=event.stage,
+            step=event.step,
+            total=event.total,
+            message=event.message,
+            fraction=round(self.fraction, 4),
+            eta_s=None if eta is None else round(eta, 1),
+            losses=losses,
+            metrics=metrics,
+            timings={k: round(v, 3) for k, v in timings.items()},
+            history=self.history,
+            updated_at=time.time(),
+        )
+        self.job.save_meta()
+        self.saves += 1

@@ -1,0 +1,161 @@
+"""The ``pbrsr worker`` process: one RQ worker, one device, priors loaded once.
+
+Why ``SimpleWorker`` and not RQ's default ``Worker``
+----------------------------------------------------
+RQ's ``Worker`` forks a new "work horse" child for every job. Anything the parent loaded is
+shared copy-on-write, but whatever the job loads (a prior's weights, the CUDA context, the
+converted TF.js graph) is loaded again in every child and thrown away with it; and a forked
+child cannot re-initialise CUDA once the parent has touched it. PBR-SR jobs are long (minutes)
+and start by loading a large prior, so per-job forking wastes exactly what we want to keep.
+``SimpleWorker`` runs each job in the worker process itself: :func:`run_worker` preloads the
+priors named in ``PBRSR_PRELOAD_PRIORS`` on the configured device, and
+``pbrsr_core.prior.load_prior``'s per-process cache hands every later job the same model.
+
+What ``SimpleWorker`` gives up, and how :class:`PbrsrWorker` makes up for it:
+
+* **Heartbeats.** ``SimpleWorker`` sends none while a job runs and registers the job as
+  alive for ``job_timeout + 60`` s, so a killed worker's job would sit "started" for hours.
+  ``PbrsrWorker`` beats from a background thread every ``heartbeat_s`` during a job and asks
+  for a TTL of only ``3 * heartbeat_s``; when the process dies (SIGKILL, OOM killer) the job's
+  entry in RQ's StartedJobRegistry expires within that time, and the next maintenance pass of
+  any other live worker (every ``maintenance_s``; idle workers wake up for it) retries it
+  through the job's ``Retry``. The job then reuses the dead attempt's cached intermediates
+  (``jobs/<id>/work``) and removes its temporary files.
+* **Stopping a job from outside.** There is no child to kill, so cancellation is cooperative:
+  the API sets a flag in Redis that the job's progress callback checks between iterations
+  (``worker.progress.JobReporter``), and the job ends within about 2 s and frees its memory.
+* **Isolation.** A crash of a job takes the worker down with it; RQ's retry and another
+  worker (or the supervisor restarting this one: docker ``restart: unless-stopped``) recover.
+
+One worker per GPU on a farm: run ``PBRSR_DEVICE=cuda:N pbrsr worker`` once per device.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import socket
+import threading
+import uuid
+from typing import Any
+
+from rq import Queue, SimpleWorker
+from rq.worker import WorkerStatus
+
+from pbrsr_core.errors import PbrsrError
+from pbrsr_core.jobstore import JobIndex, JobLayout, sweep_expired
+from pbrsr_core.settings import Settings
+
+from .tasks import WorkerContext, set_context
+
+log = logging.getLogger("pbrsr.worker")
+
+
+class PbrsrWorker(SimpleWorker):
+    """``SimpleWorker`` with short job heartbeats from a thread and job expiry on maintenance."""
+
+    def __init__(self, *args: Any, heartbeat_s: float = 10.0, sweep: Any = None, **kwargs: Any):
+        super().__init__(*args, **kwargs)
+        self.heartbeat_s = float(heartbeat_s)
+        self._sweep = sweep
+
+    def get_heartbeat_ttl(self, job: Any, working_time: float = 0.0) -> int:
+        """Seconds a running job stays registered without a heartbeat: three periods."""
+        return max(2, int(math.ceil(3 * self.heartbeat_s)))
+
+    def execute_job(self, job: Any, queue: Any) -> None:
+        execution = self.prepare_execution(job)
+        stop = threading.Event()
+        beat = threading.Thread(
+            target=self._beat, args=(job, execution, stop), name="pbrsr-heartbeat", daemon=True
+        )
+        beat.start()
+        try:
+            self.perform_job(job, queue, execution)
+        finally:
+            stop.set()
+            beat.join(timeout=5)
+        self.set_state(WorkerStatus.IDLE)
+
+    def _beat(self, job: Any, execution: Any, stop: threading.Event) -> None:
+        while not stop.wait(self.heartbeat_s):
+            try:
+                self.maintain_heartbeats(job, execution)
+            except Exception as exc:  # noqa: BLE001 - Redis blips must not kill the job
+                log.warning("heartbeat failed: %s", exc)
+
+    def run_maintenance_tasks(self) -> None:
+        super().run_maintenance_tasks()
+        if self._sweep is not None:
+            try:
+                self._sweep()
+            except Exception:  # noqa: BLE001 - expiry is retried on the next pass
+                log.exception("expiring old jobs failed")
+
+
+def _preload(names: list[str], device: Any) -> None:
+    if not names:
+        return
+    from pbrsr_core.prior import load_prior
+
+    for name in names:
+        try:
+            load_prior(name, device)
+            log.info("prior %s loaded on %s", name, device)
+        except PbrsrError as exc:
+            log.warning("prior %s not preloaded: %s", name, exc.message)
+
+
+def build_worker(settings: Settings, *, name: str | None = None) -> PbrsrWorker:
+    """Connect, check storage and device, preload priors, and make the worker (not started)."""
+    from redis import Redis
+
+    from pbrsr_core.device import resolve_device
+
+    settings.export_env()
+    layout = JobLayout(settings.prepare_storage())
+    redis = Redis.from_url(settings.redis_url)
+    redis.ping()
+    device = resolve_device(settings.device)
+    index = JobIndex(redis, settings.key_prefix)
+    _preload(settings.preload_priors, device)
+    name = name or f"pbrsr-{socket.gethostname()}-{uuid.uuid4().hex[:6]}"
+
+    def sweep() -> None:
+        if index.try_sweep_lock(settings.maintenance_s):
+            sweep_expired(redis, index, layout, settings.retention_s)
+
+    worker = PbrsrWorker(
+        [Queue(settings.queue, connection=redis)],
+        connection=redis,
+        name=name,
+        # An idle worker blocks on the queue for worker_ttl - 15 s; keep that no longer than
+        # the maintenance period so idle workers recover abandoned jobs in time.
+        worker_ttl=max(16, settings.maintenance_s + 15),
+        maintenance_interval=settings.maintenance_s,
+        job_monitoring_interval=max(1, int(settings.heartbeat_s)),
+        heartbeat_s=settings.heartbeat_s,
+        sweep=sweep,
+    )
+    set_context(
+        WorkerContext(
+            settings=settings, layout=layout, index=index, device=str(device), worker_name=name
+        )
+    )
+    return worker
+
+
+def run_worker(
+    settings: Settings,
+    *,
+    burst: bool = False,
+    name: str | None = None,
+    max_jobs: int | None = None,
+) -> bool:
+    """Run a worker until stopped (or, with ``burst``, until the queue is empty)."""
+    logging.basicConfig(
+        level=settings.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s"
+    )
+    worker = build_worker(settings, name=name)
+    log.info("worker %s on queue %s", worker.name, settings.queue)
+    return worker.work(burst=burst, logging_level=settings.log_level, max_jobs=max_jobs)
