@@ -76,7 +76,8 @@ def extract_zip(zip_path: Path, dest: Path, limits: Limits = Limits()) -> Path:
             if rel.parts[0] == "__MACOSX":
                 continue
             mode = (info.external_attr >> 16) & 0xFFFF
-            if info.create_system == 3 and mode and not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+            file_type = stat.S_IFMT(mode)
+            if info.create_system == 3 and file_type not in (0, stat.S_IFREG, stat.S_IFDIR):
                 raise InvalidAsset(f"the zip entry '{rel}' is a symlink or special file")
             if info.flag_bits & 0x1:
                 raise InvalidAsset(f"the zip entry '{rel}' is encrypted")

@@ -515,14 +515,15 @@ def load_asset(path: Path, limits: Limits = Limits(), *, unwrap_missing_uvs: boo
     )
     if builder.missing_uv:
         mi, pi, n = builder.missing_uv[0]
-        if not unwrap_missing_uvs:
-            raise UnprocessableAsset(
-                f"mesh {mi} primitive {pi} has a textured material that needs TEXCOORD_{n}, "
-                "which it lacks; turn on unwrapping to generate UVs"
-            )
-        from .unwrap import unwrap_missing
-
-        unwrap_missing(asset, builder.missing_uv, limits)
+        hint = (
+            "generating UVs for it is not supported yet; add UVs in a DCC tool"
+            if unwrap_missing_uvs
+            else "turn on unwrapping to generate UVs"
+        )
+        raise UnprocessableAsset(
+            f"mesh {mi} primitive {pi} has a textured material that needs TEXCOORD_{n}, "
+            f"which it lacks: {hint}"
+        )
     return asset
 
 

@@ -1,0 +1,264 @@
+"""A corpus of hostile inputs for the asset loader (and the API's upload checks).
+
+``hostile_cases(folder)`` writes each case into its own sub-folder and returns
+:class:`HostileCase` records: the file to load, the typed error it must raise, the limits to
+load it with and (optionally) a word the message must contain. Everything is procedural.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import struct
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pbrsr_core.asset.procedural import make_quad_asset
+from pbrsr_core.errors import (
+    InvalidAsset,
+    LimitExceeded,
+    PbrsrError,
+    UnprocessableAsset,
+    UnsupportedAsset,
+)
+from pbrsr_core.limits import Limits
+
+
+@dataclass
+class HostileCase:
+    name: str
+    path: Path
+    error: type[PbrsrError]
+    limits: Limits = field(default_factory=Limits)
+    says: str = ""  # a word the error message must contain (case-insensitive)
+    unwrap: bool = True
+
+
+def png_header_bomb(width: int = 100_000, height: int = 100_000) -> bytes:
+    """A tiny PNG whose header declares width x height RGB pixels."""
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        crc = zlib.crc32(kind + data) & 0xFFFFFFFF
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", crc)
+
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", ihdr)
+        + chunk(b"IDAT", zlib.compress(b"\x00" * 64))
+        + chunk(b"IEND", b"")
+    )
+
+
+def _quad(folder: Path, kind: str = "gltf") -> Path:
+    return make_quad_asset(folder / f"quad.{kind}", size=8, subdiv=2)
+
+
+def _edit(src: Path, dest: Path, fn) -> Path:
+    doc = json.loads(src.read_text())
+    fn(doc)
+    dest.write_text(json.dumps(doc))
+    return dest
+
+
+def _glb_parts(glb: bytes) -> tuple[bytes, bytes]:
+    jlen = struct.unpack("<I", glb[12:16])[0]
+    return glb[20 : 20 + jlen], glb[20 + jlen :]
+
+
+def hostile_cases(folder: Path) -> list[HostileCase]:
+    folder = Path(folder)
+    cases: list[HostileCase] = []
+
+    def case(name: str) -> Path:
+        d = folder / name
+        d.mkdir(parents=True, exist_ok=True)
+        return d
+
+    def add(name, path, error, says="", limits=None, unwrap=True):
+        cases.append(HostileCase(name, path, error, limits or Limits(), says, unwrap))
+
+    # --- containers and JSON
+    d = case("empty")
+    (d / "a.glb").write_bytes(b"")
+    add("empty", d / "a.glb", InvalidAsset, "empty")
+
+    d = case("random_bytes")
+    (d / "a.glb").write_bytes(np.random.default_rng(0).bytes(4096).replace(b"{", b"x"))
+    add("random_bytes", d / "a.glb", UnsupportedAsset)
+
+    glb = _quad(case("glb_src"), "glb").read_bytes()
+    d = case("truncated_glb")
+    (d / "a.glb").write_bytes(glb[: len(glb) // 2])
+    add("truncated_glb", d / "a.glb", InvalidAsset, "truncated")
+
+    d = case("glb_chunk_length_lies")
+    bad = bytearray(glb)
+    bad[12:16] = struct.pack("<I", len(glb) * 4)
+    (d / "a.glb").write_bytes(bytes(bad))
+    add("glb_chunk_length_lies", d / "a.glb", InvalidAsset, "chunk")
+
+    d = case("glb_bin_chunk_missing")
+    json_chunk, _ = _glb_parts(glb)
+    body = struct.pack("<II", len(json_chunk), 0x4E4F534A) + json_chunk
+    (d / "a.glb").write_bytes(struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body)
+    add("glb_bin_chunk_missing", d / "a.glb", InvalidAsset, "BIN")
+
+    d = case("glb_json_not_json")
+    junk = b"{not json at all" + b" " * 4
+    body = struct.pack("<II", len(junk), 0x4E4F534A) + junk
+    (d / "a.glb").write_bytes(struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body)
+    add("glb_json_not_json", d / "a.glb", InvalidAsset, "JSON")
+
+    d = case("glb_version1")
+    (d / "a.glb").write_bytes(struct.pack("<4sII", b"glTF", 1, 20) + b"\x00" * 8)
+    add("glb_version1", d / "a.glb", UnsupportedAsset, "1.0")
+
+    d = case("gltf_not_json")
+    (d / "a.gltf").write_bytes(b'{"asset": {"version": "2.0"},,,')
+    add("gltf_not_json", d / "a.gltf", InvalidAsset, "JSON")
+
+    d = case("gltf_1_0")
+    (d / "a.gltf").write_text(json.dumps({"asset": {"version": "1.0"}, "meshes": {}}))
+    add("gltf_1_0", d / "a.gltf", UnsupportedAsset, "1.0")
+
+    # --- buffers and uris
+    src = _quad(case("src"))
+
+    def buffer_uri(name, uri, error=InvalidAsset, says=""):
+        d = case(name)
+        p = _edit(src, d / "a.gltf", lambda doc: doc["buffers"][0].__setitem__("uri", uri))
+        for f in src.parent.glob("*.png"):
+            (d / f.name).write_bytes(f.read_bytes())
+        add(name, p, error, says)
+
+    buffer_uri("missing_buffer_file", "nothere.bin", says="missing")
+    buffer_uri("uri_dotdot", "../src/quad.bin", says="outside")
+    buffer_uri("uri_dotdot_encoded", "%2e%2e/src/quad.bin", says="outside")
+    buffer_uri("uri_absolute", str((src.parent / "quad.bin").resolve()))
+    buffer_uri("uri_file_scheme", "file:///etc/passwd", says="file:///etc/passwd")
+    buffer_uri("uri_http", "http://example.com/a.bin", says="http://example.com/a.bin")
+    buffer_uri("uri_https", "https://example.com/a.bin", says="https://example.com/a.bin")
+
+    d = case("short_buffer")
+    (d / "quad.bin").write_bytes((src.parent / "quad.bin").read_bytes()[:10])
+    p = _edit(src, d / "a.gltf", lambda doc: None)
+    add("short_buffer", p, InvalidAsset, "shorter")
+
+    d = case("data_uri_over_limit")
+    payload = base64.b64encode((src.parent / "quad.bin").read_bytes()).decode()
+    p = _edit(
+        src,
+        d / "a.gltf",
+        lambda doc: doc["buffers"][0].__setitem__(
+            "uri", "data:application/octet-stream;base64," + payload
+        ),
+    )
+    add("data_uri_over_limit", p, LimitExceeded, "data URI", Limits(max_data_uri_bytes=64))
+
+    # --- accessors and geometry
+    def edited(name, fn, error=InvalidAsset, says="", limits=None, unwrap=True):
+        d = case(name)
+        for f in src.parent.iterdir():
+            if f.suffix in (".bin", ".png"):
+                (d / f.name).write_bytes(f.read_bytes())
+        add(name, _edit(src, d / "a.gltf", fn), error, says, limits, unwrap)
+
+    edited(
+        "accessor_out_of_range",
+        lambda doc: doc["accessors"][0].__setitem__("count", 10**6),
+        says="past the end",
+    )
+    edited(
+        "bufferview_out_of_range",
+        lambda doc: doc["bufferViews"][0].__setitem__("byteOffset", 10**7),
+        says="past the end",
+    )
+    edited(
+        "accessor_missing",
+        lambda doc: doc["meshes"][0]["primitives"][0].__setitem__("indices", 99),
+        says="accessor 99",
+    )
+
+    def bad_indices(name):
+        d = case(name)
+        doc = json.loads(src.read_text())
+        binary = bytearray((src.parent / "quad.bin").read_bytes())
+        acc = doc["accessors"][doc["meshes"][0]["primitives"][0]["indices"]]
+        bv = doc["bufferViews"][acc["bufferView"]]
+        struct.pack_into("<H", binary, bv["byteOffset"] + acc.get("byteOffset", 0), 60000)
+        (d / "quad.bin").write_bytes(bytes(binary))
+        for f in src.parent.glob("*.png"):
+            (d / f.name).write_bytes(f.read_bytes())
+        (d / "a.gltf").write_text(json.dumps(doc))
+        add(name, d / "a.gltf", InvalidAsset, "index")
+
+    bad_indices("indices_out_of_range")
+
+    d = case("nan_positions")
+    doc = json.loads(src.read_text())
+    doc["meshes"][0]["name"] = "Broken Teapot"
+    binary = bytearray((src.parent / "quad.bin").read_bytes())
+    acc = doc["accessors"][doc["meshes"][0]["primitives"][0]["attributes"]["POSITION"]]
+    struct.pack_into(
+        "<f", binary, doc["bufferViews"][acc["bufferView"]]["byteOffset"] + 4, float("nan")
+    )
+    (d / "quad.bin").write_bytes(bytes(binary))
+    for f in src.parent.glob("*.png"):
+        (d / f.name).write_bytes(f.read_bytes())
+    (d / "a.gltf").write_text(json.dumps(doc))
+    add("nan_positions", d / "a.gltf", InvalidAsset, "Broken Teapot")
+
+    edited(
+        "node_cycle",
+        lambda doc: doc["nodes"].__setitem__(0, {"mesh": 0, "children": [0]}),
+        says="cycle",
+    )
+    edited(
+        "too_many_triangles", lambda doc: None, LimitExceeded, "triangles", Limits(max_triangles=4)
+    )
+    edited("texture_too_big", lambda doc: None, LimitExceeded, "limit", Limits(max_texture_dim=4))
+
+    def drop_uv(doc):
+        del doc["meshes"][0]["primitives"][0]["attributes"]["TEXCOORD_0"]
+
+    edited("missing_uvs_no_unwrap", drop_uv, UnprocessableAsset, "TEXCOORD_0", unwrap=False)
+
+    # --- images
+    d = case("image_not_an_image")
+    for f in src.parent.iterdir():
+        if f.suffix == ".bin":
+            (d / f.name).write_bytes(f.read_bytes())
+    (d / "base_color.png").write_bytes(b"this is not a png at all, only text" * 4)
+    add(
+        "image_not_an_image",
+        _edit(src, d / "a.gltf", lambda doc: None),
+        InvalidAsset,
+        "base_color.png",
+    )
+
+    d = case("png_bomb")
+    for f in src.parent.iterdir():
+        if f.suffix == ".bin":
+            (d / f.name).write_bytes(f.read_bytes())
+    (d / "base_color.png").write_bytes(png_header_bomb())
+    add("png_bomb", _edit(src, d / "a.gltf", lambda doc: None), LimitExceeded, "100000")
+
+    d = case("image_uri_outside")
+    for f in src.parent.iterdir():
+        if f.suffix == ".bin":
+            (d / f.name).write_bytes(f.read_bytes())
+    add(
+        "image_uri_outside",
+        _edit(
+            src,
+            d / "a.gltf",
+            lambda doc: doc["images"][0].__setitem__("uri", "../src/base_color.png"),
+        ),
+        InvalidAsset,
+        "outside",
+    )
+    return cases
