@@ -16,20 +16,24 @@ from pbrsr_core.prior.tiling import (
     count_tiles,
     default_tile_size,
     run_tiled,
+    tile_layout,
     tile_starts,
 )
 
 
-@pytest.mark.parametrize("length,tile,overlap", [(10, 16, 4), (100, 32, 8), (257, 64, 16)])
+@pytest.mark.parametrize(
+    "length,tile,overlap", [(10, 16, 4), (100, 32, 8), (257, 64, 16), (1024, 512, 32)]
+)
 def test_tiles_cover_and_windows_partition_unity(length, tile, overlap):
-    starts = tile_starts(length, tile, overlap)
-    assert starts[0] == 0 and starts[-1] + min(tile, length) == length
+    size, starts = tile_layout(length, tile, overlap)
+    assert size <= tile and starts == tile_starts(length, tile, overlap)
+    assert starts[0] == 0 and starts[-1] + size == length
     for a, b in zip(starts, starts[1:], strict=False):
-        assert b - a <= tile - overlap and b > a
+        assert b - a <= size - overlap and b > a
     for scale in (1, 3):
         total = torch.zeros(length * scale)
         for w, s in zip(
-            axis_windows(length, starts, tile, overlap, scale, torch.device("cpu")),
+            axis_windows(length, starts, size, overlap, scale, torch.device("cpu")),
             starts,
             strict=True,
         ):
@@ -42,6 +46,7 @@ def test_tile_arguments_are_checked():
     with pytest.raises(ValueError):
         tile_starts(10, 8, 8)
     assert count_tiles(100, 10, 32, 8) == 4
+    assert tile_layout(1024, 512, 32) == (363, [0, 330, 661])  # 3 fitted tiles, not 3 x 512
     assert 64 <= default_tile_size(torch.device("cpu"), 4096.0) <= 512
 
 
@@ -75,7 +80,7 @@ def test_tiled_equals_untiled_for_local_network():
     assert whole.shape == (2, 3, 80, 104)
     assert float((whole - tiled).abs().max()) < 1e-6
     assert len(net.seen_shapes) == 2 * count_tiles(40, 52, 16, 8)
-    assert all(s[2:] == (16, 16) for s in net.seen_shapes)
+    assert all(s[2:] == net.seen_shapes[0][2:] for s in net.seen_shapes)
 
 
 def test_padding_inside_for_any_size():

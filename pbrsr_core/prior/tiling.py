@@ -20,17 +20,25 @@ import torch
 TileFn = Callable[[torch.Tensor], torch.Tensor]
 
 
-def tile_starts(length: int, tile: int, overlap: int) -> list[int]:
-    """Start offsets of tiles of size ``tile`` covering ``[0, length)`` with at least
-    ``overlap`` shared pixels between neighbours; the last tile ends at ``length``."""
+def tile_layout(length: int, tile: int, overlap: int) -> tuple[int, list[int]]:
+    """Tile length and start offsets covering ``[0, length)`` with tiles of at most ``tile``
+    pixels sharing at least ``overlap`` pixels with each neighbour. The fewest tiles that fit
+    are used, shrunk to the smallest equal size that still covers the axis (so 1024 px with
+    512-px tiles and 32 px overlap gives 3 tiles of 363, not 3 of 512); starts are spread
+    evenly, the first at 0 and the last ending at ``length``."""
     if tile <= 0 or overlap < 0 or overlap >= tile:
         raise ValueError(f"need tile > overlap >= 0, got tile={tile}, overlap={overlap}")
     if length <= tile:
-        return [0]
-    step = tile - overlap
-    starts = list(range(0, length - tile, step))
-    starts.append(length - tile)
-    return starts
+        return length, [0]
+    n = -(-(length - overlap) // (tile - overlap))
+    size = -(-(length - overlap) // n) + overlap
+    step = (length - size) / (n - 1)
+    return size, [round(k * step) for k in range(n)]
+
+
+def tile_starts(length: int, tile: int, overlap: int) -> list[int]:
+    """Start offsets of :func:`tile_layout`."""
+    return tile_layout(length, tile, overlap)[1]
 
 
 def _ramp(n: int, device: torch.device) -> torch.Tensor:
@@ -44,8 +52,8 @@ def axis_windows(
     length: int, starts: list[int], tile: int, overlap: int, scale: int, device: torch.device
 ) -> list[torch.Tensor]:
     """Per-tile 1-D blending weights along one axis, in output pixels, normalised so that
-    their sum over tiles is 1 at every output position. Each entry has shape
-    (min(tile, length) * scale,)."""
+    their sum over tiles is 1 at every output position; ``tile`` is the tile length of
+    :func:`tile_layout`. Each entry has shape (min(tile, length) * scale,)."""
     size = min(tile, length) * scale
     ramp_len = overlap * scale
     raw = []
@@ -86,16 +94,16 @@ def run_tiled(
     if image.ndim != 4 or image.shape[0] != 1:
         raise ValueError(f"run_tiled takes one image (1, C, H, W), got {tuple(image.shape)}")
     _, _, h, w = image.shape
-    ys, xs = tile_starts(h, tile, overlap), tile_starts(w, tile, overlap)
+    th, ys = tile_layout(h, tile, overlap)
+    tw, xs = tile_layout(w, tile, overlap)
     if len(ys) == 1 and len(xs) == 1:
         out = fn(image)
         if on_tile is not None:
             on_tile()
         return out.to(image.device)
     dev = image.device
-    wy = axis_windows(h, ys, tile, overlap, scale, dev)
-    wx = axis_windows(w, xs, tile, overlap, scale, dev)
-    th, tw = min(tile, h), min(tile, w)
+    wy = axis_windows(h, ys, th, overlap, scale, dev)
+    wx = axis_windows(w, xs, tw, overlap, scale, dev)
     out: torch.Tensor | None = None
     for iy, y0 in enumerate(ys):
         for ix, x0 in enumerate(xs):
