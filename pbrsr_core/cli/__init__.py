@@ -20,7 +20,7 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
-_COMMAND_MODULES: list[str] = ["upscale", "priors"]
+_COMMAND_MODULES: list[str] = ["upscale", "priors", "degrade"]
 
 
 def _register_all() -> None:

@@ -1,0 +1,86 @@
+"""The paper's low-resolution protocol: Gaussian blur, then bicubic downsampling by s.
+
+The paper does not give the blur's width. We use ``sigma = s * sqrt(2 ln 2) / pi`` (about
+``0.375 * s`` texels of the HR image): the Gaussian whose frequency response is exactly 1/2 at
+the Nyquist frequency of the LR grid (``1 / (2 s)`` cycles per HR texel). Narrower blurs let
+bicubic decimation alias high-frequency texture detail into moire; wider ones remove detail
+the LR grid could still hold. Borders are reflected. Images are degraded as stored (sRGB maps
+stay sRGB-encoded, as an artist's LR export would be); normal maps are degraded encoded and
+then decoded, renormalised (z >= 0) and re-encoded.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .errors import InvalidOptions
+from .limits import Limits
+
+
+def degrade_sigma(scale: int) -> float:
+    """Gaussian sigma (in HR texels) used before downsampling by ``scale``."""
+    return scale * math.sqrt(2.0 * math.log(2.0)) / math.pi
+
+
+def _gaussian_kernel(sigma: float) -> torch.Tensor:
+    radius = max(1, math.ceil(3.0 * sigma))
+    x = torch.arange(-radius, radius + 1, dtype=torch.float64)
+    k = torch.exp(-0.5 * (x / sigma) ** 2)
+    return (k / k.sum()).to(torch.float32)
+
+
+def degrade_image(image: np.ndarray, scale: int, *, normal_map: bool = False) -> np.ndarray:
+    """(H, W, C) float32 [0, 1] -> (max(1, round(H/s)), max(1, round(W/s)), C) float32."""
+    if not isinstance(scale, int) or scale < 1:
+        raise InvalidOptions(f"the degradation scale must be a positive integer, not {scale!r}")
+    arr = np.asarray(image, dtype=np.float32)
+    if arr.ndim != 3:
+        raise ValueError(f"image must be (H, W, C), got shape {arr.shape}")
+    if scale == 1:
+        return arr.copy()
+    h, w, c = arr.shape
+    x = torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1)[None]  # (1, C, H, W)
+    k = _gaussian_kernel(degrade_sigma(scale))
+    r = k.numel() // 2
+    for dim in (2, 3):
+        size = x.shape[dim]
+        if size > 1:
+            pad = (r, r, 0, 0) if dim == 3 else (0, 0, r, r)
+            mode = "reflect" if size > r else "replicate"
+            xp = F.pad(x, pad, mode=mode)
+            kk = k.view(1, 1, 1, -1) if dim == 3 else k.view(1, 1, -1, 1)
+            x = F.conv2d(xp, kk.expand(c, 1, *kk.shape[2:]).contiguous(), groups=c)
+    out_h, out_w = max(1, round(h / scale)), max(1, round(w / scale))
+    y = F.interpolate(x, size=(out_h, out_w), mode="bicubic", align_corners=False)
+    y = y[0].permute(1, 2, 0).clamp(0.0, 1.0).numpy()
+    if normal_map and c >= 3:
+        n = y[..., :3] * 2.0 - 1.0
+        n[..., 2] = np.maximum(n[..., 2], 0.0)
+        ln = np.linalg.norm(n, axis=-1, keepdims=True)
+        n = np.where(ln > 1e-8, n / np.maximum(ln, 1e-8), np.array([0.0, 0.0, 1.0]))
+        y = y.copy()
+        y[..., :3] = n * 0.5 + 0.5
+    return np.ascontiguousarray(y, dtype=np.float32)
+
+
+def degrade_asset(
+    in_path: Path, out_path: Path, scale: int, limits: Limits = Limits()
+) -> list[Path]:
+    """Write ``out_path`` (.glb/.gltf): the asset at ``in_path`` with every material image
+    degraded by ``scale``. Returns the written paths, main file first."""
+    from .asset.gltf import load_asset, save_asset
+
+    if scale not in (2, 3, 4, 8, 16):
+        raise InvalidOptions(f"scale must be 2, 3, 4, 8 or 16, not {scale}")
+    asset = load_asset(Path(in_path), limits)
+    new = {}
+    for im in asset.images:
+        if not im.roles or im.pixels.size == 0:
+            continue
+        new[im.index] = degrade_image(im.pixels, scale, normal_map="normal" in im.roles)
+    return save_asset(asset, Path(out_path), new, "same")
