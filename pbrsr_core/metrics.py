@@ -1,6 +1,6 @@
-"""Evaluation by the paper's protocol: PSNR and SSIM of each map over the texels the mesh's
-UVs cover, and PSNR of renderings from the evaluation views (predicted maps against ground
-truth maps, same lighting). Keys: ``maps.<name>.psnr``, ``maps.<name>.ssim``,
+"""Evaluation by the paper's protocol: PSNR of each map over the texels the mesh's UVs cover
+(SSIM over the whole map), and PSNR of renderings from the evaluation views (predicted maps
+against ground truth maps, same lighting). Keys: ``maps.<name>.psnr``, ``maps.<name>.ssim``,
 ``render.psnr``."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import torch
 from .asset import load_asset
 from .asset.model import Asset
 from .errors import UnprocessableAsset
-from .optim.ssim import ssim_map
+from .optim.ssim import ssim_per_channel
 from .render import camera as cam
 from .render.light import EnvLight
 from .scene import asset_textures, make_scene, render_views
@@ -42,14 +42,13 @@ def psnr(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> fl
     return float("inf") if mse == 0 else 10.0 * math.log10(1.0 / mse)
 
 
-def ssim(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> float:
-    """Mean SSIM (Gaussian window 11, sigma 1.5) over the masked texels, channels averaged."""
+def ssim(pred: np.ndarray, gt: np.ndarray) -> float:
+    """Mean SSIM (Gaussian window 11, sigma 1.5) of (H, W, C) maps, channels averaged. Over
+    the whole map: an SSIM window spans island borders, so masking it would not isolate
+    covered texels anyway (PSNR is the masked metric)."""
     p = torch.from_numpy(pred.astype(np.float64)).permute(2, 0, 1)[None]
     g = torch.from_numpy(gt.astype(np.float64)).permute(2, 0, 1)[None]
-    s = ssim_map(p, g)[0].mean(0).numpy()  # (H, W)
-    if mask is not None:
-        s = s[mask]
-    return float(s.mean()) if s.size else float("nan")
+    return float(ssim_per_channel(p, g).mean())
 
 
 def _images_for(asset: Asset, role: str) -> list[int]:
@@ -86,7 +85,7 @@ def map_metrics(pred: Asset, gt: Asset) -> dict[str, float]:
             if not m.any():
                 m = np.ones_like(m)
             ps.append(psnr(pc, gc, m))
-            ss.append(ssim(pc, gc, m))
+            ss.append(ssim(pc, gc))
             ws.append(float(m.sum()))
         if ps:
             w = np.asarray(ws) / sum(ws)
@@ -96,39 +95,53 @@ def map_metrics(pred: Asset, gt: Asset) -> dict[str, float]:
     return out
 
 
-def render_metrics(
-    pred: Asset,
-    gt: Asset,
-    *,
-    resolution: int = 256,
-    lights: list[EnvLight] | None = None,
-    cameras: list[cam.Camera] | None = None,
-    device: torch.device | None = None,
-) -> dict[str, float]:
-    """Render PSNR over the evaluation views (default: the paper's 240) under each light, on
-    covered pixels of tonemapped sRGB renders."""
-    device = device or torch.device("cpu")
-    lights = lights or [EnvLight.procedural()]
-    cameras = cameras or cam.paper_eval_cameras((resolution, resolution))
-    scene = make_scene(gt, device)
-    tex_gt = asset_textures(gt, device)
-    tex_pred = asset_textures(pred, device)
-    from .render import raster
+class RenderEvaluator:
+    """Render PSNR of predicted maps against a ground-truth asset over fixed evaluation views
+    and lights. Rasterises the views and renders the ground truth once, so evaluating many
+    predictions (benchmark snapshots) costs only their shading."""
 
-    gbs = [raster.rasterize(scene.mesh, c) for c in cameras]
-    sq, n = 0.0, 0
-    for light in lights:
-        light = light.to(device)
-        img_gt, masks = render_views(scene, tex_gt, cameras, light, gbuffers=gbs)
-        img_pr, _ = render_views(scene, tex_pred, cameras, light, gbuffers=gbs)
-        for a, b, m in zip(img_pr, img_gt, masks, strict=True):
-            d = ((a - b) ** 2)[m]
-            sq += float(d.double().sum())
-            n += int(d.numel())
-    if n == 0:
-        return {"render.psnr": float("nan")}
-    mse = sq / n
-    return {"render.psnr": float("inf") if mse == 0 else 10 * math.log10(1 / mse)}
+    def __init__(
+        self,
+        gt: Asset,
+        *,
+        cameras: list[cam.Camera],
+        lights: list[EnvLight],
+        device: torch.device | None = None,
+    ):
+        from .render import raster
+
+        self.device = device or torch.device("cpu")
+        self.scene = make_scene(gt, self.device)
+        self.cameras = cameras
+        self.lights = [light.to(self.device) for light in lights]
+        self.gbuffers = [raster.rasterize(self.scene.mesh, c) for c in cameras]
+        tex = asset_textures(gt, self.device)
+        self.gt_images = [self._render(tex, light) for light in self.lights]
+
+    def _render(self, textures, light) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        return render_views(self.scene, textures, self.cameras, light, gbuffers=self.gbuffers)
+
+    def __call__(self, pred: Asset) -> dict[str, float]:
+        tex = asset_textures(pred, self.device)
+        sq, n = 0.0, 0
+        for light, (img_gt, masks) in zip(self.lights, self.gt_images, strict=True):
+            img_pr, _ = self._render(tex, light)
+            for a, b, m in zip(img_pr, img_gt, masks, strict=True):
+                d = ((a - b) ** 2)[m]
+                sq += float(d.double().sum())
+                n += int(d.numel())
+        if n == 0:
+            return {"render.psnr": float("nan")}
+        mse = sq / n
+        return {"render.psnr": float("inf") if mse == 0 else 10 * math.log10(1 / mse)}
+
+
+def eval_cameras(resolution: int, num_views: int | None = None) -> list[cam.Camera]:
+    """The paper's 240 evaluation views (6 x 40), or an even subset of ``num_views``."""
+    cameras = cam.paper_eval_cameras((resolution, resolution))
+    if num_views is not None and num_views < len(cameras):
+        cameras = cameras[:: max(1, len(cameras) // num_views)][:num_views]
+    return cameras
 
 
 def evaluate(
@@ -143,12 +156,9 @@ def evaluate(
     """All metrics of a predicted asset against its ground truth."""
     pred, gt = load_asset(pred_path), load_asset(gt_path)
     out = map_metrics(pred, gt)
-    lights = [EnvLight.from_file(p) for p in envmaps] if envmaps else None
-    cameras = cam.paper_eval_cameras((resolution, resolution))
-    if num_views is not None:
-        cameras = cameras[:: max(1, len(cameras) // num_views)][:num_views]
-    out.update(
-        render_metrics(pred, gt, resolution=resolution, lights=lights, cameras=cameras,
-                       device=device)
+    lights = [EnvLight.from_file(p) for p in envmaps] if envmaps else [EnvLight.procedural()]
+    evaluator = RenderEvaluator(
+        gt, cameras=eval_cameras(resolution, num_views), lights=lights, device=device
     )
+    out.update(evaluator(pred))
     return out

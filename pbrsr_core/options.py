@@ -28,13 +28,17 @@ class UpscaleOptions(BaseModel):
         "diffusion:<model dir>.",
     )
     envmap: str | None = Field(
-        None, description="Environment map for rendering: a .hdr/.exr path, or None for the "
-        "built-in procedural environment."
+        None,
+        description="Environment map for rendering: a .hdr/.exr path, or None for the "
+        "built-in procedural environment.",
     )
-    seed: int = Field(0, ge=0, description="Random seed; same seed and device give the same result.")
+    seed: int = Field(
+        0, ge=0, description="Random seed; same seed and device give the same result."
+    )
     image_format: ImageFormat = Field(
-        "same", description="Output image format; 'same' keeps each input image's format "
-        "(bit depth never below the input's)."
+        "same",
+        description="Output image format; 'same' keeps each input image's format "
+        "(bit depth never below the input's).",
     )
     device: str = Field("auto", description="auto, cpu, cuda or cuda:N.")
     unwrap_missing_uvs: bool = Field(

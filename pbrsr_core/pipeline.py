@@ -14,7 +14,7 @@ import os
 import shutil
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Collection, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -27,14 +27,22 @@ from .asset.model import Asset
 from .device import resolve_device
 from .errors import LimitExceeded, PbrsrError, StorageError, UnprocessableAsset
 from .limits import Limits
-from .maps import encoded_to_param, kind_of, map_file_stem, param_to_encoded, role_label, to_param
-from .maps import upscalable_images
+from .maps import (
+    encoded_to_param,
+    kind_of,
+    map_file_stem,
+    param_to_encoded,
+    role_label,
+    to_param,
+    upscalable_images,
+)
 from .options import UpscaleOptions
 from .preview import write_previews
 from .prior import load_prior
 from .prior.direct import bicubic_map, upscale_map
 from .progress import Progress, ProgressFn, emit
 from .render.light import EnvLight
+from .uvmask import coverage_masks
 
 
 class StageTimer:
@@ -80,6 +88,7 @@ def _upscale_maps(
     timer: StageTimer,
     progress: ProgressFn | None,
     work_dir: Path,
+    snapshots: Snapshots | None = None,
 ) -> tuple[dict[int, np.ndarray], dict]:
     """HR maps (stored encoding) for every used image, and method-specific report fields."""
     images = upscalable_images(asset)
@@ -100,7 +109,7 @@ def _upscale_maps(
         return out, {}
 
     # pbrsr: init = prior on colour maps, bicubic on the rest (paper 3.1)
-    from .optim.pbrsr import optimize_pbrsr
+    from .optim.pbrsr import dilate_islands, optimize_pbrsr
     from .optim.presets import get_preset
 
     config = get_preset(options.preset)
@@ -135,13 +144,32 @@ def _upscale_maps(
         progress=progress,
         cache_dir=work_dir / "pseudo_gt",
         seed=options.seed,
+        **_snapshot_kwargs(snapshots, {img.index: kind_of(img.roles) for img in images}),
     )
     for k, v in result.timings.items():
         timer.seconds[k] = timer.seconds.get(k, 0.0) + v
-    out = {
-        i: param_to_encoded(result.maps[i], kind_of(asset.images[i].roles)) for i in result.maps
-    }
+    with timer("dilate"):
+        sizes = {i: tuple(t.shape[:2]) for i, t in result.maps.items()}
+        islands = coverage_masks(asset, sizes)
+        out = {
+            i: dilate_islands(
+                param_to_encoded(t, kind_of(asset.images[i].roles)), islands[i], 2 * s
+            )
+            for i, t in result.maps.items()
+        }
     return out, result.report()
+
+
+Snapshots = tuple[Collection[int], Callable[[int, dict, dict[int, str]], None]]
+"""(iterations, callback(it, maps in optimisation space, image kinds)): a benchmark hook that
+sees the PBR-SR maps at intermediate iterations."""
+
+
+def _snapshot_kwargs(snapshots: Snapshots | None, kinds: dict[int, str]) -> dict:
+    if snapshots is None:
+        return {}
+    at, fn = snapshots
+    return {"snapshot_at": set(at), "on_snapshot": lambda it, maps: fn(it, maps, kinds)}
 
 
 def upscale_asset(
@@ -152,6 +180,7 @@ def upscale_asset(
     progress: ProgressFn | None = None,
     limits: Limits = Limits(),
     work_dir: Path | None = None,
+    snapshots: Snapshots | None = None,
 ) -> dict:
     """Upscale every texture of the asset at ``input_path`` into a bundle at ``out_dir``.
 
@@ -180,11 +209,18 @@ def upscale_asset(
                     "nothing to upscale: no material of this asset uses a texture"
                 )
             _check_output_size(images, options.scale, limits)
-        hr, method_report = _upscale_maps(asset, options, device, timer, progress, work)
+        hr, method_report = _upscale_maps(asset, options, device, timer, progress, work, snapshots)
         emit(progress, Progress(stage="export"))
         with timer("export"):
             report = _write_bundle(
-                asset, asset_path.name, hr, out_dir, options, timer, method_report, device,
+                asset,
+                asset_path.name,
+                hr,
+                out_dir,
+                options,
+                timer,
+                method_report,
+                device,
                 t_start,
             )
         emit(progress, Progress(stage="done", step=1, total=1))

@@ -49,9 +49,7 @@ def write_previews(
     before = asset_textures(asset, device)
     after = dict(before)
     for i, px in hr.items():
-        after[i] = encoded_to_param(torch.from_numpy(px), kind_of(asset.images[i].roles)).to(
-            device
-        )
+        after[i] = encoded_to_param(torch.from_numpy(px), kind_of(asset.images[i].roles)).to(device)
     camera = preview_camera()
     from .render import raster
 
@@ -72,8 +70,9 @@ def write_previews(
         rows.append((env, pair))
     fig, axes = plt.subplots(len(rows), 2, figsize=(8, 4 * len(rows)), squeeze=False)
     for r, (env, pair) in enumerate(rows):
-        for c, (label, arr) in enumerate(zip(("input (LR maps)", "result (HR maps)"), pair,
-                                             strict=True)):
+        for c, (label, arr) in enumerate(
+            zip(("input (LR maps)", "result (HR maps)"), pair, strict=True)
+        ):
             ax = axes[r][c]
             ax.imshow(np.clip(arr, 0, 1))
             ax.set_title(f"{label} - {env}", fontsize=10)

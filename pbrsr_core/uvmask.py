@@ -43,7 +43,7 @@ def _raster_uv(uv: np.ndarray, tris: np.ndarray, h: int, w: int, wrap: bool) -> 
         if xmax - xmin > 4 * w or ymax - ymin > 4 * h:
             continue  # absurd UVs: ignore rather than spin
         area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
-        for (vx, vy) in ((x0, y0), (x1, y1), (x2, y2)):
+        for vx, vy in ((x0, y0), (x1, y1), (x2, y2)):
             ix = int(np.floor(vx + 0.5))
             iy = int(np.floor(vy + 0.5))
             if wrap:
@@ -77,9 +77,9 @@ def transform_uv(uv: torch.Tensor, ref: TextureRef) -> torch.Tensor:
     return uv @ m[:2, :2].T + m[:2, 2]
 
 
-def coverage_masks(asset: Asset, sizes: dict[int, tuple[int, int]] | None = None) -> dict[
-    int, np.ndarray
-]:
+def coverage_masks(
+    asset: Asset, sizes: dict[int, tuple[int, int]] | None = None
+) -> dict[int, np.ndarray]:
     """Per image index, a (H, W) bool mask of the texels the mesh's UVs cover, through every
     material slot that samples the image. ``sizes`` overrides (H, W) per image (e.g. HR)."""
     mesh = asset.mesh

@@ -43,8 +43,9 @@ def register(app: typer.Typer) -> None:
         ),
         envmap: Annotated[str | None, typer.Option(help=".hdr/.exr environment")] = None,
         seed: Annotated[int, typer.Option()] = 0,
-        image_format: Annotated[str, typer.Option("--format", help="same, png, png16, exr, "
-                                                  "jpeg")] = "same",
+        image_format: Annotated[
+            str, typer.Option("--format", help="same, png, png16, exr, jpeg")
+        ] = "same",
         device: Annotated[str, typer.Option(help="auto, cpu, cuda, cuda:N")] = "auto",
         overwrite: Annotated[bool, typer.Option(help="replace an existing output folder")] = False,
         quiet: Annotated[bool, typer.Option("-q", "--quiet")] = False,
@@ -59,8 +60,14 @@ def register(app: typer.Typer) -> None:
             raise InvalidOptions(f"input file '{input}' does not exist")
         try:
             options = UpscaleOptions(
-                scale=scale, method=method, preset=preset, prior=prior, envmap=envmap,
-                seed=seed, image_format=image_format, device=device,
+                scale=scale,
+                method=method,
+                preset=preset,
+                prior=prior,
+                envmap=envmap,
+                seed=seed,
+                image_format=image_format,
+                device=device,
             )
         except ValidationError as exc:
             msgs = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
@@ -109,8 +116,9 @@ def register(app: typer.Typer) -> None:
             shutil.rmtree(out)
         out.mkdir(parents=True)
         src = make_demo_asset(out / "input" / "demo.glb", size=size)
-        console.print(f"demo asset: {src} ({size}x{size} textures), method {method}, "
-                      f"preset {preset}")
+        console.print(
+            f"demo asset: {src} ({size}x{size} textures), method {method}, preset {preset}"
+        )
         options = UpscaleOptions(method=method, preset=preset)
         with progress_bar() as cb:
             report = upscale_asset(src, out / "result", options, progress=cb)

@@ -1,0 +1,62 @@
+"""One benchmark run in its own process: ``python -m pbrsr_core.bench.run_one spec.json``.
+
+Runs :func:`pbrsr_core.pipeline.upscale_asset` and, for PBR-SR, saves the maps at
+intermediate iterations (``snap_<it>.npz``, stored encoding) with the wall time at which they
+existed (time spent saving snapshots is not counted). Writes ``result.json`` beside the spec.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..maps import param_to_encoded
+from ..options import UpscaleOptions
+from ..pipeline import upscale_asset
+
+SNAPSHOT_AT = (0, 10, 25, 50, 100, 200, 400, 800, 1600)
+
+
+def main(spec_path: str) -> None:
+    spec = json.loads(Path(spec_path).read_text())
+    work = Path(spec["work"])
+    snaps: list[dict] = []
+    overhead = 0.0
+    t0 = time.perf_counter()
+
+    def on_snapshot(it: int, maps: dict, kinds: dict[int, str]) -> None:
+        nonlocal overhead
+        s0 = time.perf_counter()
+        name = f"snap_{it:05d}.npz"
+        np.savez(work / name, **{str(i): param_to_encoded(t, kinds[i]) for i, t in maps.items()})
+        snaps.append({"it": it, "seconds": round(s0 - t0 - overhead, 3), "file": name})
+        overhead += time.perf_counter() - s0
+
+    report = upscale_asset(
+        Path(spec["input"]),
+        Path(spec["out"]),
+        UpscaleOptions(**spec["options"]),
+        work_dir=work / "job",
+        snapshots=(SNAPSHOT_AT, on_snapshot),
+    )
+    run_s = time.perf_counter() - t0 - overhead
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    (work / "result.json").write_text(
+        json.dumps(
+            {
+                "run_s": run_s,
+                "peak_rss_mib": peak,
+                "timings": report["timings"],
+                "snapshots": snaps,
+            }
+        )
+    )
+
+
+if __name__ == "__main__":
+    main(sys.argv[1])

@@ -1,0 +1,241 @@
+"""`pbrsr bench upscale`: speed against error.
+
+For each asset (a procedural one, and every asset of ``../shared/assets`` when that folder is
+present) the ground-truth maps are degraded by the paper's protocol (``pbrsr degrade``), then
+upscaled by bicubic, the direct prior and each PBR-SR preset. Each run is a subprocess, so its
+wall time and peak memory (max RSS) are its own. PBR-SR runs also save their maps at
+intermediate iterations, so the plot shows render PSNR against wall time as curves, with the
+baselines as lines. Metrics: PSNR per map over UV-covered texels, and render PSNR over the
+paper's evaluation views under two environment maps.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..asset import load_asset, make_demo_asset
+from ..asset.model import Asset
+from ..degrade import degrade_asset
+from ..metrics import RenderEvaluator, eval_cameras, map_metrics
+from ..render.light import EnvLight
+
+SHARED_ASSETS = Path(__file__).resolve().parents[2].parent / "shared" / "assets"
+DEFAULT_METHODS = ("bicubic", "direct", "fast", "balanced")
+ENVMAPS = ("studio_small_03_1k.hdr", "venice_sunset_1k.hdr")
+MAP_COLUMNS = ("albedo", "roughness", "metallic", "normal")
+
+
+def find_assets(shared: Path, names: list[str] | None) -> list[tuple[str, Path]]:
+    """(name, main file) of each shared asset folder, optionally filtered by name."""
+    out = []
+    if not shared.is_dir():
+        return out
+    for d in sorted(p for p in shared.iterdir() if p.is_dir() and p.name != "envmaps"):
+        files = sorted(d.glob("*.gltf")) + sorted(d.glob("*.glb"))
+        if files and (not names or d.name in names):
+            out.append((d.name, files[0]))
+    return out
+
+
+def eval_lights(shared: Path) -> tuple[list[EnvLight], list[str]]:
+    env_dir = shared / "envmaps"
+    paths = [env_dir / n for n in ENVMAPS if (env_dir / n).is_file()]
+    if len(paths) == 2:
+        return [EnvLight.from_file(p) for p in paths], [p.stem for p in paths]
+    return [EnvLight.procedural(), EnvLight.procedural(rotation_deg=150.0)], [
+        "procedural",
+        "procedural-rotated",
+    ]
+
+
+def method_options(method: str, scale: int, prior: str) -> dict:
+    if method in ("bicubic", "direct"):
+        return {"method": method, "scale": scale, "prior": prior}
+    return {"method": "pbrsr", "preset": method, "scale": scale, "prior": prior}
+
+
+def run_subprocess(spec: dict, work: Path) -> dict:
+    """Run one upscale in a child process; return its result JSON plus peak RSS."""
+    spec_path = work / "spec.json"
+    spec_path.write_text(json.dumps(spec))
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "pbrsr_core.bench.run_one", str(spec_path)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    out, err = proc.communicate()
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise RuntimeError(f"run {spec['label']} failed:\n{err[-3000:]}")
+    result = json.loads((work / "result.json").read_text())
+    result["wall_s"] = wall
+    return result
+
+
+def _with_pixels(gt: Asset, pixels: dict[int, np.ndarray]) -> Asset:
+    images = [
+        dataclasses.replace(im, pixels=pixels[im.index]) if im.index in pixels else im
+        for im in gt.images
+    ]
+    return dataclasses.replace(gt, images=images)
+
+
+def _score(pred: Asset, gt: Asset, evaluator: RenderEvaluator) -> dict[str, float]:
+    return {**map_metrics(pred, gt), **evaluator(pred)}
+
+
+def run(
+    *,
+    out_dir: Path = Path("bench-out/upscale"),
+    assets: list[str] | None = None,
+    methods: tuple[str, ...] = DEFAULT_METHODS,
+    scale: int = 4,
+    prior: str = "rrdn-thick",
+    eval_res: int = 256,
+    eval_views: int = 240,
+    procedural_size: int = 512,
+    include_procedural: bool = True,
+    shared: Path = SHARED_ASSETS,
+    say=print,
+) -> list[dict]:
+    """Run the benchmark; write ``results.json``, ``results.md`` and ``speed_vs_error.png``."""
+    import torch
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    work_root = Path(tempfile.mkdtemp(prefix="pbrsr-bench-"))
+    todo: list[tuple[str, Path]] = []
+    if include_procedural:
+        todo.append(
+            (
+                "procedural",
+                make_demo_asset(work_root / "procedural" / "demo.glb", size=procedural_size),
+            )
+        )
+    found = find_assets(shared, assets)
+    if shared.is_dir():
+        todo.extend(found)
+    else:
+        say(f"shared assets folder {shared} not present: procedural asset only")
+    lights, light_names = eval_lights(shared)
+    rows: list[dict] = []
+    for name, gt_path in todo:
+        say(f"== {name}: degrade x{scale}")
+        lr_path = degrade_asset(gt_path, work_root / name / "lr" / gt_path.name, scale)[0]
+        gt = load_asset(gt_path)
+        evaluator = RenderEvaluator(
+            gt,
+            cameras=eval_cameras(eval_res, eval_views),
+            lights=lights,
+            device=torch.device("cpu"),
+        )
+        for method in methods:
+            work = work_root / name / method
+            work.mkdir(parents=True)
+            spec = {
+                "label": f"{name}/{method}",
+                "input": str(lr_path),
+                "out": str(work / "out"),
+                "work": str(work),
+                "options": method_options(method, scale, prior),
+            }
+            say(f"   {method} ...")
+            res = run_subprocess(spec, work)
+            pred = load_asset(work / "out" / lr_path.name)
+            scores = _score(pred, gt, evaluator)
+            curve = []
+            for snap in res.get("snapshots", []):
+                px = dict(np.load(work / snap["file"]))
+                s = _score(_with_pixels(gt, {int(k): v for k, v in px.items()}), gt, evaluator)
+                curve.append({"it": snap["it"], "seconds": snap["seconds"], **s})
+            row = {
+                "asset": name,
+                "method": method,
+                "wall_s": round(res["wall_s"], 2),
+                "run_s": round(res["run_s"], 2),
+                "peak_rss_mib": round(res["peak_rss_mib"], 1),
+                "timings": res["timings"],
+                **{k: round(v, 3) for k, v in scores.items()},
+                "curve": curve,
+            }
+            rows.append(row)
+            say("   " + _row_text(row))
+    result = {
+        "scale": scale,
+        "prior": prior,
+        "eval_res": eval_res,
+        "eval_views": eval_views,
+        "lights": light_names,
+        "rows": rows,
+    }
+    (out_dir / "results.json").write_text(json.dumps(result, indent=2))
+    (out_dir / "results.md").write_text(markdown_table(rows))
+    plot(rows, out_dir / "speed_vs_error.png")
+    return rows
+
+
+def _row_text(row: dict) -> str:
+    maps = " ".join(f"{m}={row.get(f'maps.{m}.psnr', float('nan')):.2f}" for m in MAP_COLUMNS)
+    return (
+        f"{row['method']:<9} {row['run_s']:8.1f}s {row['peak_rss_mib']:7.0f}MiB "
+        f"render={row.get('render.psnr', float('nan')):.2f} {maps}"
+    )
+
+
+def markdown_table(rows: list[dict]) -> str:
+    head = (
+        "| asset | method | wall s | peak MiB | render PSNR | " + " | ".join(MAP_COLUMNS) + " |\n"
+    )
+    head += "|" + "---|" * (5 + len(MAP_COLUMNS)) + "\n"
+    lines = []
+    for r in rows:
+        cells = [
+            r["asset"],
+            r["method"],
+            f"{r['run_s']:.1f}",
+            f"{r['peak_rss_mib']:.0f}",
+            f"{r.get('render.psnr', float('nan')):.2f}",
+        ]
+        cells += [f"{r.get(f'maps.{m}.psnr', float('nan')):.2f}" for m in MAP_COLUMNS]
+        lines.append("| " + " | ".join(cells) + " |")
+    return head + "\n".join(lines) + "\n"
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    assets = list(dict.fromkeys(r["asset"] for r in rows))
+    fig, axes = plt.subplots(1, len(assets), figsize=(5 * len(assets), 4), squeeze=False)
+    for ax, a in zip(axes[0], assets, strict=True):
+        for r in (r for r in rows if r["asset"] == a):
+            if r["curve"]:
+                xs = [c["seconds"] for c in r["curve"]] + [r["run_s"]]
+                ys = [c["render.psnr"] for c in r["curve"]] + [r["render.psnr"]]
+                ax.plot(xs, ys, marker="o", label=r["method"])
+            else:
+                ax.axhline(
+                    r["render.psnr"],
+                    linestyle="--",
+                    label=r["method"],
+                    color="gray" if r["method"] == "bicubic" else "black",
+                )
+        ax.set_title(a)
+        ax.set_xlabel("wall seconds")
+        ax.set_ylabel("render PSNR (dB)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
