@@ -167,10 +167,12 @@ def test_tv_zero_on_constants_and_hand_value():
 
 def test_losses_gradcheck_float64():
     g = torch.Generator().manual_seed(5)
-    hr = (torch.rand(8, 6, 3, generator=g, dtype=torch.float64) * 0.8 + 0.1).requires_grad_()
-    lr = torch.rand(4, 3, 3, generator=g, dtype=torch.float64)
+    hr = (torch.rand(4, 4, 3, generator=g, dtype=torch.float64) * 0.8 + 0.1).requires_grad_()
+    lr = torch.rand(2, 2, 3, generator=g, dtype=torch.float64)
     groups = [MapGroup("albedo", (0, 1)), MapGroup("metallic", (2,), 0.1)]
-    assert torch.autograd.gradcheck(lambda t: pbr_consistency(t, lr, 2, groups, 10.0)[0], (hr,))
+    assert torch.autograd.gradcheck(
+        lambda t: pbr_consistency(t, lr, 2, groups, 10.0)[0], (hr,), fast_mode=True
+    )
     big = (torch.rand(12, 13, 2, generator=g, dtype=torch.float64)).requires_grad_()
     lr_big = torch.rand(12, 13, 2, generator=g, dtype=torch.float64)
     assert torch.autograd.gradcheck(
@@ -179,7 +181,9 @@ def test_losses_gradcheck_float64():
     # TV away from kinks (|differences| > 0).
     tv_in = torch.linspace(0, 1, 5 * 4 * 1, dtype=torch.float64).view(5, 4, 1) ** 2
     tv_in = tv_in.clone().requires_grad_()
-    assert torch.autograd.gradcheck(lambda t: tv_loss(t, [MapGroup("r", (0,))]), (tv_in,))
+    assert torch.autograd.gradcheck(
+        lambda t: tv_loss(t, [MapGroup("r", (0,))]), (tv_in,), fast_mode=True
+    )
     pred = torch.rand(2, 5, 4, 3, generator=g, dtype=torch.float64).requires_grad_()
     target = torch.rand(2, 5, 4, 3, generator=g, dtype=torch.float64)
     w64 = (torch.rand(2, 3, 3, generator=g, dtype=torch.float64) * 0.8 + 0.1).requires_grad_()
@@ -189,7 +193,7 @@ def test_losses_gradcheck_float64():
         l_pix, reg = robust_pixel_loss(p, target, upsample_weights(w, (5, 4)), mask)
         return 100 * l_pix + 0.5 * reg
 
-    assert torch.autograd.gradcheck(robust, (pred, w64))
+    assert torch.autograd.gradcheck(robust, (pred, w64), fast_mode=True)
 
 
 def test_robust_terms_rejects_bad_shapes():
