@@ -31,6 +31,16 @@ def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     return 10.0 * np.log10(1.0 / max(mse, 1e-12))
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _one_thread():
+    """One intra-op thread: on this shared 2-core machine, 2 OpenMP threads competing with
+    other processes run ~8x slower than one (measured: 15 s vs 2 s for a 64x64 x2 pass)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 @pytest.fixture(scope="module")
 def cache(tmp_path_factory):
     mp = pytest.MonkeyPatch()
@@ -69,28 +79,41 @@ def test_graph_is_what_the_converter_supports():
     assert [op["scale"] for op in ops if op["op"] == "d2s"] == [4]
 
 
-@pytest.mark.parametrize("scale", [2, 3, 4, 8])
-def test_converted_model_reproduces_package_samples(cache, scale):
+# The network's output at a cut edge differs from the uncut image's by < 1e-6 beyond 14 LR
+# px (measured), so a corner crop of the fixture reproduces the shipped output exactly except
+# within MARGIN of the two cut sides; the image's own borders are kept. A quarter of the work.
+CROP, MARGIN = 64, 16
+
+
+def _fixture_crop(scale: int) -> tuple[torch.Tensor, torch.Tensor]:
     x = _read_rgb(PKG / "assets" / "fixture.png")  # (1, 3, 128, 128)
     ref = _read_rgb(PKG / "assets" / "samples" / f"{scale}x" / "result.png")
+    assert ref.shape[-2:] == (128 * scale, 128 * scale)
+    keep = (CROP - MARGIN) * scale
+    return x[:, :, :CROP, :CROP], ref[:, :, :keep, :keep]
+
+
+@pytest.mark.parametrize("scale", [2, 3, 4, 8])
+def test_converted_model_reproduces_package_samples(cache, scale):
+    x, ref = _fixture_crop(scale)
     prior = load_prior("rrdn-thick", "cpu")
-    y = prior.upscale(x, scale, tile_size=512)  # one tile: the whole fixture
-    assert y.shape == ref.shape
-    psnr = _psnr(y, ref)
+    y = prior.upscale(x, scale, tile_size=512)  # one tile: the whole crop
+    assert y.shape[-2:] == (CROP * scale, CROP * scale)
+    k = ref.shape[-1]
+    psnr = _psnr(y[:, :, :k, :k], ref)
     assert psnr >= 40.0, f"x{scale}: {psnr:.2f} dB against the package's own output"
     # and it is not just bicubic: the network output is far closer than interpolation
-    bic = F.interpolate(x, scale_factor=scale, mode="bicubic").clamp(0, 1)
+    bic = F.interpolate(x, scale_factor=scale, mode="bicubic").clamp(0, 1)[:, :, :k, :k]
     assert psnr > _psnr(bic, ref) + 10.0
 
 
 def test_torch_pixel_shuffle_order_would_fail(cache, monkeypatch):
     """The fixture test can fail: with torch's channel order the output is garbage."""
-    x = _read_rgb(PKG / "assets" / "fixture.png")
-    ref = _read_rgb(PKG / "assets" / "samples" / "2x" / "result.png")
+    x, ref = _fixture_crop(2)
     net = tfjs.load_converted(rrdn.weights_file(2))
     monkeypatch.setattr(tfjs, "depth_to_space", F.pixel_shuffle)
     with torch.inference_mode():
-        wrong = net(x).clamp(0, 1)
+        wrong = net(x).clamp(0, 1)[:, :, : ref.shape[-2], : ref.shape[-1]]
     assert _psnr(wrong, ref) < 30.0
 
 
@@ -120,15 +143,15 @@ def test_not_installed_names_the_command(tmp_path, monkeypatch):
 
 def test_tiled_matches_untiled_within_1e3(cache):
     g = torch.Generator().manual_seed(1)
-    # a smooth random image with some edges, 72x72, tiles of 48 sharing 32 px at x2
+    # a smooth random image with some edges, 56x56, 4 tiles of 40 sharing 24 px at x2
     base = torch.rand(1, 3, 9, 9, generator=g)
-    x = F.interpolate(base, size=(72, 72), mode="bicubic").clamp(0, 1)
-    x[:, :, 30:40, :] = 0.9
+    x = F.interpolate(base, size=(56, 56), mode="bicubic").clamp(0, 1)
+    x[:, :, 25:31, :] = 0.9
     prior = load_prior("rrdn-thick", "cpu")
     calls = []
     whole = prior.upscale(x, 2, tile_size=128)
     tiled = prior.upscale(
-        x, 2, tile_size=48, tile_overlap=32, progress=lambda d, t: calls.append((d, t))
+        x, 2, tile_size=40, tile_overlap=24, progress=lambda d, t: calls.append((d, t))
     )
     assert calls == [(1, 4), (2, 4), (3, 4), (4, 4)]
     assert float((whole - tiled).abs().max()) < 1e-3
