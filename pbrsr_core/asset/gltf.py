@@ -38,8 +38,10 @@ from .model import (
     Material,
     Mesh,
     TextureRef,
+    UnwrappedPrimitive,
 )
 from .tangents import generate_tangents, safe_normalize
+from .unwrap import unwrap_triangles
 from .uris import decode_data_uri, is_data_uri, read_resource, relative_path, safe_stem
 
 __all__ = ["load_asset", "save_asset", "texture_transform_matrix", "node_matrix"]
@@ -259,8 +261,10 @@ def _triangles(mode: int, idx: np.ndarray) -> np.ndarray:
 
 
 class _Builder:
-    def __init__(self, doc: dict, buffers: list[bytes], limits: Limits):
+    def __init__(self, doc: dict, buffers: list[bytes], limits: Limits, unwrap: bool = True):
         self.doc, self.buffers, self.limits = doc, buffers, limits
+        self.unwrap = unwrap
+        self.unwrapped: dict[tuple[int, int], UnwrappedPrimitive] = {}
         self.pos: list[np.ndarray] = []
         self.nrm: list[np.ndarray] = []
         self.tng: list[np.ndarray] = []
@@ -308,7 +312,7 @@ class _Builder:
             raise InvalidAsset(f"{what}: POSITION is not VEC3")
         if not np.isfinite(pos).all():
             raise InvalidAsset(f"the mesh {what} has NaN or infinite vertex positions")
-        nv = pos.shape[0]
+        nv = nv0 = pos.shape[0]
         if "indices" in prim:
             idx = read_accessor(doc, bufs, prim["indices"], f"{what} indices")[:, 0]
             if idx.dtype.kind == "f":
@@ -328,6 +332,34 @@ class _Builder:
         if mat_index != -1:
             mat_index = get_index(prim, "material", len(doc.get("materials", [])), what)
 
+        # TEXCOORD sets the material needs but the primitive lacks: unwrap (xatlas) or refuse
+        present = {int(k[9:]) for k in attrs if k.startswith("TEXCOORD_") and k[9:].isdigit()}
+        needed = self._needed_texcoords(mat_index) if mat_index >= 0 else set()
+        vmap: np.ndarray | None = None
+        generated: dict[int, np.ndarray] = {}
+        if needed - present:
+            if not self.unwrap:
+                for n_needed in sorted(needed - present):
+                    self.missing_uv.append((mi, pi, n_needed))
+            else:
+                un = self.unwrapped.get((mi, pi))
+                if un is None:
+                    base = unwrap_triangles(pos, tri, what=f"the mesh {what}")
+                    # every missing set up to the highest needed one (sets must be contiguous)
+                    sets = [n for n in range(max(needed) + 1) if n not in present]
+                    un = UnwrappedPrimitive(
+                        vmapping=base.vmapping,
+                        indices=base.indices,
+                        uvs={n: base.uvs[0] for n in sets},
+                    )
+                    self.unwrapped[(mi, pi)] = un
+                vmap, tri, generated = un.vmapping, un.indices.copy(), un.uvs
+                pos = pos[vmap]
+                nv = pos.shape[0]
+
+        def gather(a: np.ndarray) -> np.ndarray:
+            return a if vmap is None else a[vmap]
+
         m3 = world[:3, :3]
         det = float(np.linalg.det(m3))
         wpos = pos @ m3.T + world[:3, 3]
@@ -339,18 +371,20 @@ class _Builder:
         for key, acc in attrs.items():
             if key.startswith("TEXCOORD_") and key[9:].isdigit():
                 uv = read_accessor(doc, bufs, acc, f"{what} {key}")
-                if uv.shape != (nv, 2):
+                if uv.shape != (nv0, 2):
                     raise InvalidAsset(f"{what}: {key} must be VEC2 with one value per vertex")
                 if not np.isfinite(uv).all():
                     raise InvalidAsset(f"{what}: {key} has NaN or infinite values")
-                uvs[int(key[9:])] = uv
+                uvs[int(key[9:])] = gather(uv)
+        for k, uv in generated.items():
+            uvs[k] = uv.astype(np.float64)
 
         if "NORMAL" in attrs:
             n = read_accessor(doc, bufs, attrs["NORMAL"], f"{what} NORMAL")
-            if n.shape != (nv, 3):
+            if n.shape != (nv0, 3):
                 raise InvalidAsset(f"{what}: NORMAL must be VEC3 with one value per vertex")
             n = np.nan_to_num(n, nan=0.0, posinf=0.0, neginf=0.0)
-            wn = safe_normalize(n @ nmat.T)
+            wn = safe_normalize(gather(n) @ nmat.T)
         else:
             # glTF: flat normals when none are given -> one vertex per triangle corner
             flat = tri.reshape(-1)
@@ -365,9 +399,9 @@ class _Builder:
 
         if "TANGENT" in attrs:
             t = read_accessor(doc, bufs, attrs["TANGENT"], f"{what} TANGENT")
-            if t.shape != (nv, 4):
+            if t.shape != (nv0, 4):
                 raise InvalidAsset(f"{what}: TANGENT must be VEC4 with one value per vertex")
-            t = np.nan_to_num(t, nan=0.0, posinf=0.0, neginf=0.0)
+            t = gather(np.nan_to_num(t, nan=0.0, posinf=0.0, neginf=0.0))
             txyz = t[:, :3] @ m3.T
             txyz = txyz - wn * np.sum(wn * txyz, axis=1, keepdims=True)
             ln = np.linalg.norm(txyz, axis=1, keepdims=True)
@@ -380,11 +414,6 @@ class _Builder:
                 tng[bad] = gen[bad]
         else:
             tng = generate_tangents(wpos, wn, uvs.get(self._normal_texcoord(mat_index)), tri)
-
-        if mat_index >= 0:
-            for n_needed in self._needed_texcoords(mat_index):
-                if n_needed not in uvs:
-                    self.missing_uv.append((mi, pi, n_needed))
 
         self.pos.append(wpos)
         self.nrm.append(wn)
@@ -493,7 +522,7 @@ def load_asset(path: Path, limits: Limits = Limits(), *, unwrap_missing_uvs: boo
     used = {
         ref.image for m in materials for role in MAP_ROLES if (ref := m.texture(role)) is not None
     }
-    builder = _Builder(doc, buffers, limits)
+    builder = _Builder(doc, buffers, limits, unwrap_missing_uvs)
     builder.walk(_scene_roots(doc))
     mesh = builder.build()
     images = _load_images(doc, folder, buffers, limits, resources, used)
@@ -512,17 +541,13 @@ def load_asset(path: Path, limits: Limits = Limits(), *, unwrap_missing_uvs: boo
         source=path,
         kind=kind,
         resources=resources,
+        generated_uvs=dict(builder.unwrapped),
     )
     if builder.missing_uv:
         mi, pi, n = builder.missing_uv[0]
-        hint = (
-            "generating UVs for it is not supported yet; add UVs in a DCC tool"
-            if unwrap_missing_uvs
-            else "turn on unwrapping to generate UVs"
-        )
         raise UnprocessableAsset(
             f"mesh {mi} primitive {pi} has a textured material that needs TEXCOORD_{n}, "
-            f"which it lacks: {hint}"
+            "which it lacks: turn on unwrapping to generate UVs (or add UVs in a DCC tool)"
         )
     return asset
 

@@ -240,6 +240,22 @@ def read_accessor(doc: dict, buffers: list[bytes], index: int, what: str = "") -
     """Accessor ``index`` as a (count, ncomp) array: float64 when ``normalized`` or float,
     else its integer type widened to int64. Sparse accessors are applied. Every read is
     bounds-checked against its bufferView."""
+    data, acc = read_accessor_raw(doc, buffers, index, what)
+    dtype = data.dtype
+    if dtype.kind == "f":
+        return data.astype(np.float64)
+    if acc.get("normalized"):
+        info = np.iinfo(dtype)
+        out = data.astype(np.float64) / float(info.max)
+        return np.maximum(out, -1.0) if dtype.kind == "i" else out
+    return data.astype(np.int64)
+
+
+def read_accessor_raw(
+    doc: dict, buffers: list[bytes], index: int, what: str = ""
+) -> tuple[np.ndarray, dict]:
+    """(Accessor ``index`` as a dense (count, ncomp) array of its own component type, sparse
+    substitution applied; the accessor's JSON object)."""
     accessors = doc.get("accessors", [])
     label = f"accessor {index}" + (f" ({what})" if what else "")
     if not isinstance(index, int) or isinstance(index, bool) or not 0 <= index < len(accessors):
@@ -308,10 +324,4 @@ def read_accessor(doc: dict, buffers: list[bytes], index: int, what: str = "") -
         if sidx.size and (sidx.max() >= count or sidx.min() < 0):
             raise InvalidAsset(f"{label} has sparse indices out of range")
         data[sidx] = svals
-    if dtype.kind == "f":
-        return data.astype(np.float64)
-    if acc.get("normalized"):
-        info = np.iinfo(dtype)
-        out = data.astype(np.float64) / float(info.max)
-        return np.maximum(out, -1.0) if dtype.kind == "i" else out
-    return data.astype(np.int64)
+    return data, acc

@@ -27,7 +27,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from ..errors import InvalidOptions, StorageError
-from .gltf_read import CHUNK_BIN, CHUNK_JSON
+from .gltf_read import CHUNK_BIN, CHUNK_JSON, COMPONENT_DTYPES, read_accessor_raw
 from .images import encode_image, output_format
 from .model import Asset, ImageData
 from .uris import encode_uri, is_data_uri, relative_path, resolve_inside, safe_stem
@@ -102,6 +102,109 @@ class _Writer:
         return written
 
 
+_ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
+_DTYPE_COMPONENT = {dt: c for c, dt in COMPONENT_DTYPES.items()}
+
+
+def _append_accessor(
+    doc: dict,
+    out: bytearray,
+    buffer: int,
+    data: np.ndarray,
+    atype: str,
+    *,
+    normalized: bool = False,
+    target: int | None = _ARRAY_BUFFER,
+    bounds: bool = False,
+) -> int:
+    """Append ``data`` (count, ncomp) of a glTF component dtype to ``out`` as its own
+    bufferView (elements 4-byte aligned, so a byteStride is set when they are not) and a new
+    accessor; returns the accessor index. ``bounds`` writes min/max (float data only)."""
+    data = np.ascontiguousarray(data)
+    dtype = data.dtype.newbyteorder("<") if data.dtype.itemsize > 1 else data.dtype
+    data = data.astype(dtype, copy=False)
+    count, ncomp = data.shape
+    elem = dtype.itemsize * ncomp
+    stride = elem if (elem % 4 == 0 or target != _ARRAY_BUFFER) else elem + (-elem % 4)
+    if stride != elem:
+        rows = np.zeros((count, stride), dtype=np.uint8)
+        rows[:, :elem] = data.view(np.uint8).reshape(count, elem)
+        payload = rows.tobytes()
+    else:
+        payload = data.tobytes()
+    out += b"\x00" * _pad(len(out))
+    view = {"buffer": buffer, "byteOffset": len(out), "byteLength": max(len(payload), 0)}
+    if stride != elem:
+        view["byteStride"] = stride
+    if target is not None:
+        view["target"] = target
+    out += payload
+    views = doc.setdefault("bufferViews", [])
+    views.append(view)
+    acc: dict = {
+        "bufferView": len(views) - 1,
+        "componentType": _DTYPE_COMPONENT[np.dtype(dtype.str.replace(">", "<"))],
+        "count": int(count),
+        "type": atype,
+    }
+    if normalized:
+        acc["normalized"] = True
+    if bounds and count and dtype.kind == "f":
+        acc["min"] = [float(x) for x in data.min(axis=0)]
+        acc["max"] = [float(x) for x in data.max(axis=0)]
+    accessors = doc.setdefault("accessors", [])
+    accessors.append(acc)
+    return len(accessors) - 1
+
+
+def _write_unwrapped(doc: dict, asset: Asset, out: bytearray, buffer: int) -> None:
+    """Store every unwrapped primitive re-indexed: each attribute (and morph target) gathered
+    through ``vmapping`` into a new accessor, new triangle-list indices, new TEXCOORD sets.
+    Reads come from the source document and buffers (``doc`` is the copy being written)."""
+    src = asset.document
+    for (mi, pi), un in sorted(asset.generated_uvs.items()):
+        prim = doc["meshes"][mi]["primitives"][pi]
+        cache: dict[int, int] = {}
+
+        def gathered(acc_index: int, semantic: str, un=un, cache=cache) -> int:
+            if acc_index not in cache:
+                raw, acc = read_accessor_raw(src, asset.buffers, acc_index, semantic)
+                keep_bounds = semantic == "POSITION" or ("min" in acc and raw.dtype.kind == "f")
+                cache[acc_index] = _append_accessor(
+                    doc,
+                    out,
+                    buffer,
+                    raw[un.vmapping],
+                    acc["type"],
+                    normalized=bool(acc.get("normalized")),
+                    bounds=keep_bounds,
+                )
+            return cache[acc_index]
+
+        attrs = prim.get("attributes") or {}
+        for key in list(attrs):
+            attrs[key] = gathered(attrs[key], key)
+        for target in prim.get("targets") or []:
+            for key in list(target):
+                target[key] = gathered(target[key], key)
+        for n, uv in sorted(un.uvs.items()):
+            attrs[f"TEXCOORD_{n}"] = _append_accessor(
+                doc, out, buffer, uv.astype(np.float32), "VEC2"
+            )
+        nv = un.vmapping.shape[0]
+        itype = np.dtype("<u2") if nv < 65535 else np.dtype("<u4")
+        prim["indices"] = _append_accessor(
+            doc,
+            out,
+            buffer,
+            un.indices.reshape(-1, 1).astype(itype),
+            "SCALAR",
+            target=_ELEMENT_ARRAY_BUFFER,
+        )
+        prim.pop("mode", None)  # strips and fans became triangle lists
+    out += b"\x00" * _pad(len(out))
+
+
 def _encode_all(
     asset: Asset, new_images: dict[int, np.ndarray], image_format: str
 ) -> dict[int, tuple[bytes, str, str]]:
@@ -169,6 +272,14 @@ def _save_gltf(asset: Asset, out_path: Path, encoded: dict) -> list[Path]:
             buf["uri"] = encode_uri(rel)
             w.add_file(rel, bytes(asset.buffers[i][: buf["byteLength"]]))
     _copy_external(w, asset, doc, replaced)
+    if asset.generated_uvs:
+        geometry = bytearray()
+        buffers = doc.setdefault("buffers", [])
+        buffers.append({"byteLength": 0})
+        _write_unwrapped(doc, asset, geometry, len(buffers) - 1)
+        rel = w.unique(f"{safe_stem(out_path.name, 'asset')}_unwrapped.bin")
+        buffers[-1].update({"uri": encode_uri(rel), "byteLength": len(geometry)})
+        w.add_file(rel, bytes(geometry))
     for i in sorted(replaced):
         data, mime, ext = encoded[i]
         img = doc["images"][i]
@@ -209,13 +320,18 @@ def _save_glb(asset: Asset, out_path: Path, encoded: dict) -> list[Path]:
     encoded = {i: e for i, e in encoded.items() if e[1] in ("image/png", "image/jpeg")}
     external = replaced - set(encoded)
     replaced = set(encoded)
-    buffers = doc.setdefault("buffers", []) if (encoded or doc.get("buffers")) else []
+    buffers = (
+        doc.setdefault("buffers", [])
+        if (encoded or asset.generated_uvs or doc.get("buffers"))
+        else []
+    )
     has_bin = bool(buffers) and "uri" not in buffers[0]
     if has_bin:
         old_bin = bytes(asset.buffers[0][: buffers[0]["byteLength"]])
     else:
         old_bin = b""
-        if encoded:  # a new GLB-stored buffer must be buffer 0: shift every buffer index
+        if encoded or asset.generated_uvs:
+            # a new GLB-stored buffer must be buffer 0: shift every buffer index
 
             def shift(d):
                 d["buffer"] += 1
@@ -289,6 +405,8 @@ def _save_glb(asset: Asset, out_path: Path, encoded: dict) -> list[Path]:
             new_bin += encoded[i][0]
         for i in replaced:
             doc["images"][i]["mimeType"] = encoded[i][1]
+        if asset.generated_uvs:
+            _write_unwrapped(doc, asset, new_bin, 0)
         buffers[0]["byteLength"] = len(new_bin)
 
     json_bytes = json.dumps(doc, separators=(",", ":"), ensure_ascii=False).encode("utf-8")

@@ -146,6 +146,20 @@ class ImageData:
 
 
 @dataclass
+class UnwrappedPrimitive:
+    """A primitive re-indexed by UV unwrapping (see :mod:`pbrsr_core.asset.unwrap`).
+
+    ``vmapping`` (V',) int64: the original vertex each new vertex copies; ``indices`` (T, 3)
+    int64: the primitive's triangles over the new vertices, in the original triangle order
+    (strips and fans become lists); ``uvs`` {texcoord n: (V', 2) float32}: the generated sets.
+    """
+
+    vmapping: np.ndarray
+    indices: np.ndarray
+    uvs: dict[int, np.ndarray]
+
+
+@dataclass
 class Asset:
     """A loaded asset: the untouched glTF document plus typed views of it."""
 
@@ -159,10 +173,10 @@ class Asset:
     # Raw bytes of every external file the document refers to, by its (decoded) relative
     # path, so that saving copies unchanged files byte for byte even when the source is gone.
     resources: dict[str, bytes] = field(default_factory=dict)
-    # UVs made by unwrapping primitives that lacked a TEXCOORD their material needs:
-    # {(mesh index, primitive index): {texcoord n: (V, 2) float32 array}} in the primitive's
-    # own vertex order; saving writes them as new accessors so the output stays valid.
-    generated_uvs: dict[tuple[int, int], dict[int, np.ndarray]] = field(default_factory=dict)
+    # Primitives unwrapped because they lacked a TEXCOORD their material needs:
+    # {(mesh index, primitive index): UnwrappedPrimitive}; saving writes each as a re-indexed
+    # primitive (every attribute gathered, new indices, new TEXCOORD accessors).
+    generated_uvs: dict[tuple[int, int], UnwrappedPrimitive] = field(default_factory=dict)
 
     def material(self, index: int) -> Material:
         return DEFAULT_MATERIAL if index < 0 else self.materials[index]
