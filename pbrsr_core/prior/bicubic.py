@@ -20,6 +20,9 @@ class BicubicPrior(Prior):
     def __init__(self, device: torch.device | str = "cpu") -> None:
         super().__init__()
         self.device = torch.device(device)
+        # Tiling only bounds temporaries here (memory is dominated by the output itself), and
+        # each tile costs a weighted accumulation: use few, large tiles.
+        self.tile_size = 2048
 
     def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
         """x (B, 3, h, w) -> (B, 3, s*h, s*w); edges replicated (align_corners=False)."""
