@@ -1,0 +1,270 @@
+"""Differentiable PBR shading of a sparse G-buffer (glTF metallic-roughness, split-sum IBL).
+
+Per covered pixel, with material factors multiplying textures as glTF says (a slot without a
+texture uses its factor alone)::
+
+    base  = base_color_factor * baseColor(uv)            (linear RGBA; textures given linear)
+    rough = roughness_factor * MR.g,  metal = metallic_factor * MR.b    (clamped to [0, 1])
+    N     = normalize(T nx + B ny + N_geo nz),  n = (2 t - 1) * (scale, scale, 1), renormalised
+    F0    = 0.04 (1 - metal) + metal * base.rgb
+    diff  = base.rgb (1 - metal) * env.diffuse(N)
+    spec  = env.specular(reflect(-V, N), rough) * (F0 * A + B),  (A, B) = LUT(N.V, rough)
+    ao    = 1 + occlusion_strength * (occlusion.r - 1)       multiplies diff AND spec
+    rgb   = ao * (diff + spec) + emissive_factor * emissive(uv) * emissive_strength
+    alpha = OPAQUE: 1;  MASK: base.a >= alpha_cutoff;  BLEND: base.a
+
+Guards so that no output or gradient is NaN/Inf: safe normalisation with fallbacks (a zero
+normal-map vector becomes (0, 0, 1), a degenerate mapped normal becomes the geometric one),
+N.V clamped to [1e-4, 1], roughness/metallic/colours clamped to their ranges; the split-sum
+tables are finite everywhere (the LUT uses alpha >= ``light.ALPHA_MIN``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import torch
+
+from ..asset.model import DEFAULT_MATERIAL, Material, TextureRef
+from ..colour import linear_to_srgb
+from .light import EnvLight, brdf_lut, lookup_brdf
+from .raster import GBuffer
+from .texture import sample
+
+NDOTV_MIN = 1e-4
+
+
+def safe_normalize(x: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+    """Unit vectors along the last axis; zero vectors stay (nearly) zero, gradients finite."""
+    return x / (x * x).sum(-1, keepdim=True).clamp_min(eps * eps).sqrt()
+
+
+def _material(materials, index: int) -> Material:
+    if index < 0:
+        return DEFAULT_MATERIAL
+    if isinstance(materials, Mapping):
+        if index not in materials:
+            raise ValueError(f"material {index} is used by the mesh but not given to shade()")
+        return materials[index]
+    if index >= len(materials):
+        raise ValueError(f"material {index} is used by the mesh but only {len(materials)} given")
+    return materials[index]
+
+
+class _Sampler:
+    """Samples each (image, texcoord, transform, wrap) once per shade() call."""
+
+    def __init__(self, gb: GBuffer, textures: Mapping[int, torch.Tensor], rows: torch.Tensor):
+        self.gb, self.textures, self.rows = gb, textures, rows
+        self.memo: dict[tuple, torch.Tensor] = {}
+
+    def __call__(self, ref: TextureRef) -> torch.Tensor:
+        key = (ref.image, ref.texcoord, ref.uv_transform, ref.wrap_s, ref.wrap_t)
+        if key not in self.memo:
+            if ref.image not in self.textures:
+                raise ValueError(f"texture image {ref.image} is referenced but not given")
+            if ref.texcoord not in self.gb.uv:
+                raise ValueError(f"the mesh has no TEXCOORD_{ref.texcoord} for image {ref.image}")
+            uv = self.gb.uv[ref.texcoord][self.rows]
+            self.memo[key] = sample(self.textures[ref.image], uv, ref)
+        return self.memo[key]
+
+
+def _channels(t: torch.Tensor, n: int, fill: float) -> torch.Tensor:
+    """(P, C) -> (P, n): drop extra channels, pad missing ones (grey -> RGB replicated)."""
+    c = t.shape[1]
+    if c >= n:
+        return t[:, :n]
+    if c == 1 and n >= 3:
+        t = t.expand(-1, 3)
+        c = 3
+    if c == 2 and n >= 3:  # grey + alpha
+        t = torch.cat([t[:, :1].expand(-1, 3), t[:, 1:2]], 1)
+        c = 4
+        return t[:, :n]
+    pad = torch.full((t.shape[0], n - c), fill, dtype=t.dtype, device=t.device)
+    return torch.cat([t, pad], 1)
+
+
+def material_inputs(
+    gb: GBuffer,
+    materials: Sequence[Material] | Mapping[int, Material],
+    textures: Mapping[int, torch.Tensor],
+    dtype: torch.dtype = torch.float32,
+) -> dict[str, torch.Tensor]:
+    """Per-pixel material values for every covered pixel: ``base`` (P, 4) linear RGBA,
+    ``rough``/``metal``/``ao`` (P, 1), ``emissive`` (P, 3) (already times strength),
+    ``normal_ts`` (P, 3) decoded unit tangent-space normal, ``alpha_mode`` (P,) int (0
+    OPAQUE, 1 MASK, 2 BLEND), ``alpha_cutoff`` (P, 1)."""
+    P = gb.num_pixels
+    dev = gb.device
+    fields = {
+        "base": 4,
+        "rough": 1,
+        "metal": 1,
+        "ao": 1,
+        "emissive": 3,
+        "normal_ts": 3,
+        "alpha_cutoff": 1,
+    }
+    parts: dict[str, list] = {k: [] for k in fields}
+    rows_all, modes = [], []
+    mats = gb.mat if gb.mat is not None else torch.full((P,), -1, device=dev)
+    for m_idx in torch.unique(mats).tolist():
+        rows = torch.nonzero(mats == m_idx).squeeze(1)
+        n = rows.numel()
+        mat = _material(materials, int(m_idx))
+        smp = _Sampler(gb, textures, rows)
+
+        def const(vals, n=n):
+            return torch.tensor(vals, dtype=dtype, device=dev).expand(n, len(vals))
+
+        base = const(mat.base_color_factor)
+        if mat.base_color is not None:
+            base = base * _channels(smp(mat.base_color).to(dtype), 4, 1.0)
+        rough = const((mat.roughness_factor,))
+        metal = const((mat.metallic_factor,))
+        if mat.metallic_roughness is not None:
+            mr = _channels(smp(mat.metallic_roughness).to(dtype), 3, 0.0)
+            rough = rough * mr[:, 1:2]
+            metal = metal * mr[:, 2:3]
+        ao = const((1.0,))
+        if mat.occlusion is not None:
+            occ = smp(mat.occlusion).to(dtype)[:, :1]
+            ao = 1.0 + mat.occlusion_strength * (occ - 1.0)
+        emis = const(tuple(float(e) * mat.emissive_strength for e in mat.emissive_factor))
+        if mat.emissive is not None:
+            emis = emis * _channels(smp(mat.emissive).to(dtype), 3, 0.0)
+        if mat.normal is not None:
+            t = _channels(smp(mat.normal).to(dtype), 3, 1.0)
+            s = mat.normal_scale
+            v = (2.0 * t - 1.0) * torch.tensor([s, s, 1.0], dtype=dtype, device=dev)
+            n2 = (v * v).sum(-1, keepdim=True)
+            up = torch.tensor([0.0, 0.0, 1.0], dtype=dtype, device=dev).expand_as(v)
+            nts = torch.where(n2 > 1e-12, safe_normalize(v), up)
+        else:
+            nts = const((0.0, 0.0, 1.0))
+        for k, val in (
+            ("base", base),
+            ("rough", rough),
+            ("metal", metal),
+            ("ao", ao),
+            ("emissive", emis),
+            ("normal_ts", nts),
+            ("alpha_cutoff", const((mat.alpha_cutoff,))),
+        ):
+            parts[k].append(val)
+        mode = {"OPAQUE": 0, "MASK": 1, "BLEND": 2}.get(mat.alpha_mode, 0)
+        modes.append(torch.full((n,), mode, dtype=torch.long, device=dev))
+        rows_all.append(rows)
+    if len(rows_all) == 1:  # the common case: no scatter needed
+        out = {k: v[0] for k, v in parts.items()}
+        out["alpha_mode"] = modes[0]
+        return out
+    order = torch.cat(rows_all)
+    out = {}
+    for k, c in fields.items():
+        out[k] = torch.zeros(P, c, dtype=dtype, device=dev).index_copy(
+            0, order, torch.cat(parts[k])
+        )
+    out["alpha_mode"] = torch.zeros(P, dtype=torch.long, device=dev).index_copy(
+        0, order, torch.cat(modes)
+    )
+    return out
+
+
+def perturb_normal(gb: GBuffer, normal_ts: torch.Tensor) -> torch.Tensor:
+    """World-space shading normal (P, 3) from a unit tangent-space normal (P, 3) and the
+    G-buffer's TBN (B = w * cross(N, T)); falls back to the interpolated normal when the
+    mapped one is degenerate."""
+    nrm = gb.nrm.to(normal_ts.dtype)
+    tng = gb.tng.to(normal_ts.dtype)
+    t = tng[:, :3]
+    b = tng[:, 3:4] * torch.cross(nrm, t, dim=-1)
+    v = t * normal_ts[:, 0:1] + b * normal_ts[:, 1:2] + nrm * normal_ts[:, 2:3]
+    n2 = (v * v).sum(-1, keepdim=True)
+    return torch.where(n2 > 1e-12, safe_normalize(v), nrm)
+
+
+def shade_terms(
+    gb: GBuffer,
+    materials: Sequence[Material] | Mapping[int, Material],
+    textures: Mapping[int, torch.Tensor],
+    light: EnvLight,
+    lut: torch.Tensor | None = None,
+) -> dict[str, torch.Tensor]:
+    """The separate terms of :func:`shade`: ``diffuse``, ``specular`` (both before occlusion),
+    ``ao`` (P, 1), ``emissive`` (P, 3), ``rgb`` = ao (diffuse + specular) + emissive,
+    ``alpha`` (P, 1), and the shading ``normal`` (P, 3)."""
+    dtype = next(iter(textures.values())).dtype if textures else torch.float32
+    m = material_inputs(gb, materials, textures, dtype)
+    base = m["base"].clamp(0.0, 1.0)
+    kd = base[:, :3]
+    rough = m["rough"].clamp(0.0, 1.0)
+    metal = m["metal"].clamp(0.0, 1.0)
+    ao = m["ao"].clamp(0.0, 1.0)
+    n = perturb_normal(gb, m["normal_ts"])
+    v = gb.view.to(dtype)
+    n_dot_v_raw = (n * v).sum(-1, keepdim=True)
+    n_dot_v = n_dot_v_raw.clamp(NDOTV_MIN, 1.0)
+    r = safe_normalize(2.0 * n_dot_v_raw * n - v)
+    f0 = 0.04 * (1.0 - metal) + metal * kd
+    diffuse = kd * (1.0 - metal) * light.diffuse(n)
+    a, b = lookup_brdf(brdf_lut() if lut is None else lut, n_dot_v, rough)
+    specular = light.specular(r, rough) * (f0 * a + b)
+    emissive = m["emissive"].clamp_min(0.0)
+    alpha = base[:, 3:4]
+    mode = m["alpha_mode"][:, None]
+    alpha = torch.where(mode == 0, torch.ones_like(alpha), alpha)
+    alpha = torch.where(mode == 1, (alpha >= m["alpha_cutoff"]).to(dtype), alpha)
+    return {
+        "diffuse": diffuse,
+        "specular": specular,
+        "ao": ao,
+        "emissive": emissive,
+        "rgb": ao * (diffuse + specular) + emissive,
+        "alpha": alpha,
+        "normal": n,
+    }
+
+
+def shade(
+    gb: GBuffer,
+    materials: Sequence[Material] | Mapping[int, Material],
+    textures: Mapping[int, torch.Tensor],
+    light: EnvLight,
+    lut: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """(P, 4) linear RGB radiance + alpha per covered pixel of ``gb`` (see the module doc).
+
+    ``materials``: a list indexed by material index (or a dict); index -1 is glTF's default
+    material. ``textures``: image index -> (H, W, C) tensor (colour maps linear, normal maps
+    encoded in [0, 1]); differentiable w.r.t. every texture. ``lut``: the BRDF table
+    (default :func:`light.brdf_lut`)."""
+    if gb.num_pixels == 0:
+        dtype = next(iter(textures.values())).dtype if textures else torch.float32
+        return torch.zeros(0, 4, dtype=dtype, device=gb.device)
+    t = shade_terms(gb, materials, textures, light, lut)
+    return torch.cat([t["rgb"], t["alpha"]], 1)
+
+
+def to_image(
+    gb: GBuffer, values: torch.Tensor, background: float | torch.Tensor = 0.0
+) -> torch.Tensor:
+    """Scatter per-pixel ``values`` (P, C) into an (H, W, C) image over ``background`` (a
+    number, a (C,) colour or an (H, W, C) image); differentiable w.r.t. ``values``."""
+    h, w = gb.resolution
+    c = values.shape[1]
+    bg = torch.as_tensor(background, dtype=values.dtype, device=values.device)
+    flat = bg.reshape(h * w, c) if bg.dim() == 3 else None
+    img = flat if flat is not None else bg.reshape(1, -1).expand(h * w, c).contiguous()
+    return img.index_copy(0, gb.pix, values).view(h, w, c)
+
+
+def tonemap(rgb: torch.Tensor, exposure: float = 1.0) -> torch.Tensor:
+    """Linear radiance (..., C) -> display sRGB in [0, 1]: ``srgb_oetf(clamp(rgb * exposure,
+    0, 1))`` on the first three channels (a 4th, alpha, is clamped and kept linear). Simple
+    and invertible below 1, which is what an image prior trained on sRGB photos expects."""
+    if rgb.shape[-1] == 4:
+        return torch.cat([tonemap(rgb[..., :3], exposure), rgb[..., 3:].clamp(0.0, 1.0)], -1)
+    return linear_to_srgb(rgb * exposure)
