@@ -118,10 +118,11 @@ def texture_crops(
         if px is None or px.ndim != 3 or min(px.shape[:2]) < crop:
             continue
         rgb = px[..., :3] if px.shape[2] >= 3 else np.repeat(px[..., :1], 3, axis=2)
-        out[f"{path.parent.name}/{path.name}"] = _centre_crop(rgb, crop)
+        key = path.relative_to(root).as_posix()
+        out[key] = _centre_crop(rgb, crop)
         h, w = rgb.shape[:2]
         if per_image > 1 and min(h, w) >= 2 * crop:
-            out[f"{path.parent.name}/{path.name}@q"] = _centre_crop(rgb[: h // 2, : w // 2], crop)
+            out[f"{key}@q"] = _centre_crop(rgb[: h // 2, : w // 2], crop)
     return out
 
 
