@@ -23,10 +23,19 @@ def register(app: typer.Typer) -> None:
         except ValidationError as exc:
             typer.secho(f"error: invalid settings:\n{exc}", fg="red", err=True)
             raise typer.Exit(2) from None
+        from redis.exceptions import ConnectionError as RedisConnectionError
+
         from .runner import run_worker
 
         try:
             run_worker(settings, burst=burst, name=name, max_jobs=max_jobs)
         except ValueError as exc:  # storage not writable
             typer.secho(f"error: {exc}", fg="red", err=True)
+            raise typer.Exit(2) from None
+        except RedisConnectionError:
+            typer.secho(
+                "error: cannot reach Redis at PBRSR_REDIS_URL; start it or fix the URL",
+                fg="red",
+                err=True,
+            )
             raise typer.Exit(2) from None

@@ -21,17 +21,22 @@ from pbrsr_core.errors import Cancelled
 from pbrsr_core.jobstore import JobIndex, JobState
 from pbrsr_core.progress import Progress
 
-# Share of the whole run each known pipeline stage takes (roughly, for pbrsr on CPU); used
-# for the overall progress bar. Unknown stages leave the bar where it is.
-STAGE_WEIGHTS: dict[str, float] = {
-    "load": 0.03,
-    "gbuffers": 0.07,
-    "prior": 0.15,
-    "pseudo_gt": 0.10,
-    "optimize": 0.58,
-    "upscale": 0.60,
-    "export": 0.05,
-    "bundle": 0.02,
+# Share of the whole run each pipeline stage takes, per method, in the order the stages
+# come (measured roughly on CPU: previews dominate bicubic, the optimizer dominates pbrsr).
+# Used for the overall progress bar; a stage not listed leaves the bar where it is.
+STAGE_WEIGHTS: dict[str, dict[str, float]] = {
+    "bicubic": {"load": 0.05, "export": 0.90, "bundle": 0.05},
+    "direct": {"load": 0.03, "load_prior": 0.05, "prior": 0.50, "export": 0.38, "bundle": 0.04},
+    "pbrsr": {
+        "load": 0.01,
+        "load_prior": 0.02,
+        "init": 0.06,
+        "gbuffers": 0.08,
+        "pseudo_gt": 0.10,
+        "optimize": 0.58,
+        "export": 0.13,
+        "bundle": 0.02,
+    },
 }
 MAX_HISTORY = 400
 
@@ -59,18 +64,19 @@ class JobReporter:
         interval_s: float = 1.0,
         cancel_check_s: float = 0.25,
         clock: Callable[[], float] = time.monotonic,
+        method: str = "pbrsr",
     ):
         self.job = job
         self.index = index
         self.interval_s = interval_s
         self.cancel_check_s = cancel_check_s
         self.clock = clock
+        self.weights = STAGE_WEIGHTS.get(method, STAGE_WEIGHTS["pbrsr"])
         self.t0 = clock()
         self.last_save = -float("inf")
         self.last_cancel_check = -float("inf")
         self.stage: str | None = None
         self.stage_t0 = self.t0
-        self.stages_seen: list[str] = []
         self.timings: dict[str, float] = {}
         self.history: list[dict[str, Any]] = []
         self.fraction = 0.0
@@ -137,8 +143,6 @@ class JobReporter:
                 self.timings[self.stage] = self.timings.get(self.stage, 0.0) + now - self.stage_t0
             self.stage = event.stage
             self.stage_t0 = now
-            if event.stage not in self.stages_seen:
-                self.stages_seen.append(event.stage)
         self.fraction = max(self.fraction, self._overall(event))
         if now - self.last_cancel_check >= self.cancel_check_s:
             self.last_cancel_check = now
@@ -148,20 +152,28 @@ class JobReporter:
 
     def _overall(self, event: Progress) -> float:
         """Fraction of the whole run done, from the stage weights (monotonic, < 1)."""
-        if event.stage not in STAGE_WEIGHTS:
+        if event.stage not in self.weights:
             return self.fraction
-        done = sum(STAGE_WEIGHTS.get(s, 0.0) for s in self.stages_seen if s != event.stage)
-        total = sum(STAGE_WEIGHTS.values())
-        here = STAGE_WEIGHTS[event.stage] * min(max(event.fraction, 0.0), 1.0)
+        done = 0.0
+        for stage, weight in self.weights.items():
+            if stage == event.stage:
+                break
+            done += weight
+        total = sum(self.weights.values())
+        here = self.weights[event.stage] * min(max(event.fraction, 0.0), 1.0)
         return min((done + here) / total, 0.99)
 
     def _eta(self, event: Progress, now: float) -> float | None:
-        if event.eta_s is not None:
-            return max(float(event.eta_s), 0.0)
+        """Seconds left for the whole run: from the overall fraction once it means something,
+        never less than the stage's own estimate (``event.eta_s``, when given)."""
         elapsed = now - self.t0
+        estimate = None
         if self.fraction >= 0.05 and elapsed > 0:
-            return elapsed * (1.0 - self.fraction) / self.fraction
-        return None
+            estimate = elapsed * (1.0 - self.fraction) / self.fraction
+        if event.eta_s is not None:
+            stage_left = max(float(event.eta_s), 0.0)
+            estimate = stage_left if estimate is None else max(estimate, stage_left)
+        return estimate
 
     def _save(self, event: Progress, now: float) -> None:
         self.last_save = now

@@ -94,6 +94,11 @@ class PbrsrWorker(SimpleWorker):
 
 
 def _preload(names: list[str], device: Any) -> None:
+    """Import the pipeline and load the named priors now, so no job pays for it."""
+    try:
+        import pbrsr_core.pipeline  # noqa: F401 - heavy imports (torch, numba kernels)
+    except ImportError:
+        log.exception("the pipeline cannot be imported; jobs will fail until this is fixed")
     if not names:
         return
     from pbrsr_core.prior import load_prior

@@ -36,6 +36,7 @@ from pbrsr_core.errors import Cancelled, PbrsrError, StorageError
 from pbrsr_core.jobstore import JobIndex, JobLayout, JobState, publish, resolve_options
 from pbrsr_core.settings import Settings
 
+from .cancel import CancelWatchdog
 from .progress import JobReporter
 
 log = logging.getLogger("pbrsr.worker")
@@ -90,7 +91,8 @@ def run_job(job_id: str) -> dict[str, Any]:
     ctx = get_context(job.connection)
     layout, index = ctx.layout, ctx.index
     attempt = int(job.meta.get("attempt", 0)) + 1
-    reporter = JobReporter(job, index, interval_s=ctx.settings.progress_interval_s)
+    method = str((job.meta.get("options") or {}).get("method", "pbrsr"))
+    reporter = JobReporter(job, index, interval_s=ctx.settings.progress_interval_s, method=method)
 
     if index.cancel_requested(job_id):
         reporter.finish(JobState.CANCELED)
@@ -108,22 +110,24 @@ def run_job(job_id: str) -> dict[str, Any]:
         tmp_paths.append(out_tmp)
         from pbrsr_core.pipeline import upscale_asset
 
-        report = upscale_asset(
-            input_path,
-            out_tmp,
-            options,
-            progress=reporter,
-            limits=ctx.settings.limits(),
-            work_dir=layout.work_dir(job_id),
-        )
-        reporter.check_cancel()
-        reporter(_bundle_event())
-        thumbs_tmp = layout.tmp_dir(job_id, "thumbs")
-        tmp_paths.append(thumbs_tmp)
-        write_thumbnails(out_tmp / "maps", thumbs_tmp)
-        bundle_tmp = layout.job_dir(job_id) / f".tmp-bundle-{os.getpid()}-{time.time_ns()}.zip"
-        tmp_paths.append(bundle_tmp)
-        write_bundle_zip(out_tmp, bundle_tmp)
+        with CancelWatchdog(index, job_id):
+            report = upscale_asset(
+                input_path,
+                out_tmp,
+                options,
+                progress=reporter,
+                limits=ctx.settings.limits(),
+                work_dir=layout.work_dir(job_id),
+            )
+            reporter.check_cancel()
+            reporter(_bundle_event())
+            thumbs_tmp = layout.tmp_dir(job_id, "thumbs")
+            tmp_paths.append(thumbs_tmp)
+            write_thumbnails(out_tmp / "maps", thumbs_tmp)
+            bundle_tmp = layout.job_dir(job_id) / f".tmp-bundle-{os.getpid()}-{time.time_ns()}.zip"
+            tmp_paths.append(bundle_tmp)
+            write_bundle_zip(out_tmp, bundle_tmp)
+        # published only after the watchdog is disarmed: a cancel cannot cut this short
         publish(thumbs_tmp, layout.thumbs_dir(job_id))
         publish(out_tmp, layout.output_dir(job_id))
         publish(bundle_tmp, layout.bundle_path(job_id))

@@ -1,0 +1,343 @@
+// The pbrsr dashboard: upload, job list and job view, all by polling the REST API.
+"use strict";
+
+const $ = (id) => document.getElementById(id);
+const POLL_MS = 1000;
+const TERMINAL = new Set(["finished", "failed", "canceled"]);
+
+const state = {
+  key: localStorage.getItem("pbrsr-api-key") || "",
+  file: null,
+  selected: null,
+  detail: null,
+  blobUrls: new Map(), // url -> object URL (images fetched with the API key)
+  shownFiles: "",
+};
+
+// ---------------------------------------------------------------------------- API helpers
+function headers() {
+  return state.key ? { "X-API-Key": state.key } : {};
+}
+
+async function api(path, init) {
+  const resp = await fetch(path, { ...(init || {}), headers: { ...headers(), ...((init || {}).headers || {}) } });
+  if (resp.status === 401) {
+    $("auth").hidden = false;
+    throw new Error("this server needs an API key: enter it at the top right");
+  }
+  if (!resp.ok && resp.status !== 202 && resp.status !== 204) {
+    let detail = resp.statusText;
+    try { detail = (await resp.json()).detail || detail; } catch (_) { /* not JSON */ }
+    throw new Error(detail);
+  }
+  if (resp.status === 204) return null;
+  return resp.json();
+}
+
+async function imageUrl(path) {
+  if (!state.key) return path;
+  if (state.blobUrls.has(path)) return state.blobUrls.get(path);
+  const resp = await fetch(path, { headers: headers() });
+  if (!resp.ok) throw new Error(`cannot load ${path}`);
+  const url = URL.createObjectURL(await resp.blob());
+  state.blobUrls.set(path, url);
+  return url;
+}
+
+function fmtDuration(s) {
+  if (s === null || s === undefined || !isFinite(s)) return "";
+  s = Math.round(s);
+  if (s < 60) return `${s} s`;
+  const m = Math.floor(s / 60), r = s % 60;
+  if (m < 60) return `${m} min ${r.toString().padStart(2, "0")} s`;
+  return `${Math.floor(m / 60)} h ${(m % 60).toString().padStart(2, "0")} min`;
+}
+
+function fmtTime(iso) {
+  if (!iso) return "";
+  const d = new Date(iso);
+  return d.toLocaleString([], { month: "short", day: "numeric", hour: "2-digit", minute: "2-digit", second: "2-digit" });
+}
+
+function setBar(bar, fraction, status) {
+  bar.classList.toggle("done", status === "finished");
+  bar.classList.toggle("failed", status === "failed" || status === "canceled");
+  const pct = status === "finished" ? 100 : Math.round(100 * Math.max(0, Math.min(1, fraction || 0)));
+  bar.firstElementChild.style.width = pct + "%";
+  bar.setAttribute("aria-valuenow", String(pct));
+}
+
+// -------------------------------------------------------------------------------- upload
+function pickFile(file) {
+  state.file = file || null;
+  const zone = $("drop-zone");
+  zone.classList.toggle("has-file", !!file);
+  $("drop-text").textContent = file ? `${file.name} (${(file.size / 1024).toFixed(0)} KB)` : "Drop a .glb, .gltf or .zip here, or click to choose";
+  $("submit").disabled = !file;
+}
+
+function options() {
+  return {
+    scale: Number($("opt-scale").value),
+    method: $("opt-method").value,
+    preset: $("opt-preset").value,
+    image_format: $("opt-format").value,
+    seed: Math.max(0, Number($("opt-seed").value) || 0),
+  };
+}
+
+function upload(event) {
+  event.preventDefault();
+  if (!state.file) return;
+  const form = new FormData();
+  form.append("file", state.file, state.file.name);
+  form.append("options", JSON.stringify(options()));
+  const xhr = new XMLHttpRequest();
+  const bar = $("upload-bar");
+  bar.hidden = false;
+  setBar(bar, 0, "running");
+  $("submit").disabled = true;
+  $("upload-status").textContent = "Uploading…";
+  xhr.upload.onprogress = (e) => { if (e.lengthComputable) setBar(bar, e.loaded / e.total, "running"); };
+  xhr.onload = () => {
+    bar.hidden = true;
+    $("submit").disabled = !state.file;
+    let body = {};
+    try { body = JSON.parse(xhr.responseText); } catch (_) { /* empty */ }
+    if (xhr.status === 202) {
+      $("upload-status").textContent = "Queued.";
+      select(body.id);
+      refreshList();
+    } else {
+      if (xhr.status === 401) $("auth").hidden = false;
+      $("upload-status").textContent = `Refused: ${body.detail || xhr.statusText}`;
+    }
+  };
+  xhr.onerror = () => {
+    bar.hidden = true;
+    $("submit").disabled = !state.file;
+    $("upload-status").textContent = "Upload failed: the server is unreachable.";
+  };
+  xhr.open("POST", "/v1/jobs");
+  for (const [k, v] of Object.entries(headers())) xhr.setRequestHeader(k, v);
+  xhr.send(form);
+}
+
+// ------------------------------------------------------------------------------ job list
+async function refreshList() {
+  const filter = $("filter").value;
+  let page;
+  try {
+    page = await api(`/v1/jobs?limit=50${filter ? "&status=" + filter : ""}`);
+  } catch (err) {
+    $("job-list-empty").textContent = err.message;
+    $("job-list-empty").hidden = false;
+    return;
+  }
+  const list = $("job-list");
+  list.replaceChildren(...page.items.map(jobRow));
+  $("job-list-empty").hidden = page.items.length > 0;
+  $("job-list-empty").textContent = "No jobs yet.";
+}
+
+function jobRow(job) {
+  const li = document.createElement("li");
+  li.className = "job-row" + (job.id === state.selected ? " selected" : "");
+  li.dataset.id = job.id;
+  li.dataset.status = job.status;
+  const title = document.createElement("span");
+  title.className = "title";
+  title.textContent = job.name;
+  const badge = document.createElement("span");
+  badge.className = `badge ${job.status}`;
+  badge.textContent = job.status;
+  const sub = document.createElement("span");
+  sub.className = "sub";
+  const bits = [fmtTime(job.created_at)];
+  if (job.status === "running") bits.push(job.stage || "starting", job.eta_s != null ? `ETA ${fmtDuration(job.eta_s)}` : "");
+  if (job.status === "failed" && job.error) bits.push(job.error.slice(0, 80));
+  sub.textContent = bits.filter(Boolean).join(" · ");
+  const bar = document.createElement("div");
+  bar.className = "bar thin";
+  bar.appendChild(document.createElement("div"));
+  setBar(bar, job.fraction, job.status);
+  li.append(title, badge, bar, sub);
+  li.addEventListener("click", () => select(job.id));
+  return li;
+}
+
+// ------------------------------------------------------------------------------ job view
+function select(id) {
+  if (state.selected !== id) {
+    state.selected = id;
+    state.detail = null;
+    state.shownFiles = "";
+    $("preview-pairs").replaceChildren();
+    $("thumbs").replaceChildren();
+  }
+  for (const row of document.querySelectorAll(".job-row")) row.classList.toggle("selected", row.dataset.id === id);
+  $("job-view").hidden = false;
+  $("placeholder").hidden = true;
+  refreshJob();
+}
+
+async function refreshJob() {
+  const id = state.selected;
+  if (!id) return;
+  let job;
+  try {
+    job = await api(`/v1/jobs/${id}`);
+  } catch (err) {
+    $("job-error").hidden = false;
+    $("job-error").textContent = err.message;
+    return;
+  }
+  if (id !== state.selected) return;
+  state.detail = job;
+  renderJob(job);
+}
+
+function renderJob(job) {
+  $("job-view").dataset.status = job.status;
+  $("job-name").textContent = job.name;
+  const o = job.options || {};
+  $("job-meta").textContent = [
+    `x${o.scale}`, o.method, o.method === "pbrsr" ? o.preset : "", `created ${fmtTime(job.created_at)}`,
+    job.attempt > 1 ? `attempt ${job.attempt}` : "",
+  ].filter(Boolean).join(" · ");
+  const badge = $("job-status");
+  badge.className = `badge ${job.status}`;
+  badge.textContent = job.cancel_requested && !TERMINAL.has(job.status) ? "canceling" : job.status;
+  const stage = job.status === "running" ? `${job.stage || "starting"}${job.total ? ` ${job.step}/${job.total}` : ""}` : "";
+  $("job-stage").textContent = stage;
+  $("job-eta").textContent = job.status === "running" && job.eta_s != null ? `about ${fmtDuration(job.eta_s)} left` : "";
+  setBar($("job-bar"), job.fraction, job.status);
+
+  const err = $("job-error");
+  err.hidden = !job.error;
+  err.textContent = job.error || "";
+  $("cancel").hidden = TERMINAL.has(job.status) || job.cancel_requested;
+  const dl = $("download");
+  dl.hidden = !job.links.result;
+  if (job.links.result) {
+    dl.href = job.links.result;
+    dl.setAttribute("download", "");
+  }
+  renderCharts(job);
+  renderFiles(job);
+  renderTimings(job);
+}
+
+function renderCharts(job) {
+  const lossNames = new Set(), psnrNames = new Set();
+  for (const p of job.history) {
+    Object.keys(p.losses).forEach((k) => lossNames.add(k));
+    Object.keys(p.metrics).filter((k) => /psnr/i.test(k)).forEach((k) => psnrNames.add(k));
+  }
+  const series = (names, field) => [...names].map((name) => ({
+    name, points: job.history.filter((p) => name in p[field]).map((p) => [p.t, p[field][name]]),
+  }));
+  lineChart($("loss-chart"), series(lossNames, "losses"), { log: true, xlabel: "seconds", empty: job.status === "finished" ? "no losses reported (this method does not optimise)" : "waiting for the optimizer…" });
+  lineChart($("psnr-chart"), series(psnrNames, "metrics"), { xlabel: "seconds", empty: job.status === "finished" ? "no PSNR reported" : "waiting for the optimizer…" });
+}
+
+async function renderFiles(job) {
+  const previews = Object.entries(job.links.previews || {});
+  const thumbs = Object.entries(job.links.thumbs || {});
+  const key = JSON.stringify([previews, thumbs]);
+  if (key === state.shownFiles) return;
+  state.shownFiles = key;
+  const pairs = previews.filter(([n]) => n !== "preview.png").sort(([a], [b]) => {
+    const [la, ea] = a.replace(".png", "").split("_"), [lb, eb] = b.replace(".png", "").split("_");
+    return ea === eb ? (la === "before" ? -1 : 1) : ea < eb ? -1 : 1;
+  });
+  const shown = pairs.length ? pairs : previews;
+  $("previews").hidden = shown.length === 0;
+  $("preview-pairs").replaceChildren(...await Promise.all(shown.map(([name, url]) => figure(name.replace(".png", "").replace("_", " — "), url))));
+  $("maps").hidden = thumbs.length === 0;
+  $("thumbs").replaceChildren(...await Promise.all(thumbs.map(([name, url]) => figure(name.replace(".png", ""), url))));
+}
+
+async function figure(caption, url) {
+  const fig = document.createElement("figure");
+  const img = document.createElement("img");
+  img.alt = caption;
+  img.loading = "lazy";
+  try { img.src = await imageUrl(url); } catch (_) { /* leave it empty */ }
+  const cap = document.createElement("figcaption");
+  cap.textContent = caption;
+  fig.append(img, cap);
+  return fig;
+}
+
+function renderTimings(job) {
+  const rows = Object.entries(job.timings || {});
+  $("timings-box").hidden = rows.length === 0;
+  $("timings").replaceChildren(...rows.map(([k, v]) => {
+    const tr = document.createElement("tr");
+    const a = document.createElement("td"), b = document.createElement("td");
+    a.textContent = k;
+    b.textContent = `${v.toFixed(1)} s`;
+    tr.append(a, b);
+    return tr;
+  }));
+}
+
+async function cancelSelected() {
+  if (!state.selected) return;
+  $("cancel").disabled = true;
+  try {
+    await api(`/v1/jobs/${state.selected}`, { method: "DELETE" });
+  } catch (err) {
+    $("job-error").hidden = false;
+    $("job-error").textContent = err.message;
+  } finally {
+    $("cancel").disabled = false;
+  }
+  refreshJob();
+  refreshList();
+}
+
+async function download(event) {
+  if (!state.key) return; // a plain link works without a key
+  event.preventDefault();
+  const resp = await fetch($("download").getAttribute("href"), { headers: headers() });
+  if (!resp.ok) return;
+  const name = (resp.headers.get("content-disposition") || "").match(/filename="?([^";]+)"?/);
+  const a = document.createElement("a");
+  a.href = URL.createObjectURL(await resp.blob());
+  a.download = name ? name[1] : "result.zip";
+  a.click();
+}
+
+// --------------------------------------------------------------------------------- start
+function poll() {
+  refreshList();
+  if (state.selected && (!state.detail || !TERMINAL.has(state.detail.status))) refreshJob();
+}
+
+function init() {
+  $("api-key").value = state.key;
+  if (state.key) $("auth").hidden = false;
+  $("save-key").addEventListener("click", () => {
+    state.key = $("api-key").value.trim();
+    localStorage.setItem("pbrsr-api-key", state.key);
+    state.blobUrls.clear();
+    poll();
+  });
+  $("file-input").addEventListener("change", (e) => pickFile(e.target.files[0]));
+  const zone = $("drop-zone");
+  for (const ev of ["dragenter", "dragover"]) zone.addEventListener(ev, (e) => { e.preventDefault(); zone.classList.add("over"); });
+  for (const ev of ["dragleave", "drop"]) zone.addEventListener(ev, (e) => { e.preventDefault(); zone.classList.remove("over"); });
+  zone.addEventListener("drop", (e) => pickFile(e.dataTransfer.files[0]));
+  zone.addEventListener("keydown", (e) => { if (e.key === "Enter" || e.key === " ") $("file-input").click(); });
+  $("upload-form").addEventListener("submit", upload);
+  $("filter").addEventListener("change", refreshList);
+  $("cancel").addEventListener("click", cancelSelected);
+  $("download").addEventListener("click", download);
+  $("opt-method").addEventListener("change", () => { $("opt-preset").disabled = $("opt-method").value !== "pbrsr"; });
+  poll();
+  setInterval(poll, POLL_MS);
+}
+
+document.addEventListener("DOMContentLoaded", init);
