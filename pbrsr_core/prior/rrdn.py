@@ -98,9 +98,9 @@ class RRDNPrior(Prior):
 
     name = NAME
     scales = SCALES
-    # Peak activations per LR pixel: ~5 tensors of up to 192 float32 channels, plus the
-    # x{s} output. Measured ~1.6 kB/pixel at x4 on CPU; keep a margin.
-    bytes_per_pixel = 4096.0
+    # Peak memory per LR input pixel, measured (CPU resident set, bench.prior.PeakMemory):
+    # ~4.2 kB at x4, 2.6-3.7 kB at x2; x8 adds a larger output. Doubled for a margin.
+    bytes_per_pixel = 8192.0
     # The network is 154 3x3 convs deep, but zero padding at a tile's cut edge only changes
     # outputs near it (measured at x2: 7e-2 at the edge, < 1e-3 beyond 6 LR px, < 1e-6 beyond
     # 14), so tiles share 32 px and the blend ignores the outer 8.
