@@ -167,13 +167,14 @@ def pbr_consistency(
         )
     total = hr.new_zeros(())
     terms: dict[str, torch.Tensor] = {}
+    if not groups:
+        return total, terms
+    # per-channel L1 and SSIM once for every channel, then averaged over each group's channels
+    l1 = (pooled - lr).abs().mean(dim=(0, 1))  # (C,)
+    s = ssim_per_channel(pooled.permute(2, 0, 1)[None], lr.permute(2, 0, 1)[None])[0]  # (C,)
     for g in groups:
         idx = list(g.channels)
-        p = pooled[..., idx]
-        t = lr[..., idx]
-        l1 = (p - t).abs().mean()
-        s = ssim_per_channel(p.permute(2, 0, 1)[None], t.permute(2, 0, 1)[None]).mean()
-        term = l1 + lambda_ssim * (1.0 - s)
+        term = l1[idx].mean() + lambda_ssim * (1.0 - s[idx].mean())
         terms[g.name] = term
         total = total + g.weight * term
     return total, terms
