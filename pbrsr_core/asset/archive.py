@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import os
 import stat
+import struct
 import zipfile
+import zlib
 from pathlib import Path, PurePosixPath
 from typing import Literal
 
-from ..errors import InvalidAsset, LimitExceeded, UnsupportedAsset
+from ..errors import InvalidAsset, LimitExceeded, StorageError, UnsupportedAsset
 from ..limits import Limits
 
 AssetKind = Literal["glb", "gltf", "zip"]
@@ -62,8 +64,8 @@ def extract_zip(zip_path: Path, dest: Path, limits: Limits = Limits()) -> Path:
     zip_path, dest = Path(zip_path), Path(dest)
     try:
         zf = zipfile.ZipFile(zip_path)
-    except (zipfile.BadZipFile, OSError, ValueError) as exc:
-        raise InvalidAsset(f"the zip file cannot be read: {exc}") from None
+    except _ZIP_READ_ERRORS as exc:
+        raise InvalidAsset(f"the zip file cannot be read: {_short(exc)}") from None
     with zf:
         infos = zf.infolist()
         if len(infos) > limits.max_zip_entries:
@@ -99,16 +101,37 @@ def extract_zip(zip_path: Path, dest: Path, limits: Limits = Limits()) -> Path:
             target = root.joinpath(*rel.parts)
             if root not in target.parents:
                 raise InvalidAsset(f"the zip entry '{rel}' points outside the archive")
-            if info.is_dir():
-                target.mkdir(parents=True, exist_ok=True)
-                continue
-            target.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                if info.is_dir():
+                    target.mkdir(parents=True, exist_ok=True)
+                    continue
+                target.parent.mkdir(parents=True, exist_ok=True)
+            except (FileExistsError, NotADirectoryError):
+                raise InvalidAsset(
+                    f"the zip entry '{rel}' clashes with another entry (a file and a folder "
+                    "of the same name)"
+                ) from None
             if target.parent.resolve() != target.parent or os.path.islink(target):
                 raise InvalidAsset(f"the zip entry '{rel}' goes through a link")
             try:
-                with zf.open(info) as src, open(target, "xb") as out:
+                out = open(target, "xb")  # noqa: SIM115 - closed below
+            except (FileExistsError, IsADirectoryError):
+                raise InvalidAsset(f"the zip has the entry '{rel}' twice") from None
+            except OSError as exc:
+                raise StorageError(f"cannot unpack the zip: {exc.strerror or exc}") from None
+            with out:
+                try:
+                    src = zf.open(info)
+                except _ZIP_READ_ERRORS as exc:
+                    raise InvalidAsset(f"the zip entry '{rel}' is corrupt: {_short(exc)}") from None
+                with src:
                     while True:
-                        chunk = src.read(_CHUNK)
+                        try:
+                            chunk = src.read(_CHUNK)
+                        except _ZIP_READ_ERRORS as exc:
+                            raise InvalidAsset(
+                                f"the zip entry '{rel}' is corrupt: {_short(exc)}"
+                            ) from None
                         if not chunk:
                             break
                         total += len(chunk)
@@ -117,15 +140,33 @@ def extract_zip(zip_path: Path, dest: Path, limits: Limits = Limits()) -> Path:
                                 "the zip unpacks to more than "
                                 f"{limits.max_unpacked_bytes} bytes (the limit)"
                             )
-                        out.write(chunk)
-            except FileExistsError:
-                raise InvalidAsset(f"the zip has the entry '{rel}' twice") from None
-            except (zipfile.BadZipFile, zlib_error(), EOFError) as exc:
-                raise InvalidAsset(f"the zip entry '{rel}' is corrupt: {exc}") from None
+                        try:
+                            out.write(chunk)
+                        except OSError as exc:
+                            raise StorageError(
+                                f"cannot unpack the zip: {exc.strerror or exc}"
+                            ) from None
         return root.joinpath(*models[0].parts)
 
 
-def zlib_error() -> type[Exception]:
-    import zlib
+# what zipfile raises on corrupt or hostile archives (reading side only: OSError here is a
+# bad seek/read of the archive itself, e.g. an offset past its end)
+_ZIP_READ_ERRORS = (
+    zipfile.BadZipFile,
+    zipfile.LargeZipFile,
+    zlib.error,
+    EOFError,
+    OSError,
+    ValueError,
+    struct.error,
+    NotImplementedError,  # an unsupported compression method
+    RuntimeError,  # encrypted entries, and others zipfile reports this way
+    UnicodeDecodeError,
+    OverflowError,
+)
 
-    return zlib.error
+
+def _short(exc: BaseException) -> str:
+    """An exception's message without paths (zipfile messages may name the file)."""
+    text = str(exc) or type(exc).__name__
+    return text.replace(os.sep, "/").rsplit("/", 1)[-1][:120]

@@ -14,6 +14,7 @@ import numpy as np
 
 from ..errors import InvalidAsset, LimitExceeded, UnsupportedAsset
 from ..limits import Limits
+from .gltf_schema import check_types
 from .uris import decode_data_uri, is_data_uri, read_resource, relative_path
 
 GLB_MAGIC = b"glTF"
@@ -130,6 +131,7 @@ def parse_json(raw: bytes) -> dict:
         for i, item in enumerate(doc.get(key, [])):
             if not isinstance(item, dict):
                 raise InvalidAsset(f"{key}[{i}] in the glTF JSON is not an object")
+    check_types(doc)
     return doc
 
 

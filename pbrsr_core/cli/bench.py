@@ -45,5 +45,27 @@ def prior_cmd(
     typer.echo(f"wrote {out / 'prior.json'} and {out / 'prior.png'}")
 
 
+@bench_app.command("fuzz")
+def fuzz_cmd(
+    cases: int = typer.Option(3000, "--cases", "-n", help="Number of mutated assets."),
+    seed: int = typer.Option(0, "--seed", "-s", help="Seed: case i of seed s is reproducible."),
+    out: Path = typer.Option(Path("bench-out/fuzz"), "--out", "-o", help="Output directory."),
+    shared: bool = typer.Option(
+        False, help="Also mutate the .glb files (< 2 MB) of /work/shared/assets, if present."
+    ),
+) -> None:
+    """Fuzz the GLB/glTF reader, writer and zip extraction with mutated valid assets; any
+    exception that is not a pbrsr error is an escape, saved under OUT/findings/."""
+    from ..bench.fuzz import print_table, run
+
+    result = run(
+        cases=cases, seed=seed, out_dir=out, shared=shared, log=lambda m: typer.echo(m, err=True)
+    )
+    print_table(result)
+    typer.echo(f"wrote {out / 'fuzz.json'} and {out / 'fuzz.png'}")
+    if result["escapes"]:
+        raise typer.Exit(1)
+
+
 def register(app: typer.Typer) -> None:
     app.add_typer(bench_app, name="bench")
