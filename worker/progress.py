@@ -136,6 +136,9 @@ class JobReporter:
 
     # -- ProgressFn ------------------------------------------------------------------------
     def __call__(self, event: Progress) -> None:
+        if event.stage == "done":  # the pipeline's end marker, not a stage of its own
+            self.check_cancel()
+            return
         now = self.clock()
         stage_changed = event.stage != self.stage
         if stage_changed:
