@@ -92,6 +92,9 @@ def _pad_wrap(m: torch.Tensor) -> torch.Tensor:
     return torch.cat([m[..., -1:, :], m, m[..., :1, :]], -2)
 
 
+_ENV_MEMO: dict[str, EnvLight] = {}
+
+
 class EnvLight:
     """A distant environment light with split-sum lookups (see the module doc).
 
@@ -142,8 +145,11 @@ class EnvLight:
 
     @classmethod
     def procedural(cls) -> EnvLight:
-        """The built-in sky/studio environment (:func:`envmaps.procedural_sky`)."""
-        return cls(procedural_sky(), name="procedural")
+        """The built-in sky/studio environment (:func:`envmaps.procedural_sky`); built once
+        per process and shared (an EnvLight is never modified in place)."""
+        if "procedural" not in _ENV_MEMO:
+            _ENV_MEMO["procedural"] = cls(procedural_sky(), name="procedural")
+        return _ENV_MEMO["procedural"]
 
     @classmethod
     def uniform(cls, value: float | tuple[float, float, float] = 1.0) -> EnvLight:

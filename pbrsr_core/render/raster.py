@@ -57,6 +57,9 @@ class GBuffer:
     mat: torch.Tensor | None = None
     view: torch.Tensor | None = None
     backface: torch.Tensor | None = None
+    # values derived from this G-buffer alone (texture taps, material rows), filled lazily
+    # by the shader; never copied by :meth:`to`
+    cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def num_pixels(self) -> int:
@@ -76,6 +79,8 @@ class GBuffer:
     def to(self, device: torch.device | str) -> GBuffer:
         kw = {}
         for f in fields(self):
+            if f.name == "cache":
+                continue
             v = getattr(self, f.name)
             if isinstance(v, torch.Tensor):
                 v = v.to(device)

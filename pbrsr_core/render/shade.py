@@ -29,7 +29,7 @@ from ..asset.model import DEFAULT_MATERIAL, Material, TextureRef
 from ..colour import linear_to_srgb
 from .light import EnvLight, brdf_lut, lookup_brdf
 from .raster import GBuffer
-from .texture import sample
+from .texture import gather, prepare
 
 NDOTV_MIN = 1e-4
 
@@ -52,10 +52,17 @@ def _material(materials, index: int) -> Material:
 
 
 class _Sampler:
-    """Samples each (image, texcoord, transform, wrap) once per shade() call."""
+    """Samples each (image, texcoord, transform, wrap) once per shade() call; the texel taps
+    of a (material, texcoord, transform, wrap, map size) are cached on the G-buffer."""
 
-    def __init__(self, gb: GBuffer, textures: Mapping[int, torch.Tensor], rows: torch.Tensor):
-        self.gb, self.textures, self.rows = gb, textures, rows
+    def __init__(
+        self,
+        gb: GBuffer,
+        textures: Mapping[int, torch.Tensor],
+        rows: torch.Tensor | None,
+        material: int,
+    ):
+        self.gb, self.textures, self.rows, self.material = gb, textures, rows, material
         self.memo: dict[tuple, torch.Tensor] = {}
 
     def __call__(self, ref: TextureRef) -> torch.Tensor:
@@ -65,8 +72,20 @@ class _Sampler:
                 raise ValueError(f"texture image {ref.image} is referenced but not given")
             if ref.texcoord not in self.gb.uv:
                 raise ValueError(f"the mesh has no TEXCOORD_{ref.texcoord} for image {ref.image}")
-            uv = self.gb.uv[ref.texcoord][self.rows]
-            self.memo[key] = sample(self.textures[ref.image], uv, ref)
+            tex = self.textures[ref.image]
+            if tex.dim() != 3:
+                raise ValueError(f"texture {ref.image} must be (H, W, C), got {tuple(tex.shape)}")
+            h, w = int(tex.shape[0]), int(tex.shape[1])
+            tkey = ("taps", self.material, key[1:], h, w, tex.device, tex.dtype == torch.float64)
+            taps = self.gb.cache.get(tkey)
+            if taps is None:
+                uv = self.gb.uv[ref.texcoord]
+                uv = uv if self.rows is None else uv[self.rows]
+                if tex.dtype == torch.float64:
+                    uv = uv.double()
+                taps = prepare(uv.to(tex.device), h, w, ref)
+                self.gb.cache[tkey] = taps
+            self.memo[key] = gather(tex, *taps)
         return self.memo[key]
 
 
@@ -109,12 +128,19 @@ def material_inputs(
     }
     parts: dict[str, list] = {k: [] for k in fields}
     rows_all, modes = [], []
-    mats = gb.mat if gb.mat is not None else torch.full((P,), -1, device=dev)
-    for m_idx in torch.unique(mats).tolist():
-        rows = torch.nonzero(mats == m_idx).squeeze(1)
-        n = rows.numel()
-        mat = _material(materials, int(m_idx))
-        smp = _Sampler(gb, textures, rows)
+    groups = gb.cache.get("material_rows")
+    if groups is None:  # [(material index, pixel rows or None for all)], cached per view
+        mats = gb.mat if gb.mat is not None else torch.full((P,), -1, device=dev)
+        ids = torch.unique(mats).tolist()
+        if len(ids) == 1:
+            groups = [(int(ids[0]), None)]
+        else:
+            groups = [(int(i), torch.nonzero(mats == i).squeeze(1)) for i in ids]
+        gb.cache["material_rows"] = groups
+    for m_idx, rows in groups:
+        n = P if rows is None else rows.numel()
+        mat = _material(materials, m_idx)
+        smp = _Sampler(gb, textures, rows, m_idx)
 
         def const(vals, n=n):
             return torch.tensor(vals, dtype=dtype, device=dev).expand(n, len(vals))
@@ -156,7 +182,7 @@ def material_inputs(
             parts[k].append(val)
         mode = {"OPAQUE": 0, "MASK": 1, "BLEND": 2}.get(mat.alpha_mode, 0)
         modes.append(torch.full((n,), mode, dtype=torch.long, device=dev))
-        rows_all.append(rows)
+        rows_all.append(torch.arange(P, device=dev) if rows is None else rows)
     if len(rows_all) == 1:  # the common case: no scatter needed
         out = {k: v[0] for k, v in parts.items()}
         out["alpha_mode"] = modes[0]

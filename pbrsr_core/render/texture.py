@@ -78,30 +78,50 @@ class _Bilinear(torch.autograd.Function):
         return grad_tex, None, grad_w
 
 
+def prepare(
+    uv: torch.Tensor, height: int, width: int, ref: TextureRef | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The texture-independent part of :func:`sample`: flat texel indices ``idx`` (P, 4)
+    int64 and bilinear weights ``w`` (P, 4) of ``uv`` (P, 2) for an (height, width)
+    texture. A G-buffer never changes, so callers cache this per view and map size."""
+    if uv.dim() != 2 or uv.shape[1] != 2:
+        raise ValueError(f"uv must be (P, 2), got shape {tuple(uv.shape)}")
+    if uv.dtype != torch.float64:
+        uv = uv.float()
+    uv = uv.detach()
+    uv = torch.nan_to_num(uv, nan=0.0, posinf=UV_LIMIT, neginf=-UV_LIMIT)
+    uv = uv.clamp(-UV_LIMIT, UV_LIMIT)
+    wrap_s, wrap_t = REPEAT, REPEAT
+    if ref is not None:
+        uv = apply_uv_transform(uv, ref.uv_transform)
+        uv = torch.nan_to_num(uv, nan=0.0).clamp(-UV_LIMIT, UV_LIMIT)
+        wrap_s, wrap_t = ref.wrap_s, ref.wrap_t
+    x0, x1, fx = _taps(width, uv[:, 0], wrap_s)
+    y0, y1, fy = _taps(height, uv[:, 1], wrap_t)
+    idx = torch.stack([y0 * width + x0, y0 * width + x1, y1 * width + x0, y1 * width + x1], 1)
+    gx, gy = 1.0 - fx, 1.0 - fy
+    return idx, torch.stack([gx * gy, fx * gy, gx * fy, fx * fy], 1)
+
+
+def gather(tex: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """(P, C) = sum_k w[:, k] * tex[idx[:, k]] for ``tex`` (H, W, C) and :func:`prepare`'s
+    ``idx``/``w``; differentiable w.r.t. ``tex``."""
+    if tex.dim() != 3:
+        raise ValueError(f"texture must be (H, W, C), got shape {tuple(tex.shape)}")
+    h, wd, c = tex.shape
+    return _Bilinear.apply(tex.reshape(h * wd, c), idx.to(tex.device), w.to(tex))
+
+
 def sample(tex: torch.Tensor, uv: torch.Tensor, ref: TextureRef | None = None) -> torch.Tensor:
     """Bilinear lookup of ``tex`` (H, W, C) at ``uv`` (P, 2) -> (P, C), honouring
     ``ref.uv_transform`` and ``ref.wrap_s`` / ``ref.wrap_t`` (``ref=None``: identity,
     REPEAT). Differentiable w.r.t. ``tex`` (not ``uv``)."""
     if tex.dim() != 3:
         raise ValueError(f"texture must be (H, W, C), got shape {tuple(tex.shape)}")
-    if uv.dim() != 2 or uv.shape[1] != 2:
-        raise ValueError(f"uv must be (P, 2), got shape {tuple(uv.shape)}")
-    h, w, c = tex.shape
-    uv = uv.detach().to(
-        device=tex.device, dtype=torch.float64 if tex.dtype == torch.float64 else torch.float32
-    )
-    uv = torch.nan_to_num(uv, nan=0.0, posinf=UV_LIMIT, neginf=-UV_LIMIT).clamp(-UV_LIMIT, UV_LIMIT)
-    wrap_s, wrap_t = REPEAT, REPEAT
-    if ref is not None:
-        uv = apply_uv_transform(uv, ref.uv_transform)
-        uv = torch.nan_to_num(uv, nan=0.0).clamp(-UV_LIMIT, UV_LIMIT)
-        wrap_s, wrap_t = ref.wrap_s, ref.wrap_t
-    x0, x1, fx = _taps(w, uv[:, 0], wrap_s)
-    y0, y1, fy = _taps(h, uv[:, 1], wrap_t)
-    idx = torch.stack([y0 * w + x0, y0 * w + x1, y1 * w + x0, y1 * w + x1], 1)
-    gx, gy = 1.0 - fx, 1.0 - fy
-    wts = torch.stack([gx * gy, fx * gy, gx * fy, fx * fy], 1).to(tex.dtype)
-    return _Bilinear.apply(tex.reshape(h * w, c), idx, wts)
+    if tex.dtype == torch.float64:
+        uv = uv.double()
+    idx, w = prepare(uv.to(tex.device), tex.shape[0], tex.shape[1], ref)
+    return gather(tex, idx, w)
 
 
 def sample_reference(tex: torch.Tensor, uv: torch.Tensor, ref: TextureRef | None = None):
