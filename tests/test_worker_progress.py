@@ -173,3 +173,78 @@ def test_watchdog_disarmed_after_exit_and_quiet_without_flag(settings):
     index.request_cancel("e" * 32, 60)
     time.sleep(0.4)  # flag set after exit: nothing may be raised here
     assert not dog.fired
+
+
+def _private_redis(port: int, tmp_path):
+    import shutil
+    import subprocess
+
+    exe = shutil.which("redis-server")
+    if exe is None:
+        pytest.skip("redis-server is not installed")
+    proc = subprocess.Popen(
+        # persistent, as in docker-compose.yml: the job must outlive the restart
+        [
+            exe,
+            "--port",
+            str(port),
+            "--bind",
+            "127.0.0.1",
+            "--save",
+            "",
+            "--appendonly",
+            "yes",
+            "--dir",
+            str(tmp_path),
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    from redis import Redis
+
+    client = Redis(host="127.0.0.1", port=port, socket_connect_timeout=0.5, socket_timeout=1)
+    from test_service_support import wait_for
+
+    def up():
+        try:
+            return client.ping()
+        except Exception:  # noqa: BLE001
+            return False
+
+    wait_for(up, 10, 0.05, "redis-server to start")
+    return proc, client
+
+
+def test_redis_outage_does_not_kill_the_run_and_the_outcome_is_kept(tmp_path):
+    import threading
+
+    from test_service_support import free_port
+
+    port = free_port()
+    proc, client = _private_redis(port, tmp_path)
+    try:
+        job = Queue("outage", connection=client).enqueue("worker.tasks.run_job", "x")
+        index = JobIndex(client, "outage")
+        rep = JobReporter(job, index, interval_s=0.0, cancel_check_s=0.0, finish_retry_s=30)
+        rep.start(attempt=1, worker_name="w")
+        proc.terminate()
+        proc.wait(timeout=10)
+        for step in range(3):  # progress and cancel checks while Redis is away: no error
+            rep(Progress(stage="optimize", step=step, total=3, losses={"l": 1.0}))
+
+        restarted = {}
+
+        def restart():
+            restarted["proc"], _ = _private_redis(port, tmp_path)
+
+        timer = threading.Timer(1.0, restart)
+        timer.start()
+        rep.finish(JobState.FINISHED)  # retries until Redis is back
+        timer.join()
+        assert Job.fetch(job.id, connection=client).meta["state"] == "finished"
+        assert index.outcomes() == {"finished": 1}
+    finally:
+        for p in (proc, locals().get("restarted", {}).get("proc")):
+            if p is not None and p.poll() is None:
+                p.terminate()
+                p.wait(timeout=10)

@@ -13,9 +13,13 @@
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable
 from typing import Any
+
+from redis.exceptions import ConnectionError as RedisConnectionError
+from redis.exceptions import TimeoutError as RedisTimeoutError
 
 from pbrsr_core.errors import Cancelled
 from pbrsr_core.jobstore import JobIndex, JobState
@@ -39,6 +43,25 @@ STAGE_WEIGHTS: dict[str, dict[str, float]] = {
     },
 }
 MAX_HISTORY = 400
+REDIS_ERRORS = (RedisConnectionError, RedisTimeoutError)
+log = logging.getLogger("pbrsr.worker")
+
+
+def _with_retries(fn: Callable[[], Any], budget_s: float) -> None:
+    """Run ``fn``, retrying Redis connection errors with backoff for up to ``budget_s``: a
+    job's outcome must not be lost to a Redis restart."""
+    deadline = time.monotonic() + budget_s
+    wait = 0.5
+    while True:
+        try:
+            fn()
+            return
+        except REDIS_ERRORS as exc:
+            if time.monotonic() + wait > deadline:
+                raise
+            log.warning("redis unavailable (%s); retrying in %.1f s", exc, wait)
+            time.sleep(wait)
+            wait = min(wait * 2, 10.0)
 
 
 def _finite(values: dict[str, Any]) -> dict[str, float]:
@@ -65,12 +88,14 @@ class JobReporter:
         cancel_check_s: float = 0.25,
         clock: Callable[[], float] = time.monotonic,
         method: str = "pbrsr",
+        finish_retry_s: float = 120.0,
     ):
         self.job = job
         self.index = index
         self.interval_s = interval_s
         self.cancel_check_s = cancel_check_s
         self.clock = clock
+        self.finish_retry_s = finish_retry_s
         self.weights = STAGE_WEIGHTS.get(method, STAGE_WEIGHTS["pbrsr"])
         self.t0 = clock()
         self.last_save = -float("inf")
@@ -127,11 +152,21 @@ class JobReporter:
             meta["code"] = code or "error"
         if summary:
             meta["summary"] = summary
-        self.job.save_meta()
-        self.index.record_outcome(state, now - self.t0 if state == JobState.FINISHED else None)
+        _with_retries(self.job.save_meta, self.finish_retry_s)
+        _with_retries(
+            lambda: self.index.record_outcome(
+                state, now - self.t0 if state == JobState.FINISHED else None
+            ),
+            self.finish_retry_s,
+        )
 
     def check_cancel(self) -> None:
-        if self.index.cancel_requested(self.job.id):
+        try:
+            requested = self.index.cancel_requested(self.job.id)
+        except REDIS_ERRORS as exc:  # Redis away for a moment: keep working
+            log.warning("job %s: cannot read the cancel flag: %s", self.job.id, exc)
+            return
+        if requested:
             raise Cancelled("the job was canceled")
 
     # -- ProgressFn ------------------------------------------------------------------------
@@ -211,5 +246,9 @@ class JobReporter:
             history=self.history,
             updated_at=time.time(),
         )
-        self.job.save_meta()
+        try:
+            self.job.save_meta()
+        except REDIS_ERRORS as exc:  # progress is best effort; the run goes on
+            log.warning("job %s: progress not saved: %s", self.job.id, exc)
+            return
         self.saves += 1
