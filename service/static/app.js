@@ -232,7 +232,8 @@ function renderCharts(job) {
   const lossNames = new Set(), psnrNames = new Set();
   for (const p of job.history) {
     Object.keys(p.losses).forEach((k) => lossNames.add(k));
-    Object.keys(p.metrics).filter((k) => /psnr/i.test(k)).forEach((k) => psnrNames.add(k));
+    // the optimizer's metrics are the consistency PSNR of each map group ("0:albedo", ...)
+    Object.keys(p.metrics).forEach((k) => psnrNames.add(k));
   }
   const series = (names, field) => [...names].map((name) => ({
     name, points: job.history.filter((p) => name in p[field]).map((p) => [p.t, p[field][name]]),

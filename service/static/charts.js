@@ -31,7 +31,7 @@ function fmtTick(v) {
 function lineChart(el, series, opts) {
   opts = opts || {};
   const W = el.clientWidth || 400, H = el.clientHeight || 200;
-  const m = { l: 46, r: 10, t: 10, b: 34 };
+  const m = { l: 46, r: 10, t: 24, b: 34 };
   const svg = svgEl("svg", { viewBox: `0 0 ${W} ${H}`, role: "img" });
   const usable = series
     .map((s) => ({ name: s.name, points: s.points.filter((p) => isFinite(p[0]) && isFinite(p[1]) && (!opts.log || p[1] > 0)) }))
@@ -71,8 +71,8 @@ function lineChart(el, series, opts) {
       const [x, y] = s.points[0];
       svg.appendChild(svgEl("circle", { cx: px(x), cy: py(y), r: 2.5, fill: colour }));
     }
-    svg.appendChild(svgEl("rect", { x: lx, y: m.t + 2, width: 10, height: 3, fill: colour }));
-    const t = svgEl("text", { x: lx + 13, y: m.t + 7, class: "legend" }, s.name);
+    svg.appendChild(svgEl("rect", { x: lx, y: 8, width: 10, height: 3, fill: colour }));
+    const t = svgEl("text", { x: lx + 13, y: 13, class: "legend" }, s.name);
     svg.appendChild(t);
     lx += 20 + 6 * s.name.length;
   });
