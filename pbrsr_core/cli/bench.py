@@ -67,5 +67,30 @@ def fuzz_cmd(
         raise typer.Exit(1)
 
 
+@bench_app.command("render")
+def render_cmd(
+    out: Path = typer.Option(Path("bench-out/render"), "--out", "-o", help="Output directory."),
+    resolutions: str = typer.Option("512,1024", help="Render resolutions, comma-separated."),
+    views: int = typer.Option(3, help="Orbit views per case (medians are reported)."),
+    shared: bool = typer.Option(True, help="Include /work/shared/assets when present."),
+    threads: int = typer.Option(0, help="torch intra-op threads (0: torch's default)."),
+) -> None:
+    """Renderer speed: G-buffer time per view (coverage + interpolation), shading forward +
+    backward throughput (Mpixel/s) and peak memory, on a ~100k-triangle procedural mesh and
+    the shared assets; plus a per-operator profile of shading."""
+    from ..bench.render import print_table, run
+
+    result = run(
+        out_dir=out,
+        resolutions=_ints(resolutions),
+        n_views=views,
+        shared=shared,
+        threads=threads or None,
+        log=lambda m: typer.echo(m, err=True),
+    )
+    print_table(result)
+    typer.echo(f"wrote {out / 'render.json'} and {out / 'render.png'}")
+
+
 def register(app: typer.Typer) -> None:
     app.add_typer(bench_app, name="bench")
