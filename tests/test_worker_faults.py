@@ -37,8 +37,9 @@ def test_killed_worker_job_is_retried_elsewhere_and_finishes(tmp_path):
             TestClient(create_app(settings), raise_server_exceptions=False) as client,
         ):
             procs = {"victim-a": a, "victim-b": b}
-            job_id = post_asset(client, asset_bytes(tmp_path), options={"method": "bicubic"}
-                                ).json()["id"]
+            job_id = post_asset(
+                client, asset_bytes(tmp_path), options={"method": "bicubic"}
+            ).json()["id"]
 
             def stage():
                 j = client.get(f"/v1/jobs/{job_id}").json()
@@ -68,7 +69,12 @@ def test_killed_worker_job_is_retried_elsewhere_and_finishes(tmp_path):
             assert "asset.glb" in names and "report.json" in names
             job_dir = JobLayout(settings.storage_dir).job_dir(job_id)
             assert sorted(p.name for p in job_dir.iterdir()) == [
-                "input", "job.json", "output", "result.zip", "thumbs", "work"
+                "input",
+                "job.json",
+                "output",
+                "result.zip",
+                "thumbs",
+                "work",
             ]
             assert not list((job_dir / "output").rglob(".*"))
     finally:
