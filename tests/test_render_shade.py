@@ -268,3 +268,41 @@ def test_multiple_materials_and_cached_taps_agree():
         g1 = raster.rasterize(one, camera.look_at((0.1, 0.2, 1.4), fov_deg=50, resolution=(32, 32)))
         assert torch.equal(g1.pix, gb.pix)
         torch.testing.assert_close(shade.shade(g1, mats, tex, env)[sel], first[sel])
+
+
+@pytest.mark.parametrize("backside", [False, True])
+def test_normal_map_convention_tangent_x_and_opengl_green_up(backside):
+    """On a quad (u along +x, v along -y), tangent-space +X tilts the normal toward +x and
+    +Y (green, OpenGL) toward +y (up in the image); from behind the frame is mirrored."""
+    mesh = shapes.quad(1.0)
+    z = -1.5 if backside else 1.5
+    gb = raster.rasterize(mesh, camera.look_at((0.0, 0.0, z), fov_deg=20, resolution=(8, 8)))
+    env = light.EnvLight.uniform(1.0)
+    mat = Material(index=0, normal=TextureRef(0), normal_scale=1.0)
+    for texel, axis in (((0.8, 0.5, 0.9), 0), ((0.5, 0.8, 0.9), 1)):
+        n = shade.shade_terms(gb, [mat], {0: _const(*texel)}, env)["normal"]
+        tilt = (2 * texel[axis] - 1) / math.hypot(2 * texel[axis] - 1, 2 * 0.9 - 1)
+        sign = -1.0 if backside else 1.0
+        torch.testing.assert_close(n[:, axis], torch.full_like(n[:, axis], sign * tilt))
+        assert (n[:, 2] * sign > 0).all()
+
+
+def test_alpha_modes_and_factors():
+    gb = raster.rasterize(
+        shapes.quad(1.0), camera.look_at((0, 0, 2), fov_deg=40, resolution=(8, 8))
+    )
+    env = light.EnvLight.uniform(1.0)
+    tex = {0: _const(0.5, 0.5, 0.5, 0.3)}
+    kw = dict(index=0, base_color=TextureRef(0), base_color_factor=(1.0, 1.0, 1.0, 2.0))
+    alpha = {
+        mode: shade.shade(gb, [Material(alpha_mode=mode, alpha_cutoff=0.5, **kw)], tex, env)[:, 3]
+        for mode in ("OPAQUE", "MASK", "BLEND")
+    }
+    assert (alpha["OPAQUE"] == 1).all()
+    assert (alpha["MASK"] == 1).all()  # 0.3 * 2.0 = 0.6 >= 0.5
+    torch.testing.assert_close(alpha["BLEND"], torch.full_like(alpha["BLEND"], 0.6))
+    # a factor multiplies the texture: half the albedo, half the diffuse term
+    a = shade.shade_terms(gb, [Material(**kw)], tex, env)["diffuse"]
+    kw["base_color_factor"] = (0.5, 0.5, 0.5, 1.0)
+    b = shade.shade_terms(gb, [Material(**kw)], tex, env)["diffuse"]
+    torch.testing.assert_close(b, a * 0.5)

@@ -113,8 +113,8 @@ def material_inputs(
 ) -> dict[str, torch.Tensor]:
     """Per-pixel material values for every covered pixel: ``base`` (P, 4) linear RGBA,
     ``rough``/``metal``/``ao`` (P, 1), ``emissive`` (P, 3) (already times strength),
-    ``normal_ts`` (P, 3) decoded unit tangent-space normal, ``alpha_mode`` (P,) int (0
-    OPAQUE, 1 MASK, 2 BLEND), ``alpha_cutoff`` (P, 1)."""
+    ``normal_ts`` (P, 3) decoded unit tangent-space normal, ``alpha`` (P, 1) after the
+    material's alpha mode (OPAQUE 1, MASK step at the cutoff, BLEND base alpha)."""
     P = gb.num_pixels
     dev = gb.device
     fields = {
@@ -124,10 +124,10 @@ def material_inputs(
         "ao": 1,
         "emissive": 3,
         "normal_ts": 3,
-        "alpha_cutoff": 1,
+        "alpha": 1,
     }
     parts: dict[str, list] = {k: [] for k in fields}
-    rows_all, modes = [], []
+    rows_all = []
     groups = gb.cache.get("material_rows")
     if groups is None:  # [(material index, pixel rows or None for all)], cached per view
         mats = gb.mat if gb.mat is not None else torch.full((P,), -1, device=dev)
@@ -145,22 +145,39 @@ def material_inputs(
         def const(vals, n=n):
             return torch.tensor(vals, dtype=dtype, device=dev).expand(n, len(vals))
 
-        base = const(mat.base_color_factor)
+        def scaled(factors, tex):  # factor * texture, skipping a multiplication by ones
+            if all(float(f) == 1.0 for f in factors):
+                return tex
+            return tex * torch.tensor(factors, dtype=dtype, device=dev)
+
         if mat.base_color is not None:
-            base = base * _channels(smp(mat.base_color).to(dtype), 4, 1.0)
-        rough = const((mat.roughness_factor,))
-        metal = const((mat.metallic_factor,))
+            base = scaled(mat.base_color_factor, _channels(smp(mat.base_color).to(dtype), 4, 1.0))
+        else:
+            base = const(mat.base_color_factor)
         if mat.metallic_roughness is not None:
             mr = _channels(smp(mat.metallic_roughness).to(dtype), 3, 0.0)
-            rough = rough * mr[:, 1:2]
-            metal = metal * mr[:, 2:3]
+            rough = scaled((mat.roughness_factor,), mr[:, 1:2])
+            metal = scaled((mat.metallic_factor,), mr[:, 2:3])
+        else:
+            rough = const((mat.roughness_factor,))
+            metal = const((mat.metallic_factor,))
         ao = const((1.0,))
         if mat.occlusion is not None:
             occ = smp(mat.occlusion).to(dtype)[:, :1]
-            ao = 1.0 + mat.occlusion_strength * (occ - 1.0)
-        emis = const(tuple(float(e) * mat.emissive_strength for e in mat.emissive_factor))
-        if mat.emissive is not None:
-            emis = emis * _channels(smp(mat.emissive).to(dtype), 3, 0.0)
+            ao = (
+                occ if mat.occlusion_strength == 1.0 else 1.0 + mat.occlusion_strength * (occ - 1.0)
+            )
+        emis_f = tuple(float(e) * mat.emissive_strength for e in mat.emissive_factor)
+        if mat.emissive is not None and any(f != 0.0 for f in emis_f):
+            emis = scaled(emis_f, _channels(smp(mat.emissive).to(dtype), 3, 0.0))
+        else:
+            emis = const(emis_f)
+        if mat.alpha_mode == "BLEND":
+            alpha = base[:, 3:4]
+        elif mat.alpha_mode == "MASK":
+            alpha = (base[:, 3:4] >= mat.alpha_cutoff).to(dtype)
+        else:
+            alpha = const((1.0,))
         if mat.normal is not None:
             t = _channels(smp(mat.normal).to(dtype), 3, 1.0)
             s = mat.normal_scale
@@ -177,26 +194,17 @@ def material_inputs(
             ("ao", ao),
             ("emissive", emis),
             ("normal_ts", nts),
-            ("alpha_cutoff", const((mat.alpha_cutoff,))),
+            ("alpha", alpha),
         ):
             parts[k].append(val)
-        mode = {"OPAQUE": 0, "MASK": 1, "BLEND": 2}.get(mat.alpha_mode, 0)
-        modes.append(torch.full((n,), mode, dtype=torch.long, device=dev))
         rows_all.append(torch.arange(P, device=dev) if rows is None else rows)
     if len(rows_all) == 1:  # the common case: no scatter needed
-        out = {k: v[0] for k, v in parts.items()}
-        out["alpha_mode"] = modes[0]
-        return out
+        return {k: v[0] for k, v in parts.items()}
     order = torch.cat(rows_all)
-    out = {}
-    for k, c in fields.items():
-        out[k] = torch.zeros(P, c, dtype=dtype, device=dev).index_copy(
-            0, order, torch.cat(parts[k])
-        )
-    out["alpha_mode"] = torch.zeros(P, dtype=torch.long, device=dev).index_copy(
-        0, order, torch.cat(modes)
-    )
-    return out
+    return {
+        k: torch.zeros(P, c, dtype=dtype, device=dev).index_copy(0, order, torch.cat(parts[k]))
+        for k, c in fields.items()
+    }
 
 
 def perturb_normal(gb: GBuffer, normal_ts: torch.Tensor) -> torch.Tensor:
@@ -239,10 +247,7 @@ def shade_terms(
     a, b = lookup_brdf(brdf_lut() if lut is None else lut, n_dot_v, rough)
     specular = light.specular(r, rough) * (f0 * a + b)
     emissive = m["emissive"].clamp_min(0.0)
-    alpha = base[:, 3:4]
-    mode = m["alpha_mode"][:, None]
-    alpha = torch.where(mode == 0, torch.ones_like(alpha), alpha)
-    alpha = torch.where(mode == 1, (alpha >= m["alpha_cutoff"]).to(dtype), alpha)
+    alpha = m["alpha"].clamp(0.0, 1.0)
     return {
         "diffuse": diffuse,
         "specular": specular,
