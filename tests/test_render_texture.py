@@ -76,3 +76,20 @@ def test_shape_errors():
         sample(torch.zeros(3, 3), torch.zeros(1, 2))
     with pytest.raises(ValueError, match="uv must be"):
         sample(torch.zeros(3, 3, 1), torch.zeros(1, 3))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_numba_gather_and_scatter_match_torch(dtype):
+    from pbrsr_core.render.texture import _Bilinear, gather_torch, prepare, scatter_torch
+
+    g = torch.Generator().manual_seed(7)
+    tex = torch.rand(13, 9, 3, generator=g, dtype=dtype)
+    uv = torch.rand(500, 2, generator=g, dtype=dtype) * 2 - 0.5
+    idx, w = prepare(uv, 13, 9, TextureRef(0))
+    w = w.to(dtype)
+    flat = tex.reshape(-1, 3).requires_grad_()
+    out = _Bilinear.apply(flat, idx, w)
+    torch.testing.assert_close(out, gather_torch(flat.detach(), idx, w))
+    go = torch.rand(500, 3, generator=g, dtype=dtype)
+    out.backward(go)
+    torch.testing.assert_close(flat.grad, scatter_torch(go, idx, w, flat.shape[0]))

@@ -7,13 +7,15 @@ MIRRORED_REPEAT). Filtering is always bilinear (no mip maps: the caller picks a 
 resolution that matches the texel density, see ``GBuffer.uv_grad``).
 
 Sampling is one gather of the four taps of every point from the flattened texture; the
-backward is a single ``index_add_`` of the weighted output gradients into a zero texture
-(:class:`_Bilinear`), which is cheaper on the CPU than autograd's ``index_put`` with
-accumulation. Non-finite UVs are treated as 0.
+backward scatters the weighted output gradients into a zero texture (:class:`_Bilinear`).
+On the CPU both are numba loops (measured: far cheaper than torch's gather + ``index_add_``,
+which materialise a (P, 4, C) temporary); elsewhere plain torch. Non-finite UVs are treated
+as 0.
 """
 
 from __future__ import annotations
 
+import numba
 import torch
 
 from ..asset.model import CLAMP_TO_EDGE, MIRRORED_REPEAT, REPEAT, TextureRef
@@ -52,26 +54,82 @@ def _taps(n: int, coord: torch.Tensor, mode: int) -> tuple[torch.Tensor, ...]:
     return wrap_index(i0, n, mode), wrap_index(i0 + 1, n, mode), f
 
 
+@numba.njit(parallel=True, cache=True)
+def _gather4_numba(tex, idx, w, out):
+    for p in numba.prange(idx.shape[0]):
+        for c in range(tex.shape[1]):
+            acc = w[p, 0] * tex[idx[p, 0], c]
+            for k in range(1, 4):
+                acc += w[p, k] * tex[idx[p, k], c]
+            out[p, c] = acc
+
+
+@numba.njit(cache=True)
+def _scatter4_numba(grad_out, idx, w, grad_tex):
+    for p in range(idx.shape[0]):  # serial: no write conflicts, one pass over memory
+        for k in range(4):
+            i = idx[p, k]
+            wk = w[p, k]
+            for c in range(grad_out.shape[1]):
+                grad_tex[i, c] += wk * grad_out[p, c]
+
+
+def _use_numba(*tensors: torch.Tensor) -> bool:
+    return all(t.device.type == "cpu" for t in tensors) and tensors[0].dtype in (
+        torch.float32,
+        torch.float64,
+    )
+
+
+def gather_torch(tex_flat: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """Plain torch forward of the 4-tap gather (the GPU path; the CPU reference)."""
+    taps = tex_flat[idx.reshape(-1)].view(idx.shape[0], 4, -1)
+    return (taps * w.unsqueeze(-1)).sum(1)
+
+
+def scatter_torch(grad_out: torch.Tensor, idx: torch.Tensor, w: torch.Tensor, n: int):
+    """Plain torch backward of the 4-tap gather: (n, C) texel gradients."""
+    c = grad_out.shape[1]
+    contrib = (w.unsqueeze(-1) * grad_out.unsqueeze(1)).reshape(-1, c)
+    grad = torch.zeros(n, c, dtype=grad_out.dtype, device=grad_out.device)
+    return grad.index_add_(0, idx.reshape(-1), contrib)
+
+
 class _Bilinear(torch.autograd.Function):
-    """out[p] = sum_k w[p, k] * tex_flat[idx[p, k]]; idx (P, 4) int64, w (P, 4)."""
+    """out[p] = sum_k w[p, k] * tex_flat[idx[p, k]]; idx (P, 4) int64, w (P, 4). On the CPU
+    both directions are small numba kernels (one pass over memory, no (P, 4, C) temporary);
+    elsewhere plain torch gather / index_add."""
 
     @staticmethod
     def forward(ctx, tex_flat: torch.Tensor, idx: torch.Tensor, w: torch.Tensor):
         ctx.save_for_backward(idx, w)
         ctx.n_texels = tex_flat.shape[0]
-        taps = tex_flat[idx.reshape(-1)].view(idx.shape[0], 4, -1)
-        return (taps * w.unsqueeze(-1)).sum(1)
+        if _use_numba(tex_flat, idx, w) and w.dtype == tex_flat.dtype:
+            out = torch.empty(idx.shape[0], tex_flat.shape[1], dtype=tex_flat.dtype)
+            _gather4_numba(
+                tex_flat.detach().contiguous().numpy(),
+                idx.contiguous().numpy(),
+                w.contiguous().numpy(),
+                out.numpy(),
+            )
+            return out
+        return gather_torch(tex_flat, idx, w)
 
     @staticmethod
     def backward(ctx, grad_out: torch.Tensor):
         idx, w = ctx.saved_tensors
         grad_tex = None
         if ctx.needs_input_grad[0]:
-            c = grad_out.shape[1]
-            contrib = (w.unsqueeze(-1) * grad_out.unsqueeze(1)).reshape(-1, c)
-            grad_tex = torch.zeros(
-                ctx.n_texels, c, dtype=grad_out.dtype, device=grad_out.device
-            ).index_add_(0, idx.reshape(-1), contrib)
+            if _use_numba(grad_out, idx, w) and w.dtype == grad_out.dtype:
+                grad_tex = torch.zeros(ctx.n_texels, grad_out.shape[1], dtype=grad_out.dtype)
+                _scatter4_numba(
+                    grad_out.contiguous().numpy(),
+                    idx.contiguous().numpy(),
+                    w.contiguous().numpy(),
+                    grad_tex.numpy(),
+                )
+            else:
+                grad_tex = scatter_torch(grad_out, idx, w, ctx.n_texels)
         grad_w = None
         if ctx.needs_input_grad[2]:
             raise RuntimeError("texture.sample is not differentiable w.r.t. UVs")
