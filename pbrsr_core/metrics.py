@@ -17,7 +17,7 @@ from .errors import UnprocessableAsset
 from .optim.ssim import ssim_per_channel
 from .render import camera as cam
 from .render.light import EnvLight
-from .scene import asset_textures, make_scene, render_views
+from .scene import asset_textures, make_scene, procedural_light, render_views
 from .uvmask import coverage_masks
 
 # map name -> (role that holds it, channels of that image)
@@ -156,7 +156,7 @@ def evaluate(
     """All metrics of a predicted asset against its ground truth."""
     pred, gt = load_asset(pred_path), load_asset(gt_path)
     out = map_metrics(pred, gt)
-    lights = [EnvLight.from_file(p) for p in envmaps] if envmaps else [EnvLight.procedural()]
+    lights = [EnvLight.from_file(p) for p in envmaps] if envmaps else [procedural_light()]
     evaluator = RenderEvaluator(
         gt, cameras=eval_cameras(resolution, num_views), lights=lights, device=device
     )

@@ -42,6 +42,7 @@ from .prior import load_prior
 from .prior.direct import bicubic_map, upscale_map
 from .progress import Progress, ProgressFn, emit
 from .render.light import EnvLight
+from .scene import make_scene, procedural_light
 from .uvmask import coverage_masks
 
 
@@ -78,7 +79,7 @@ def _check_output_size(images, scale: int, limits: Limits) -> None:
 
 
 def load_light(envmap: str | None) -> EnvLight:
-    return EnvLight.procedural() if not envmap else EnvLight.from_file(Path(envmap))
+    return procedural_light() if not envmap else EnvLight.from_file(Path(envmap))
 
 
 def _upscale_maps(
@@ -127,8 +128,6 @@ def _upscale_maps(
             lr[img.index] = to_param(img)
     with timer("load_light"):
         light = load_light(options.envmap).to(device)
-    from .scene import make_scene
-
     scene = make_scene(asset, device)
     result = optimize_pbrsr(
         scene.mesh,
@@ -222,6 +221,7 @@ def upscale_asset(
                 method_report,
                 device,
                 t_start,
+                progress,
             )
         emit(progress, Progress(stage="done", step=1, total=1))
         return report
@@ -240,6 +240,7 @@ def _write_bundle(
     method_report: dict,
     device: torch.device,
     t_start: float,
+    progress: ProgressFn | None = None,
 ) -> dict:
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
@@ -255,7 +256,7 @@ def _write_bundle(
             write_image(maps_dir / name, px, bits, "png")
             map_files[i] = f"maps/{name}"
         with timer("preview"):
-            previews = write_previews(asset, hr, stage, device, options.envmap)
+            previews = write_previews(asset, hr, stage, device, options.envmap, progress)
         report = {
             "pbrsr_version": __version__,
             "input": file_name,

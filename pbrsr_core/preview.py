@@ -15,9 +15,16 @@ import torch  # noqa: E402
 from .asset.images import write_image  # noqa: E402
 from .asset.model import Asset  # noqa: E402
 from .maps import encoded_to_param, kind_of  # noqa: E402
+from .progress import Progress, ProgressFn, emit  # noqa: E402
 from .render import camera as cam  # noqa: E402
 from .render.light import EnvLight  # noqa: E402
-from .scene import asset_textures, make_scene, render_views  # noqa: E402
+from .scene import (  # noqa: E402
+    asset_textures,
+    make_scene,
+    procedural_light,
+    render_views,
+    rotated_procedural_light,
+)
 
 PREVIEW_RES = 384
 
@@ -25,16 +32,16 @@ PREVIEW_RES = 384
 def preview_lights(envmap: str | None) -> dict[str, EnvLight]:
     """Two environments: the built-in procedural one and the user's map (or a second,
     rotated procedural one), so relighting is visible."""
-    lights = {"studio": EnvLight.procedural()}
+    lights = {"studio": procedural_light()}
     if envmap:
         lights[Path(envmap).stem[:32] or "envmap"] = EnvLight.from_file(Path(envmap))
     else:
-        lights["rotated"] = EnvLight.procedural(rotation_deg=150.0)
+        lights["rotated"] = rotated_procedural_light(150.0)
     return lights
 
 
 def preview_camera(res: int = PREVIEW_RES) -> cam.Camera:
-    return cam.orbit_cameras(1, 1, 3.25, 20.0, (res, res), elev_range_deg=(25.0, 25.0))[0]
+    return cam.orbit_cameras(1, 1, 3.25, 24.0, (res, res), elev_range_deg=(25.0, 25.0))[0]
 
 
 def write_previews(
@@ -43,6 +50,7 @@ def write_previews(
     out_dir: Path,
     device: torch.device,
     envmap: str | None,
+    progress: ProgressFn | None = None,
 ) -> dict[str, str]:
     """Write ``previews/{before,after}_<env>.png`` and ``preview.png``; return name -> path."""
     scene = make_scene(asset, device)
@@ -57,7 +65,9 @@ def write_previews(
     (out_dir / "previews").mkdir(exist_ok=True)
     files: dict[str, str] = {}
     rows = []
-    for env, light in preview_lights(envmap).items():
+    lights = preview_lights(envmap)
+    done, total = 0, 2 * len(lights)
+    for env, light in lights.items():
         light = light.to(device)
         pair = []
         for label, tex in (("before", before), ("after", after)):
@@ -67,6 +77,8 @@ def write_previews(
             write_image(out_dir / rel, arr, 8, "png")
             files[f"{label}_{env}"] = rel
             pair.append(arr)
+            done += 1
+            emit(progress, Progress(stage="preview", step=done, total=total))
         rows.append((env, pair))
     fig, axes = plt.subplots(len(rows), 2, figsize=(8, 4 * len(rows)), squeeze=False)
     for r, (env, pair) in enumerate(rows):

@@ -3,6 +3,7 @@ optimisation space, plus helpers to render views of it (previews, evaluation).""
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import torch
@@ -24,8 +25,9 @@ class Scene:
 def make_scene(asset: Asset, device: torch.device) -> Scene:
     center, scale = cam.normalize_transform(asset.mesh.v_pos)
     mesh = asset.mesh
+    c = torch.as_tensor(center, dtype=mesh.v_pos.dtype)
     normed = Mesh(
-        v_pos=(mesh.v_pos - center) * scale,
+        v_pos=(mesh.v_pos - c) * scale,
         v_nrm=mesh.v_nrm,
         v_tng=mesh.v_tng,
         v_uv=mesh.v_uv,
@@ -33,6 +35,23 @@ def make_scene(asset: Asset, device: torch.device) -> Scene:
         t_mat=mesh.t_mat,
     )
     return Scene(mesh=normed.to(device), materials=asset.materials, device=device)
+
+
+@functools.lru_cache(maxsize=1)
+def procedural_light() -> EnvLight:
+    """The built-in environment, prefiltered once per process (a worker reuses it)."""
+    return EnvLight.procedural()
+
+
+@functools.lru_cache(maxsize=4)
+def rotated_procedural_light(degrees: float) -> EnvLight:
+    """The built-in environment turned about the up axis (an equirect map rolled in
+    longitude), a second lighting for previews and relighting checks; cached per process."""
+    from .render.envmaps import procedural_sky
+
+    sky = procedural_sky()
+    shift = int(round(degrees / 360.0 * sky.shape[1]))
+    return EnvLight(torch.roll(sky, shifts=shift, dims=1), name=f"procedural-rot{degrees:g}")
 
 
 def asset_textures(asset: Asset, device: torch.device) -> dict[int, torch.Tensor]:

@@ -12,7 +12,7 @@ from .asset.model import Asset, TextureRef
 
 
 @numba.njit(cache=True)
-def _raster_uv(uv: np.ndarray, tris: np.ndarray, h: int, w: int, wrap: bool) -> np.ndarray:
+def raster_uv_mask(uv: np.ndarray, tris: np.ndarray, h: int, w: int, wrap: bool) -> np.ndarray:
     mask = np.zeros((h, w), dtype=np.bool_)
     for t in range(tris.shape[0]):
         x0 = uv[tris[t, 0], 0] * w - 0.5
@@ -105,5 +105,5 @@ def coverage_masks(
             seen.add(key)
             uv = transform_uv(mesh.v_uv[ref.texcoord].double(), ref).numpy()
             h, w = out[ref.image].shape
-            out[ref.image] |= _raster_uv(uv, tris, h, w, True)
+            out[ref.image] |= raster_uv_mask(uv, tris, h, w, True)
     return out

@@ -26,6 +26,7 @@ from ..asset.model import Asset
 from ..degrade import degrade_asset
 from ..metrics import RenderEvaluator, eval_cameras, map_metrics
 from ..render.light import EnvLight
+from ..scene import procedural_light, rotated_procedural_light
 
 SHARED_ASSETS = Path(__file__).resolve().parents[2].parent / "shared" / "assets"
 DEFAULT_METHODS = ("bicubic", "direct", "fast", "balanced")
@@ -50,7 +51,7 @@ def eval_lights(shared: Path) -> tuple[list[EnvLight], list[str]]:
     paths = [env_dir / n for n in ENVMAPS if (env_dir / n).is_file()]
     if len(paths) == 2:
         return [EnvLight.from_file(p) for p in paths], [p.stem for p in paths]
-    return [EnvLight.procedural(), EnvLight.procedural(rotation_deg=150.0)], [
+    return [procedural_light(), rotated_procedural_light(150.0)], [
         "procedural",
         "procedural-rotated",
     ]

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
@@ -321,6 +322,8 @@ def optimize_pbrsr(
     seed: int = 0,
     cameras: list[cam.Camera] | None = None,
     reference_maps: dict[int, torch.Tensor] | None = None,
+    snapshot_at: Collection[int] = (),
+    on_snapshot: Callable[[int, dict[int, torch.Tensor]], None] | None = None,
 ) -> PbrsrResult:
     """Optimise the HR maps of the images in ``init_maps`` (see the module docstring).
 
@@ -329,7 +332,9 @@ def optimize_pbrsr(
     ``mesh`` is normalised to unit size. ``prior.upscale((N, 3, h, w) sRGB, scale)`` makes the
     pseudo-GT. Test/benchmark hooks: ``cameras`` replaces view selection (their resolution is
     the HR render resolution, a multiple of ``scale``); ``reference_maps`` replaces the
-    pseudo-GT by renders of those maps at the HR resolution (an oracle target, no prior).
+    pseudo-GT by renders of those maps at the HR resolution (an oracle target, no prior);
+    ``on_snapshot(it, maps)`` sees the maps before each iteration in ``snapshot_at`` (and
+    after the last one, ``it == iterations``), for speed-against-error curves.
     ``progress`` may raise ``Cancelled``; it propagates.
     """
     from ..render import raster, shade  # imported here: the renderer is a heavy import
@@ -483,7 +488,12 @@ def optimize_pbrsr(
             for g in groups[i]
         }
 
+    def snapshot(it: int) -> None:
+        if on_snapshot is not None and it in snapshot_at:
+            on_snapshot(it, {i: params[i].detach() for i in images})
+
     for it in range(config.iterations):
+        snapshot(it)
         textures = {**static, **params}
         if config.sampling == "views":
             while len(order) < config.batch_views:
@@ -589,6 +599,7 @@ def optimize_pbrsr(
                     eta_s=eta(done),
                 ),
             )
+    snapshot(config.iterations)
     timings["optimize"] = time.perf_counter() - t0
 
     maps = {i: params[i].detach().clone() for i in images}

@@ -26,7 +26,7 @@ import torch
 
 from ..asset.model import MAP_ROLES, Material, Mesh, TextureRef
 from ..render import camera as cam
-from ..uvmask import _raster_uv, transform_uv
+from ..uvmask import raster_uv_mask, transform_uv
 
 
 def fibonacci_directions(n: int) -> np.ndarray:
@@ -104,7 +104,7 @@ def uv_texel_mask(
         if not bool(sel.any()):
             continue
         uv = transform_uv(mesh.v_uv[ref.texcoord].detach().cpu().double(), ref).numpy()
-        mask |= _raster_uv(uv, tri_idx[sel].numpy(), h, w, True)
+        mask |= raster_uv_mask(uv, tri_idx[sel].numpy(), h, w, True)
     return mask
 
 

@@ -1,0 +1,116 @@
+"""The upscale pipeline end to end on small procedural assets: bundle layout, report, the
+output asset's validity and sizes, and baseline methods against their definitions."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pbrsr_core.asset import (
+    load_asset,
+    make_demo_asset,
+    make_quad_asset,
+    make_test_asset,
+    validate_gltf,
+)
+from pbrsr_core.errors import LimitExceeded, StorageError, UnprocessableAsset
+from pbrsr_core.limits import Limits
+from pbrsr_core.options import UpscaleOptions
+from pbrsr_core.pipeline import upscale_asset
+from pbrsr_core.prior.direct import bicubic_map
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory) -> Path:
+    return make_demo_asset(tmp_path_factory.mktemp("demo") / "demo.glb", size=32)
+
+
+def test_bicubic_bundle(demo: Path, tmp_path: Path):
+    events = []
+    report = upscale_asset(
+        demo, tmp_path / "out", UpscaleOptions(method="bicubic", scale=2), progress=events.append
+    )
+    out = tmp_path / "out"
+    assert (out / "demo.glb").is_file() and (out / "report.json").is_file()
+    assert (out / "preview.png").is_file()
+    for name in report["previews"].values():
+        assert (out / name).is_file()
+    assert json.loads((out / "report.json").read_text())["input"] == "demo.glb"
+    assert {e.stage for e in events} >= {"load", "export", "done"}
+    src, res = load_asset(demo), load_asset(out / "demo.glb")
+    for img in src.images:
+        if not img.roles:
+            continue
+        hr = res.images[img.index]
+        assert (hr.width, hr.height) == (2 * img.width, 2 * img.height)
+        assert hr.bit_depth >= img.bit_depth
+        assert (
+            out / report["images"][[i["index"] for i in report["images"]].index(img.index)]["file"]
+        ).is_file()
+        kind = "normal" if "normal" in img.roles else "data"
+        if kind == "data":  # bicubic maps round-trip through 8-bit PNG exactly as computed
+            ref = bicubic_map(img.pixels, kind, 2)
+            assert np.abs(hr.pixels - ref).max() <= 1.0 / 255 + 1e-6
+    assert validate_gltf(out / "demo.glb")["numErrors"] == 0
+    # nothing but the bundle is left beside it (the staging folder was renamed into place)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_gltf_keeps_form_and_direct_with_bicubic_prior(tmp_path: Path):
+    src = make_test_asset(tmp_path / "in" / "a.gltf", size=16, kind="gltf")
+    rb = upscale_asset(src, tmp_path / "b", UpscaleOptions(method="bicubic", scale=2))
+    rd = upscale_asset(
+        src, tmp_path / "d", UpscaleOptions(method="direct", prior="bicubic", scale=2)
+    )
+    assert (tmp_path / "d" / "a.gltf").is_file()
+    assert validate_gltf(tmp_path / "d" / "a.gltf")["numErrors"] == 0
+    b, d = load_asset(tmp_path / "b" / "a.gltf"), load_asset(tmp_path / "d" / "a.gltf")
+    for ib, idd in zip(b.images, d.images, strict=True):  # same prior: same maps
+        assert ib.pixels.shape == idd.pixels.shape
+        assert np.abs(ib.pixels - idd.pixels).max() <= 2.0 / 255
+    assert [i["hr_size"] for i in rb["images"]] == [i["hr_size"] for i in rd["images"]]
+
+
+def test_pbrsr_method_runs_and_reports(demo: Path, tmp_path: Path):
+    report = upscale_asset(
+        demo, tmp_path / "out", UpscaleOptions(method="pbrsr", preset="fast", prior="bicubic")
+    )
+    assert report["num_views"] >= 1 and report["history"]
+    assert set(report["timings"]) >= {"load", "init", "gbuffers", "pseudo_gt", "optimize"}
+    res = load_asset(tmp_path / "out" / "demo.glb")
+    for img in res.images:
+        assert np.isfinite(img.pixels).all()
+        assert img.pixels.min() >= 0.0 and img.pixels.max() <= 1.0
+
+
+def test_nothing_to_upscale_leaves_nothing(tmp_path: Path):
+    src = make_quad_asset(tmp_path / "q" / "quad.gltf", size=8)
+    doc = json.loads(src.read_text())
+    for m in doc.get("materials", []):  # keep factors, drop every texture slot
+        for key in ("normalTexture", "occlusionTexture", "emissiveTexture"):
+            m.pop(key, None)
+        for key in ("baseColorTexture", "metallicRoughnessTexture"):
+            m.get("pbrMetallicRoughness", {}).pop(key, None)
+    src.write_text(json.dumps(doc))
+    with pytest.raises(UnprocessableAsset, match="nothing to upscale"):
+        upscale_asset(src, tmp_path / "o1", UpscaleOptions(method="bicubic"))
+    assert not (tmp_path / "o1").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["q"]
+
+
+def test_output_limit_and_non_empty_out(demo: Path, tmp_path: Path):
+    with pytest.raises(LimitExceeded, match="output limit"):
+        upscale_asset(
+            demo,
+            tmp_path / "o",
+            UpscaleOptions(method="bicubic", scale=8),
+            limits=Limits(max_output_dim=128),
+        )
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "x").write_text("keep me")
+    with pytest.raises(StorageError, match="not empty"):
+        upscale_asset(demo, tmp_path / "full", UpscaleOptions(method="bicubic"))
+    assert (tmp_path / "full" / "x").read_text() == "keep me"
