@@ -13,7 +13,8 @@ An :class:`EnvLight` holds, precomputed once from an equirectangular radiance ma
 * :func:`brdf_lut`: the split-sum BRDF table, ``(A, B)`` with ``int f cos = F0 * A + B`` as a
   function of (NdotV, roughness), integrated by GGX importance sampling with the separable
   Smith GGX G (exact G1) and Schlick's Fresnel. Computed by the code, cached in memory and
-  on disk (``$PBRSR_CACHE_DIR`` or ``~/.cache/pbrsr``), never shipped as a file.
+  on disk (``$PBRSR_CACHE_DIR``, else ``$XDG_CACHE_HOME/pbrsr`` or ``~/.cache/pbrsr``),
+  never shipped as a file.
 
 Lookups use ``grid_sample`` so they are differentiable w.r.t. the direction and roughness
 (and therefore w.r.t. normal and roughness maps); the environment itself is a constant.
@@ -210,8 +211,13 @@ _LUT_MEMO: dict[tuple, torch.Tensor] = {}
 
 
 def _cache_dir() -> Path:
+    """``$PBRSR_CACHE_DIR``, else ``$XDG_CACHE_HOME/pbrsr`` or ``~/.cache/pbrsr`` (the same
+    rule as the prior weights cache)."""
     root = os.environ.get("PBRSR_CACHE_DIR")
-    return Path(root) if root else Path.home() / ".cache" / "pbrsr"
+    if root:
+        return Path(root).expanduser()
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg).expanduser() if xdg else Path.home() / ".cache") / "pbrsr"
 
 
 def _hammersley(n: int) -> tuple[torch.Tensor, torch.Tensor]:
