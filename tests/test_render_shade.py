@@ -306,3 +306,28 @@ def test_alpha_modes_and_factors():
     kw["base_color_factor"] = (0.5, 0.5, 0.5, 1.0)
     b = shade.shade_terms(gb, [Material(**kw)], tex, env)["diffuse"]
     torch.testing.assert_close(b, a * 0.5)
+
+
+def test_cache_is_not_shared_by_replaced_gbuffers():
+    import dataclasses
+
+    gb = raster.rasterize(
+        shapes.quad(1.0), camera.look_at((0, 0, 2), fov_deg=40, resolution=(16, 16))
+    )
+    env = light.EnvLight.uniform(1.0)
+    mat = [Material(index=0, base_color=TextureRef(0))]
+    tex = {0: torch.rand(4, 4, 4, generator=torch.Generator().manual_seed(0))}
+    full = shade.shade(gb, mat, tex, env)
+    half = dataclasses.replace(
+        gb,
+        **{
+            k: getattr(gb, k)[::2]
+            for k in ("pix", "tri", "bary", "pos", "nrm", "tng", "mat", "view")
+        },
+        uv={0: gb.uv[0][::2]},
+        uv_grad={0: gb.uv_grad[0][::2]},
+    )
+    torch.testing.assert_close(shade.shade(half, mat, tex, env), full[::2])
+    gb.cache["material_rows"] = "stale"  # a cache filled for other pixels is dropped
+    gb.pix = gb.pix.clone()
+    torch.testing.assert_close(shade.shade(gb, mat, tex, env), full)

@@ -57,9 +57,19 @@ class GBuffer:
     mat: torch.Tensor | None = None
     view: torch.Tensor | None = None
     backface: torch.Tensor | None = None
-    # values derived from this G-buffer alone (texture taps, material rows), filled lazily
-    # by the shader; never copied by :meth:`to`
-    cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def __post_init__(self):
+        # values derived from this G-buffer alone (texture taps, material rows), filled
+        # lazily by the shader. Deliberately not a dataclass field: ``dataclasses.replace``,
+        # :meth:`to` and code iterating ``fields()`` never see or copy it.
+        self.cache: dict = {}
+
+    def derived(self) -> dict:
+        """The per-view cache, emptied if the pixels changed since it was filled."""
+        if self.cache.get("_pix") is not self.pix:
+            self.cache.clear()
+            self.cache["_pix"] = self.pix
+        return self.cache
 
     @property
     def num_pixels(self) -> int:
@@ -79,8 +89,6 @@ class GBuffer:
     def to(self, device: torch.device | str) -> GBuffer:
         kw = {}
         for f in fields(self):
-            if f.name == "cache":
-                continue
             v = getattr(self, f.name)
             if isinstance(v, torch.Tensor):
                 v = v.to(device)

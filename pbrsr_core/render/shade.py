@@ -77,14 +77,14 @@ class _Sampler:
                 raise ValueError(f"texture {ref.image} must be (H, W, C), got {tuple(tex.shape)}")
             h, w = int(tex.shape[0]), int(tex.shape[1])
             tkey = ("taps", self.material, key[1:], h, w, tex.device, tex.dtype == torch.float64)
-            taps = self.gb.cache.get(tkey)
+            taps = self.gb.derived().get(tkey)
             if taps is None:
                 uv = self.gb.uv[ref.texcoord]
                 uv = uv if self.rows is None else uv[self.rows]
                 if tex.dtype == torch.float64:
                     uv = uv.double()
                 taps = prepare(uv.to(tex.device), h, w, ref)
-                self.gb.cache[tkey] = taps
+                self.gb.derived()[tkey] = taps
             self.memo[key] = gather(tex, *taps)
         return self.memo[key]
 
@@ -128,7 +128,7 @@ def material_inputs(
     }
     parts: dict[str, list] = {k: [] for k in fields}
     rows_all = []
-    groups = gb.cache.get("material_rows")
+    groups = gb.derived().get("material_rows")
     if groups is None:  # [(material index, pixel rows or None for all)], cached per view
         mats = gb.mat if gb.mat is not None else torch.full((P,), -1, device=dev)
         ids = torch.unique(mats).tolist()
@@ -136,7 +136,7 @@ def material_inputs(
             groups = [(int(ids[0]), None)]
         else:
             groups = [(int(i), torch.nonzero(mats == i).squeeze(1)) for i in ids]
-        gb.cache["material_rows"] = groups
+        gb.derived()["material_rows"] = groups
     for m_idx, rows in groups:
         n = P if rows is None else rows.numel()
         mat = _material(materials, m_idx)
