@@ -21,6 +21,7 @@ tables are finite everywhere (the LUT uses alpha >= ``light.ALPHA_MIN``).
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping, Sequence
 
 import torch
@@ -29,9 +30,11 @@ from ..asset.model import DEFAULT_MATERIAL, Material, TextureRef
 from ..colour import linear_to_srgb
 from .light import EnvLight, brdf_lut, lookup_brdf
 from .raster import GBuffer
+from .shade_kernels import shade_fused, supported
 from .texture import gather, prepare
 
 NDOTV_MIN = 1e-4
+REFERENCE_ENV = "PBRSR_SHADE_REFERENCE"  # set to 1: the torch reference path on the CPU too
 
 
 def safe_normalize(x: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
@@ -259,22 +262,39 @@ def shade_terms(
     }
 
 
+def use_fused(gb: GBuffer, textures: Mapping[int, torch.Tensor], light: EnvLight) -> bool:
+    """Whether :func:`shade` takes the fused CPU kernels (:mod:`shade_kernels`): everything on
+    the CPU in float32/float64 and ``$PBRSR_SHADE_REFERENCE`` unset (or 0)."""
+    if os.environ.get(REFERENCE_ENV, "").strip() not in ("", "0"):
+        return False
+    return gb.device.type == "cpu" and light.device.type == "cpu" and supported(*textures.values())
+
+
 def shade(
     gb: GBuffer,
     materials: Sequence[Material] | Mapping[int, Material],
     textures: Mapping[int, torch.Tensor],
     light: EnvLight,
     lut: torch.Tensor | None = None,
+    *,
+    reference: bool = False,
 ) -> torch.Tensor:
     """(P, 4) linear RGB radiance + alpha per covered pixel of ``gb`` (see the module doc).
 
     ``materials``: a list indexed by material index (or a dict); index -1 is glTF's default
     material. ``textures``: image index -> (H, W, C) tensor (colour maps linear, normal maps
     encoded in [0, 1]); differentiable w.r.t. every texture. ``lut``: the BRDF table
-    (default :func:`light.brdf_lut`)."""
+    (default :func:`light.brdf_lut`). On the CPU the per-pixel shading runs as one fused
+    numba pass forward and one backward (:mod:`shade_kernels`, equal to the torch path to
+    rounding); ``reference=True`` (or ``$PBRSR_SHADE_REFERENCE=1``) forces the torch path
+    of :func:`shade_terms`, which is also the path on CUDA."""
+    dtype = next(iter(textures.values())).dtype if textures else torch.float32
     if gb.num_pixels == 0:
-        dtype = next(iter(textures.values())).dtype if textures else torch.float32
         return torch.zeros(0, 4, dtype=dtype, device=gb.device)
+    if not reference and use_fused(gb, textures, light):
+        m = material_inputs(gb, materials, textures, dtype)
+        table = brdf_lut() if lut is None else lut
+        return shade_fused(m, gb.nrm, gb.tng, gb.view, light, table)
     t = shade_terms(gb, materials, textures, light, lut)
     return torch.cat([t["rgb"], t["alpha"]], 1)
 
