@@ -9,7 +9,8 @@ resolution, over a few orbit views:
   resolution, for comparison);
 * shading forward and backward time per view w.r.t. every texture, with the per-view texel
   taps already cached (the optimiser's steady state), and the throughput in covered
-  Mpixel/s of forward + backward;
+  Mpixel/s of forward + backward, for the default path (the fused numba kernels on the
+  CPU) and, when those are in use, for the torch reference path as well (``ref_*``);
 * peak resident memory above the starting level while shading (sampled every 5 ms);
 * once, a ``torch.profiler`` breakdown of the shading step: the top operators by self time.
 
@@ -144,24 +145,32 @@ def bench_case(name, mesh: Mesh, materials, textures, res: int, n_views: int, en
     params = {k: v.detach().clone().requires_grad_(True) for k, v in textures.items()}
     for gb in gbs:  # warm the per-view caches (texel taps), as the optimiser's loop does
         shade.shade(gb, materials, params, env)
-    fwd, bwd, pixels = [], [], []
-    with PeakRss() as mem:
-        for gb in gbs:
-            t0 = time.perf_counter()
-            out = shade.shade(gb, materials, params, env)
-            t1 = time.perf_counter()
-            out[:, :3].sum().backward()
-            t2 = time.perf_counter()
-            fwd.append(t1 - t0)
-            bwd.append(t2 - t1)
-            pixels.append(gb.num_pixels)
-    row.update(
-        pixels=int(statistics.median(pixels)),
-        shade_fwd_s=statistics.median(fwd),
-        shade_bwd_s=statistics.median(bwd),
-        mpix_per_s=sum(pixels) / (sum(fwd) + sum(bwd)) / 1e6,
-        peak_mb=mem.peak / 2**20,
-    )
+    fused = shade.use_fused(gbs[0], params, env)
+    for path in ("reference", "default") if fused else ("default",):
+        fwd, bwd, pixels = [], [], []
+        with PeakRss() as mem:
+            for gb in gbs:
+                t0 = time.perf_counter()
+                out = shade.shade(gb, materials, params, env, reference=path == "reference")
+                t1 = time.perf_counter()
+                out[:, :3].sum().backward()
+                t2 = time.perf_counter()
+                fwd.append(t1 - t0)
+                bwd.append(t2 - t1)
+                pixels.append(gb.num_pixels)
+        mpix = sum(pixels) / (sum(fwd) + sum(bwd)) / 1e6
+        if path == "reference":  # the torch path, for comparison with the fused kernels
+            row.update(ref_fwd_s=statistics.median(fwd), ref_bwd_s=statistics.median(bwd))
+            row.update(ref_mpix_per_s=mpix, ref_peak_mb=mem.peak / 2**20)
+            continue
+        row.update(
+            shading="fused" if fused else "torch",
+            pixels=int(statistics.median(pixels)),
+            shade_fwd_s=statistics.median(fwd),
+            shade_bwd_s=statistics.median(bwd),
+            mpix_per_s=mpix,
+            peak_mb=mem.peak / 2**20,
+        )
     return row, gbs[0], params
 
 
@@ -194,7 +203,12 @@ def run(
 ) -> dict:
     """Run the benchmark; returns (and writes) the result dict."""
     if threads:
+        import numba
+
+        # numba's OpenMP layer resets the (shared) OpenMP thread count on every launch:
+        # set both, or a 1-thread run silently shades on NUMBA_NUM_THREADS threads
         torch.set_num_threads(threads)
+        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     env = light_mod.EnvLight.procedural()
@@ -277,6 +291,9 @@ def print_table(result: dict) -> None:
         "fwd ms",
         "bwd ms",
         "Mpix/s",
+        "ref fwd ms",
+        "ref bwd ms",
+        "ref Mpix/s",
         "peak MB",
     ):
         t.add_column(col, justify="left" if col == "case" else "right")
@@ -292,6 +309,9 @@ def print_table(result: dict) -> None:
             f"{r['shade_fwd_s'] * 1e3:.0f}",
             f"{r['shade_bwd_s'] * 1e3:.0f}",
             f"{r['mpix_per_s']:.2f}",
+            f"{r['ref_fwd_s'] * 1e3:.0f}" if "ref_fwd_s" in r else "-",
+            f"{r['ref_bwd_s'] * 1e3:.0f}" if "ref_bwd_s" in r else "-",
+            f"{r['ref_mpix_per_s']:.2f}" if "ref_mpix_per_s" in r else "-",
             f"{r['peak_mb']:.0f}",
         )
     console = Console(width=max(Console().width, 150))

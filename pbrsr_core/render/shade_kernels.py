@@ -39,11 +39,12 @@ ACOS_LIM = 1.0 - 1e-6
 INV_2PI = 1.0 / (2.0 * math.pi)
 INV_PI = 1.0 / math.pi
 
-_JIT = {"cache": True, "fastmath": False}
+_JIT = {"cache": True, "fastmath": False, "error_model": "numpy"}
+_INL = {**_JIT, "inline": "always"}
 _f64 = np.float64  # (numba's float() keeps a float32 a float32)
 
 
-@numba.njit(**_JIT)
+@numba.njit(**_INL)
 def _clamp01(x):
     """(value, gradient mask) of clamp(x, 0, 1): torch passes the gradient on [0, 1]."""
     if x < 0.0:
@@ -53,7 +54,7 @@ def _clamp01(x):
     return x, 1.0
 
 
-@numba.njit(**_JIT)
+@numba.njit(**_INL)
 def _clip(x, size):
     """grid_sample's border clip of a pixel coordinate to [0, size - 1]: (coordinate,
     gradient); the gradient is zero on and past the border (as in ATen)."""
@@ -65,7 +66,7 @@ def _clip(x, size):
     return x, 1.0
 
 
-@numba.njit(**_JIT)
+@numba.njit(**_INL)
 def _dir_uv(x, y, z):
     """envmaps.dir_to_uv of one direction: (u, v, du/dx, du/dz, dv/dy)."""
     pole = x * x + z * z < POLE_MIN2
@@ -84,7 +85,7 @@ def _dir_uv(x, y, z):
     return u, v, du_dx, du_dz, dv_dy
 
 
-@numba.njit(**_JIT)
+@numba.njit(**_INL)
 def _bilerp(img, k, ix, iy, c):
     """Bilinear tap of channel c of img[k] (K, H, W, C) at pixel coordinates (ix, iy) already
     clipped to the image: (value, d/dix, d/diy); taps past the last texel are zero."""
@@ -105,7 +106,7 @@ def _bilerp(img, k, ix, iy, c):
     return val, dx, dy
 
 
-@numba.njit(**_JIT)
+@numba.njit(**_INL)
 def _env_coords(u, v, h, wp):
     """Equirect UV -> clipped pixel coordinates of a wrap-padded (h, wp) map and the
     derivatives d(ix)/du, d(iy)/dv (EnvLight._grid_xy + grid_sample, align_corners)."""
@@ -115,10 +116,8 @@ def _env_coords(u, v, h, wp):
 
 
 @numba.njit(**_JIT)
-def _forward_pixel(p, base, rough, metal, ao, emis, nts, alpha, nrm, tng, view, diff, spec, lut):
-    """Everything the forward of pixel p computes, as one flat tuple (outputs first, then the
-    intermediates and local derivatives the backward needs)."""
-    # -- material values (clamped as in shade_terms) -----------------------------------
+def _material(p, base, rough, metal, ao, alpha):
+    """Clamped material values of pixel p and their clamp masks (as in shade_terms)."""
     k0, mk0 = _clamp01(_f64(base[p, 0]))
     k1, mk1 = _clamp01(_f64(base[p, 1]))
     k2, mk2 = _clamp01(_f64(base[p, 2]))
@@ -126,7 +125,13 @@ def _forward_pixel(p, base, rough, metal, ao, emis, nts, alpha, nrm, tng, view, 
     mt, mm = _clamp01(_f64(metal[p, 0]))
     oc, mo = _clamp01(_f64(ao[p, 0]))
     al, ma = _clamp01(_f64(alpha[p, 0]))
-    # -- perturbed normal (perturb_normal) -----------------------------------------------
+    return k0, k1, k2, mk0, mk1, mk2, rg, mr, mt, mm, oc, mo, al, ma
+
+
+@numba.njit(**_JIT)
+def _frame(p, nts, nrm, tng, view):
+    """Shading normal n (perturb_normal), N.V (raw, clamped, mask) and the reflection r of
+    pixel p, with the TBN and norms the backward needs."""
     tx, ty, tz = _f64(nts[p, 0]), _f64(nts[p, 1]), _f64(nts[p, 2])
     gnx, gny, gnz = _f64(nrm[p, 0]), _f64(nrm[p, 1]), _f64(nrm[p, 2])
     t0, t1, t2, tw = _f64(tng[p, 0]), _f64(tng[p, 1]), _f64(tng[p, 2]), _f64(tng[p, 3])
@@ -156,154 +161,165 @@ def _forward_pixel(p, base, rough, metal, ao, emis, nts, alpha, nrm, tng, view, 
     q2 = 2.0 * ndr * nz - w2
     s2 = q0 * q0 + q1 * q1 + q2 * q2
     rs = math.sqrt(max(s2, NORM_EPS2))
-    r0, r1, r2 = q0 / rs, q1 / rs, q2 / rs
-    # -- lookups: diffuse(n), specular(r, rough), LUT(ndv, rough) -------------------------
+    return (
+        (t0, t1, t2, b0, b1, b2, gnx, gny, gnz, mapped, sn),
+        (n0, n1, nz, w0, w1, w2, ndr, ndv, mndv),
+        (s2, rs, q0 / rs, q1 / rs, q2 / rs),
+    )
+
+
+NAUX = 33  # values per pixel the forward stores for the backward (see _lookups)
+
+
+@numba.njit(**_JIT)
+def _lookups(n0, n1, nz, r0, r1, r2, rg, ndv, diff, spec, lut, aux, p):
+    """The three table lookups of a pixel (diffuse(n), specular(r, rough), LUT(ndv, rough))
+    and their derivatives, written to aux[p, :NAUX]: Ld (3), dLd/dn (3 x 3, channel-major),
+    Ls (3), dLs/dr (3 x 3), dLs/drough (3), A, B, dA/drough, dA/dndv, dB/drough, dB/dndv."""
     ud, vd, dud_x, dud_z, dvd_y = _dir_uv(n0, n1, nz)
     dix, diy, ddu, ddv = _env_coords(ud, vd, diff.shape[1], diff.shape[2])
-    ld0, ldx0, ldy0 = _bilerp(diff, 0, dix, diy, 0)
-    ld1, ldx1, ldy1 = _bilerp(diff, 0, dix, diy, 1)
-    ld2, ldx2, ldy2 = _bilerp(diff, 0, dix, diy, 2)
+    for c in range(3):
+        val, dx, dy = _bilerp(diff, 0, dix, diy, c)
+        aux[p, c] = val
+        aux[p, 3 + 3 * c] = dx * ddu * dud_x
+        aux[p, 4 + 3 * c] = dy * ddv * dvd_y
+        aux[p, 5 + 3 * c] = dx * ddu * dud_z
     us, vs, dus_x, dus_z, dvs_y = _dir_uv(r0, r1, r2)
     six, siy, sdu, sdv = _env_coords(us, vs, spec.shape[1], spec.shape[2])
-    siz, gz = _clip(rg * (spec.shape[0] - 1), spec.shape[0])
+    nk = spec.shape[0]
+    siz, gz = _clip(rg * (nk - 1), nk)
     z0 = int(math.floor(siz))
     fz = siz - z0
-    z1 = z0 + 1
-    has1 = z1 < spec.shape[0]
-    ls0 = ls1 = ls2 = 0.0
-    lsx = lsy = lsz = 0.0
-    lsx0 = lsx1 = lsx2 = lsy0 = lsy1 = lsy2 = lsz0 = lsz1 = lsz2 = 0.0
     for c in range(3):
         a, ax, ay = _bilerp(spec, z0, six, siy, c)
         bv, bx, by = 0.0, 0.0, 0.0
-        if has1:
-            bv, bx, by = _bilerp(spec, z1, six, siy, c)
-        val = (1.0 - fz) * a + fz * bv
-        lsx = (1.0 - fz) * ax + fz * bx
-        lsy = (1.0 - fz) * ay + fz * by
-        lsz = bv - a
-        if c == 0:
-            ls0, lsx0, lsy0, lsz0 = val, lsx, lsy, lsz
-        elif c == 1:
-            ls1, lsx1, lsy1, lsz1 = val, lsx, lsy, lsz
-        else:
-            ls2, lsx2, lsy2, lsz2 = val, lsx, lsy, lsz
+        if z0 + 1 < nk:
+            bv, bx, by = _bilerp(spec, z0 + 1, six, siy, c)
+        lsx = ((1.0 - fz) * ax + fz * bx) * sdu
+        lsy = ((1.0 - fz) * ay + fz * by) * sdv
+        aux[p, 12 + c] = (1.0 - fz) * a + fz * bv
+        aux[p, 15 + 3 * c] = lsx * dus_x
+        aux[p, 16 + 3 * c] = lsy * dvs_y
+        aux[p, 17 + 3 * c] = lsx * dus_z
+        aux[p, 24 + c] = (bv - a) * gz * (nk - 1)
     ns = lut.shape[1]
     lix, lgx = _clip(rg * (ns - 1), ns)
     liy, lgy = _clip(ndv * (ns - 1), ns)
     la, lax, lay = _bilerp(lut, 0, lix, liy, 0)
     lb, lbx, lby = _bilerp(lut, 0, lix, liy, 1)
-    # -- combine ---------------------------------------------------------------------------
+    aux[p, 27] = la
+    aux[p, 28] = lb
+    aux[p, 29] = lax * lgx * (ns - 1)
+    aux[p, 30] = lay * lgy * (ns - 1)
+    aux[p, 31] = lbx * lgx * (ns - 1)
+    aux[p, 32] = lby * lgy * (ns - 1)
+
+
+@numba.njit(**_JIT)
+def _combine(m, e0, e1, e2, x, p):
+    """rgb = ao (kd (1 - metal) Ld + Ls (F0 A + B)) + max(emissive, 0) from the material
+    tuple m and the lookups x[p]; also returns the terms the backward reuses."""
+    k0, k1, k2, mk0, mk1, mk2, rg, mr, mt, mm, oc, mo, al, ma = m
     km = 1.0 - mt
     f00 = 0.04 * km + mt * k0
     f01 = 0.04 * km + mt * k1
     f02 = 0.04 * km + mt * k2
-    d0, d1, d2 = k0 * km * ld0, k1 * km * ld1, k2 * km * ld2
+    la, lb = _f64(x[p, 27]), _f64(x[p, 28])
+    d0, d1, d2 = k0 * km * x[p, 0], k1 * km * x[p, 1], k2 * km * x[p, 2]
     sa0, sa1, sa2 = f00 * la + lb, f01 * la + lb, f02 * la + lb
-    s0, s1, s2_ = ls0 * sa0, ls1 * sa1, ls2 * sa2
-    e0, e1, e2 = _f64(emis[p, 0]), _f64(emis[p, 1]), _f64(emis[p, 2])
-    out0 = oc * (d0 + s0) + max(e0, 0.0)
-    out1 = oc * (d1 + s1) + max(e1, 0.0)
-    out2 = oc * (d2 + s2_) + max(e2, 0.0)
-    return (
-        (out0, out1, out2, al),
-        (k0, k1, k2, mk0, mk1, mk2, rg, mr, mt, mm, oc, mo, ma, e0, e1, e2),
-        (t0, t1, t2, b0, b1, b2, gnx, gny, gnz, mapped, sn, n0, n1, nz, w0, w1, w2, ndr, mndv),
-        (s2, rs, r0, r1, r2),
-        (ld0, ld1, ld2, ldx0, ldx1, ldx2, ldy0, ldy1, ldy2, ddu, ddv, dud_x, dud_z, dvd_y),
-        (ls0, ls1, ls2, lsx0, lsx1, lsx2, lsy0, lsy1, lsy2, lsz0, lsz1, lsz2),
-        (sdu, sdv, dus_x, dus_z, dvs_y, gz, spec.shape[0] - 1.0),
-        (la, lb, lax, lay, lbx, lby, lgx, lgy, ns - 1.0),
-        (km, f00, f01, f02, d0, d1, d2, s0, s1, s2_, sa0, sa1, sa2),
+    s0, s1, s2 = x[p, 12] * sa0, x[p, 13] * sa1, x[p, 14] * sa2
+    out = (
+        oc * (d0 + s0) + max(e0, 0.0),
+        oc * (d1 + s1) + max(e1, 0.0),
+        oc * (d2 + s2) + max(e2, 0.0),
     )
-
-
-@numba.njit(**_JIT)
-def _backward_pixel(p, g, fw, g_base, g_rough, g_metal, g_ao, g_emis, g_nts, g_alpha):
-    """Derivatives of sum(g[p] * output[p]) w.r.t. pixel p's inputs, from its forward tuple."""
-    _, mat, frame, refl, dif, spc, spc_d, lt, comb = fw
-    k0, k1, k2, mk0, mk1, mk2, rg, mr, mt, mm, oc, mo, ma, e0, e1, e2 = mat
-    t0, t1, t2, b0, b1, b2, gnx, gny, gnz, mapped, sn, n0, n1, nz, w0, w1, w2, ndr, mndv = frame
-    s2, rs, r0, r1, r2 = refl
-    ld0, ld1, ld2, ldx0, ldx1, ldx2, ldy0, ldy1, ldy2, ddu, ddv, dud_x, dud_z, dvd_y = dif
-    ls0, ls1, ls2, lsx0, lsx1, lsx2, lsy0, lsy1, lsy2, lsz0, lsz1, lsz2 = spc
-    sdu, sdv, dus_x, dus_z, dvs_y, gz, kz = spc_d
-    la, lb, lax, lay, lbx, lby, lgx, lgy, ks = lt
-    km, f00, f01, f02, d0, d1, d2, s0, s1, s2_, sa0, sa1, sa2 = comb
-    o0, o1, o2, oa = _f64(g[p, 0]), _f64(g[p, 1]), _f64(g[p, 2]), _f64(g[p, 3])
-    g_alpha[p, 0] = oa * ma
-    g_emis[p, 0] = o0 if e0 >= 0.0 else 0.0
-    g_emis[p, 1] = o1 if e1 >= 0.0 else 0.0
-    g_emis[p, 2] = o2 if e2 >= 0.0 else 0.0
-    g_ao[p, 0] = (o0 * (d0 + s0) + o1 * (d1 + s1) + o2 * (d2 + s2_)) * mo
-    q0g, q1g, q2g = oc * o0, oc * o1, oc * o2  # d/d(diffuse_c) = d/d(specular_c)
-    g_base[p, 0] = q0g * (km * ld0 + ls0 * la * mt) * mk0
-    g_base[p, 1] = q1g * (km * ld1 + ls1 * la * mt) * mk1
-    g_base[p, 2] = q2g * (km * ld2 + ls2 * la * mt) * mk2
-    g_base[p, 3] = 0.0
-    gm = q0g * (-k0 * ld0 + ls0 * la * (k0 - 0.04))
-    gm += q1g * (-k1 * ld1 + ls1 * la * (k1 - 0.04))
-    gm += q2g * (-k2 * ld2 + ls2 * la * (k2 - 0.04))
-    g_metal[p, 0] = gm * mm
-    # gradients of the looked-up values
-    gld0, gld1, gld2 = q0g * k0 * km, q1g * k1 * km, q2g * k2 * km
-    gls0, gls1, gls2 = q0g * sa0, q1g * sa1, q2g * sa2
-    gla = q0g * ls0 * f00 + q1g * ls1 * f01 + q2g * ls2 * f02
-    glb = q0g * ls0 + q1g * ls1 + q2g * ls2
-    # roughness: the specular level coordinate and the LUT column
-    gr = (gls0 * lsz0 + gls1 * lsz1 + gls2 * lsz2) * gz * kz
-    gr += (gla * lax + glb * lbx) * lgx * ks
-    g_rough[p, 0] = gr * mr
-    # N.V through the LUT row
-    gndr = (gla * lay + glb * lby) * lgy * ks * mndv
-    # reflection direction through the specular lookup
-    gu = (gls0 * lsx0 + gls1 * lsx1 + gls2 * lsx2) * sdu
-    gv = (gls0 * lsy0 + gls1 * lsy1 + gls2 * lsy2) * sdv
-    gr0, gr1, gr2 = gu * dus_x, gv * dvs_y, gu * dus_z
-    if s2 >= NORM_EPS2:
-        rd = r0 * gr0 + r1 * gr1 + r2 * gr2
-        gq0, gq1, gq2 = (gr0 - r0 * rd) / rs, (gr1 - r1 * rd) / rs, (gr2 - r2 * rd) / rs
-    else:
-        gq0, gq1, gq2 = gr0 / rs, gr1 / rs, gr2 / rs
-    gndr += 2.0 * (gq0 * n0 + gq1 * n1 + gq2 * nz)
-    # shading normal: diffuse lookup, reflection, N.V
-    gu = (gld0 * ldx0 + gld1 * ldx1 + gld2 * ldx2) * ddu
-    gv = (gld0 * ldy0 + gld1 * ldy1 + gld2 * ldy2) * ddv
-    gn0 = gu * dud_x + 2.0 * ndr * gq0 + gndr * w0
-    gn1 = gv * dvd_y + 2.0 * ndr * gq1 + gndr * w1
-    gn2 = gu * dud_z + 2.0 * ndr * gq2 + gndr * w2
-    if mapped:
-        nd = n0 * gn0 + n1 * gn1 + nz * gn2
-        gv0, gv1, gv2 = (gn0 - n0 * nd) / sn, (gn1 - n1 * nd) / sn, (gn2 - nz * nd) / sn
-        g_nts[p, 0] = gv0 * t0 + gv1 * t1 + gv2 * t2
-        g_nts[p, 1] = gv0 * b0 + gv1 * b1 + gv2 * b2
-        g_nts[p, 2] = gv0 * gnx + gv1 * gny + gv2 * gnz
-    else:
-        g_nts[p, 0] = 0.0
-        g_nts[p, 1] = 0.0
-        g_nts[p, 2] = 0.0
+    return out, (km, f00, f01, f02, d0 + s0, d1 + s1, d2 + s2, sa0, sa1, sa2, la, lb)
 
 
 @numba.njit(parallel=True, **_JIT)
-def _shade_fwd(base, rough, metal, ao, emis, nts, alpha, nrm, tng, view, diff, spec, lut, out):
+def _shade_fwd(base, rough, metal, ao, emis, nts, alpha, nrm, tng, view, diff, spec, lut, out, aux):
+    """out (P, 4) = shaded RGB + alpha. aux (P, NAUX) receives the lookups and their
+    derivatives for the backward; with fewer rows (no backward wanted) it is a scratch row
+    per thread (at least NUMBA_NUM_THREADS rows)."""
+    store = aux.shape[0] == base.shape[0]
     for p in numba.prange(base.shape[0]):
-        o = _forward_pixel(
-            p, base, rough, metal, ao, emis, nts, alpha, nrm, tng, view, diff, spec, lut
-        )[0]
-        out[p, 0] = o[0]
-        out[p, 1] = o[1]
-        out[p, 2] = o[2]
-        out[p, 3] = o[3]
+        m = _material(p, base, rough, metal, ao, alpha)
+        _, nv, rf = _frame(p, nts, nrm, tng, view)
+        row = np.int64(p) if store else np.int64(numba.get_thread_id())
+        _lookups(nv[0], nv[1], nv[2], rf[2], rf[3], rf[4], m[6], nv[7], diff, spec, lut, aux, row)
+        rgb, _ = _combine(m, _f64(emis[p, 0]), _f64(emis[p, 1]), _f64(emis[p, 2]), aux, row)
+        out[p, 0] = rgb[0]
+        out[p, 1] = rgb[1]
+        out[p, 2] = rgb[2]
+        out[p, 3] = m[12]
 
 
 @numba.njit(parallel=True, **_JIT)
-def _shade_bwd(g, base, rough, metal, ao, emis, nts, alpha, nrm, tng, view, diff, spec, lut, grads):
+def _shade_bwd(g, base, rough, metal, ao, emis, nts, alpha, nrm, tng, view, aux, grads):
+    """Derivatives of sum(g * out) w.r.t. the seven inputs, written into ``grads``, from the
+    inputs and the forward's aux rows (the lookups are not repeated)."""
     g_base, g_rough, g_metal, g_ao, g_emis, g_nts, g_alpha = grads
     for p in numba.prange(base.shape[0]):
-        fw = _forward_pixel(
-            p, base, rough, metal, ao, emis, nts, alpha, nrm, tng, view, diff, spec, lut
-        )
-        _backward_pixel(p, g, fw, g_base, g_rough, g_metal, g_ao, g_emis, g_nts, g_alpha)
+        m = _material(p, base, rough, metal, ao, alpha)
+        k0, k1, k2, mk0, mk1, mk2, rg, mr, mt, mm, oc, mo, al, ma = m
+        tbn, nv, rf = _frame(p, nts, nrm, tng, view)
+        t0, t1, t2, b0, b1, b2, gnx, gny, gnz, mapped, sn = tbn
+        n0, n1, nz, w0, w1, w2, ndr, ndv, mndv = nv
+        s2, rs, r0, r1, r2 = rf
+        e0, e1, e2 = _f64(emis[p, 0]), _f64(emis[p, 1]), _f64(emis[p, 2])
+        _, cb = _combine(m, e0, e1, e2, aux, p)
+        km, f00, f01, f02, ds0, ds1, ds2, sa0, sa1, sa2, la, lb = cb
+        x = aux[p]
+        ld0, ld1, ld2, ls0, ls1, ls2 = x[0], x[1], x[2], x[12], x[13], x[14]
+        o0, o1, o2, oa = _f64(g[p, 0]), _f64(g[p, 1]), _f64(g[p, 2]), _f64(g[p, 3])
+        g_alpha[p, 0] = oa * ma
+        g_emis[p, 0] = o0 if e0 >= 0.0 else 0.0
+        g_emis[p, 1] = o1 if e1 >= 0.0 else 0.0
+        g_emis[p, 2] = o2 if e2 >= 0.0 else 0.0
+        g_ao[p, 0] = (o0 * ds0 + o1 * ds1 + o2 * ds2) * mo
+        q0, q1, q2 = oc * o0, oc * o1, oc * o2  # d/d(diffuse_c) = d/d(specular_c)
+        g_base[p, 0] = q0 * (km * ld0 + ls0 * la * mt) * mk0
+        g_base[p, 1] = q1 * (km * ld1 + ls1 * la * mt) * mk1
+        g_base[p, 2] = q2 * (km * ld2 + ls2 * la * mt) * mk2
+        g_base[p, 3] = 0.0
+        gm = q0 * (-k0 * ld0 + ls0 * la * (k0 - 0.04))
+        gm += q1 * (-k1 * ld1 + ls1 * la * (k1 - 0.04))
+        gm += q2 * (-k2 * ld2 + ls2 * la * (k2 - 0.04))
+        g_metal[p, 0] = gm * mm
+        # gradients of the looked-up values
+        gld0, gld1, gld2 = q0 * k0 * km, q1 * k1 * km, q2 * k2 * km
+        gls0, gls1, gls2 = q0 * sa0, q1 * sa1, q2 * sa2
+        gla = q0 * ls0 * f00 + q1 * ls1 * f01 + q2 * ls2 * f02
+        glb = q0 * ls0 + q1 * ls1 + q2 * ls2
+        # roughness: the specular level coordinate and the LUT column
+        gr = gls0 * x[24] + gls1 * x[25] + gls2 * x[26] + gla * x[29] + glb * x[31]
+        g_rough[p, 0] = gr * mr
+        # N.V through the LUT row
+        gndr = (gla * x[30] + glb * x[32]) * mndv
+        # reflection direction through the specular lookup, then its normalisation
+        gr0 = gls0 * x[15] + gls1 * x[18] + gls2 * x[21]
+        gr1 = gls0 * x[16] + gls1 * x[19] + gls2 * x[22]
+        gr2 = gls0 * x[17] + gls1 * x[20] + gls2 * x[23]
+        if s2 >= NORM_EPS2:
+            rd = r0 * gr0 + r1 * gr1 + r2 * gr2
+            gq0, gq1, gq2 = (gr0 - r0 * rd) / rs, (gr1 - r1 * rd) / rs, (gr2 - r2 * rd) / rs
+        else:
+            gq0, gq1, gq2 = gr0 / rs, gr1 / rs, gr2 / rs
+        gndr += 2.0 * (gq0 * n0 + gq1 * n1 + gq2 * nz)
+        # shading normal: diffuse lookup, reflection, N.V
+        gn0 = gld0 * x[3] + gld1 * x[6] + gld2 * x[9] + 2.0 * ndr * gq0 + gndr * w0
+        gn1 = gld0 * x[4] + gld1 * x[7] + gld2 * x[10] + 2.0 * ndr * gq1 + gndr * w1
+        gn2 = gld0 * x[5] + gld1 * x[8] + gld2 * x[11] + 2.0 * ndr * gq2 + gndr * w2
+        if mapped:
+            nd = n0 * gn0 + n1 * gn1 + nz * gn2
+            gv0, gv1, gv2 = (gn0 - n0 * nd) / sn, (gn1 - n1 * nd) / sn, (gn2 - nz * nd) / sn
+            g_nts[p, 0] = gv0 * t0 + gv1 * t1 + gv2 * t2
+            g_nts[p, 1] = gv0 * b0 + gv1 * b1 + gv2 * b2
+            g_nts[p, 2] = gv0 * gnx + gv1 * gny + gv2 * gnz
+        else:
+            g_nts[p, 0] = 0.0
+            g_nts[p, 1] = 0.0
+            g_nts[p, 2] = 0.0
 
 
 # (name, channels) of the per-pixel material inputs, in the kernels' argument order
@@ -330,27 +346,38 @@ class FusedShade(torch.autograd.Function):
     """(P, 4) RGB + alpha from the seven per-pixel inputs of :data:`INPUTS` (CPU tensors of
     one float dtype) and a constant frame/lighting tuple ``const`` = (nrm (P, 3), tng (P, 4),
     view (P, 3), diffuse map (1, h, w + 2, 3), specular levels (K, h, w + 2, 3), BRDF table
-    (1, S, S, 2)) as numpy arrays; differentiable w.r.t. the seven inputs."""
+    (1, S, S, 2)) as numpy arrays; differentiable w.r.t. the seven inputs. When a backward
+    is possible the forward keeps (P, NAUX) lookup values and derivatives (132 bytes per
+    pixel in float32) instead of repeating the lookups."""
 
     @staticmethod
     def forward(ctx, base, rough, metal, ao, emissive, normal_ts, alpha, const):
         ts = tuple(
             t.detach().contiguous() for t in (base, rough, metal, ao, emissive, normal_ts, alpha)
         )
+        grad = any(ctx.needs_input_grad[:7])
+        rows = ts[0].shape[0] if grad else numba.config.NUMBA_NUM_THREADS
+        aux = torch.empty(rows, NAUX, dtype=base.dtype)
         out = torch.empty(base.shape[0], 4, dtype=base.dtype)
         _set_threads()
-        _shade_fwd(*(t.numpy() for t in ts), *const, out.numpy())
-        ctx.save_for_backward(*ts)
-        ctx.const = const
+        _shade_fwd(*(t.numpy() for t in ts), *const, out.numpy(), aux.numpy())
+        if grad:
+            ctx.save_for_backward(*ts, aux)
+            ctx.frame = const[:3]
         return out
 
     @staticmethod
     def backward(ctx, grad_out):
-        ins, const = [t.numpy() for t in ctx.saved_tensors], ctx.const
-        dtype = ctx.saved_tensors[0].dtype
-        grads = tuple(torch.empty(a.shape, dtype=dtype) for a in ins)
+        *ts, aux = ctx.saved_tensors
+        grads = tuple(torch.empty(t.shape, dtype=t.dtype) for t in ts)
         _set_threads()
-        _shade_bwd(_np(grad_out.to(dtype)), *ins, *const, tuple(g.numpy() for g in grads))
+        _shade_bwd(
+            _np(grad_out.to(ts[0].dtype)),
+            *(t.numpy() for t in ts),
+            *ctx.frame,
+            aux.numpy(),
+            tuple(g.numpy() for g in grads),
+        )
         return (*grads, None)
 
 
