@@ -191,6 +191,38 @@ class GBufferStore:
 
 # ---------------------------------------------------------------------------------------------
 # Result
+def pseudo_gt_view(k, c, gbs, tex0, materials, light, prior, scale, config, rasterize, shade):
+    """The pseudo-GT of training view ``k`` (camera ``c``): an LR render of the init maps,
+    upscaled by the prior -> (sH, sW, 3) sRGB.
+
+    ``config.lr_render``: "supersample" renders the init maps at the HR resolution and
+    area-averages s x s pixels (an antialiased LR render: the HR G-buffer is cached anyway);
+    "raster" rasterises at LR resolution with one sample per pixel (aliased: with HR init maps
+    each pixel point-samples one of s x s texels). ``config.target``: "prior" is the prior's
+    output (the paper); "detail" adds only what the prior adds over bicubic to the HR render
+    of the init maps, so silhouettes and shading keep the renderer's exact geometry.
+    """
+    import torch.nn.functional as F
+
+    bg = torch.full((3,), BACKGROUND, device=tex0[next(iter(tex0))].device)
+    h, w = c.resolution
+    hr_img = None
+    if config.lr_render == "supersample" or config.target == "detail":
+        gb = gbs.get(k)
+        hr_img = shade.to_image(gb, render_srgb(gb, materials, tex0, light, shade), bg)
+    if config.lr_render == "supersample":
+        lr_img = F.avg_pool2d(hr_img.permute(2, 0, 1)[None], scale)
+    else:
+        lgb = rasterize(vsel.with_resolution(c, (h // scale, w // scale)))
+        lr_img = shade.to_image(lgb, render_srgb(lgb, materials, tex0, light, shade), bg)
+        lr_img = lr_img.permute(2, 0, 1)[None]
+    up = prior.upscale(lr_img.contiguous(), scale)
+    if config.target == "detail":
+        base = F.interpolate(lr_img, scale_factor=scale, mode="bicubic", align_corners=False)
+        up = (hr_img.permute(2, 0, 1)[None] + up - base).clamp(0.0, 1.0)
+    return up[0].permute(1, 2, 0)
+
+
 # ---------------------------------------------------------------------------------------------
 
 
@@ -285,6 +317,7 @@ def _choose_views(mesh, materials, images, sizes, scale, config, rasterize):
             max_views=config.max_views,
             min_new_texels=config.min_new_texels,
             image_sizes=sizes,
+            views_per_texel=config.views_per_texel,
         )
         cams = [cand[k] for k in chosen]
         probe = cams
@@ -428,20 +461,18 @@ def optimize_pbrsr(
                 getattr(prior, "name", type(prior)),
                 scale,
                 BACKGROUND,
+                config.lr_render,
+                config.target,
             )
             tex0 = {**static, **init_dev}
             for k, c in enumerate(hr_cams):
                 key = content_hash(common, c.world_to_cam, c.proj, c.resolution)
                 q = load_cached(key, cache_dir)
                 if q is None:
-                    h, w = c.resolution
-                    lgb = rasterize(vsel.with_resolution(c, (h // scale, w // scale)))
-                    bg = torch.full((3,), BACKGROUND, device=device)
-                    lr_img = shade.to_image(
-                        lgb, render_srgb(lgb, materials, tex0, light, shade), bg
+                    up = pseudo_gt_view(
+                        k, c, gbs, tex0, materials, light, prior, scale, config, rasterize, shade
                     )
-                    up = prior.upscale(lr_img.permute(2, 0, 1)[None].contiguous(), scale)
-                    q = quantize(up[0].permute(1, 2, 0))
+                    q = quantize(up)
                     store_cached(key, q, cache_dir)
                 # on disk: read through a memory map (750 paper targets are ~4.7 GB)
                 targets.append(mapped(key, cache_dir, q))

@@ -2,13 +2,11 @@
 
 ``paper`` reproduces every default of the paper (METHOD.md "Defaults the paper gives"). The
 CPU presets ``fast`` / ``balanced`` / ``quality`` keep the paper's losses and lambdas and change
-only how much work is done: fewer views chosen for texel coverage instead of a fixed sphere,
-a render resolution that follows texel density (one pixel ~ one HR texel, capped), fewer
-iterations with a larger Adam step (the paper's 1e-4 over 2000 steps moves a texel by at most
-0.2; 1e-4 over 150 steps would barely move anything). They target roughly 1 / 3 / 10 minutes
-for a 128 -> 512 demo asset on a 2-core CPU; the lead retunes them from ``pbrsr bench
-upscale``.
-"""
+how much work is done and how the pixel target is made: fewer views chosen for texel coverage
+(several views per texel) instead of a fixed sphere, a render resolution that follows texel
+density (one pixel ~ one HR texel, capped), fewer iterations with a larger Adam step, and the
+"detail" pseudo-GT (see ``PbrsrConfig.target``). The numbers come from measurements on the
+procedural demo asset (comments below) and ``pbrsr bench upscale`` (README)."""
 
 from __future__ import annotations
 
@@ -37,6 +35,8 @@ class PbrsrConfig:
     """coverage mode: candidate views on a Fibonacci sphere."""
     max_views: int = 24
     """coverage mode: at most this many views are kept."""
+    views_per_texel: int = 1
+    """coverage mode: a texel counts as covered once this many chosen views see it."""
     min_new_texels: float = 0.002
     """coverage mode: stop adding views once the best adds less than this fraction of the
     texels (per image, averaged)."""
@@ -48,6 +48,15 @@ class PbrsrConfig:
     texel_footprint: float = 1.0
     """Texel-density rule: aim for this many HR texels per pixel (median over covered
     pixels); 1.0 = one pixel per HR texel."""
+    # --- pseudo-GT -------------------------------------------------------------------------
+    lr_render: Literal["supersample", "raster"] = "supersample"
+    """How the LR render handed to the prior is made: area-averaged from the HR render
+    (antialiased, like a mip-mapped rasteriser) or rasterised at LR size (one sample per
+    pixel). On the 512 demo asset at x4 (one 512x512 view, rrdn-thick), the pseudo-GT's PSNR
+    against the render of the GT maps was 26.5 dB supersampled vs 24.7 dB rasterised."""
+    target: Literal["prior", "detail"] = "prior"
+    """prior: the prior's output is the target (the paper); detail: the HR render of the init
+    maps plus what the prior adds over bicubic (keeps exact silhouettes and shading)."""
     # --- optimisation ---------------------------------------------------------------------
     iterations: int = 2000
     batch_views: int = 4
@@ -128,7 +137,12 @@ PAPER = PbrsrConfig(
 #   3.25 tan 15 deg), so a few views cover it; the paper's FoV 10 sees only the central part.
 # * render_res None: resolution from texel density, one pixel per HR texel, capped by
 #   max_render_res (the cost of a step is proportional to the pixels shaded).
-# * lr: large enough that the planned iterations can move a texel by ~0.1-0.5.
+# * target "detail", several views per texel and Adam lr 5e-4: measured on the 512 demo asset
+#   at x4 (24 evaluation views, two lights; fast preset, 60 iterations): the paper's target
+#   (the prior's output) with lr 1e-3 lost 3.5 dB of albedo PSNR against bicubic and gained
+#   0.1 dB render PSNR; "detail" with 3 views per texel and lr 5e-4 kept every map at or above
+#   bicubic (albedo +0.3, roughness +0.5, occlusion +2.5 dB) and gained 0.6 dB render PSNR.
+#   Larger steps (5e-3) made Adam move every texel by its full step each iteration: speckle.
 FAST = PbrsrConfig(
     name="fast",
     view_mode="coverage",
@@ -137,9 +151,11 @@ FAST = PbrsrConfig(
     fov_deg=30.0,
     render_res=None,
     max_render_res=384,
-    iterations=80,
+    views_per_texel=2,
+    target="detail",
+    iterations=60,
     batch_views=2,
-    lr=5e-3,  # 80 steps x 5e-3: a texel can move by up to 0.4
+    lr=5e-4,
     mask_unseen=True,
     log_every=5,
 )
@@ -152,9 +168,11 @@ BALANCED = PbrsrConfig(
     fov_deg=30.0,
     render_res=None,
     max_render_res=512,  # 512: one pixel per texel on a 512 map seen face-on
-    iterations=200,
+    views_per_texel=3,
+    target="detail",
+    iterations=150,
     batch_views=2,
-    lr=3e-3,
+    lr=5e-4,
     mask_unseen=True,
     log_every=10,
 )
@@ -167,9 +185,11 @@ QUALITY = PbrsrConfig(
     fov_deg=30.0,
     render_res=None,
     max_render_res=768,
-    iterations=500,
+    views_per_texel=4,
+    target="detail",
+    iterations=400,
     batch_views=3,
-    lr=2e-3,
+    lr=5e-4,
     mask_unseen=True,
     log_every=10,
 )

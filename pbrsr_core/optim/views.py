@@ -143,8 +143,11 @@ def select_coverage_views(
     max_views: int,
     min_new_texels: float,
     image_sizes: dict[int, tuple[int, int]],
+    views_per_texel: int = 1,
 ) -> tuple[list[int], dict]:
-    """Greedy texel-coverage view selection.
+    """Greedy texel-coverage view selection: each step adds the candidate that sees the most
+    texels still seen by fewer than ``views_per_texel`` chosen views (several views per texel
+    let the multi-view loss average out the prior's per-view hallucinations).
 
     ``rasterize(camera) -> GBuffer``; ``image_sizes`` (H, W) per image (coverage is counted on
     a grid of at most 128 per side). Returns the chosen candidate indices in order and a
@@ -160,16 +163,17 @@ def select_coverage_views(
         per_view.append(
             {i: uv_texel_mask(mesh, materials, i, sizes[i], vis) & total[i] for i in images}
         )
-    covered = {i: np.zeros(sizes[i], dtype=bool) for i in images}
+    covered = {i: np.zeros(sizes[i], dtype=np.int32) for i in images}
     chosen: list[int] = []
     gains: list[float] = []
     remaining = set(range(len(candidates)))
     while remaining and len(chosen) < max_views:
         best, best_gain = -1, -1.0
         for v in sorted(remaining):
-            g = sum(float((per_view[v][i] & ~covered[i]).sum()) / denom[i] for i in images) / max(
-                len(images), 1
-            )
+            g = sum(
+                float((per_view[v][i] & (covered[i] < views_per_texel)).sum()) / denom[i]
+                for i in images
+            ) / max(len(images), 1)
             if g > best_gain:
                 best, best_gain = v, g
         if chosen and best_gain < min_new_texels:
@@ -178,8 +182,8 @@ def select_coverage_views(
         gains.append(best_gain)
         remaining.discard(best)
         for i in images:
-            covered[i] |= per_view[best][i]
-    coverage = {i: float(covered[i].sum()) / denom[i] for i in images}
+            covered[i] += per_view[best][i]
+    coverage = {i: float((covered[i] > 0).sum()) / denom[i] for i in images}
     return chosen, {"coverage": coverage, "gains": gains}
 
 
