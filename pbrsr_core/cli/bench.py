@@ -128,5 +128,44 @@ def upscale_cmd(
     typer.echo(f"wrote {out / 'results.json'}, {out / 'results.md'}, {out / 'speed_vs_error.png'}")
 
 
+@bench_app.command("load")
+def load_cmd(
+    duration: float = typer.Option(60.0, help="Seconds of the mixed polling + upload phase."),
+    pollers: int = typer.Option(50, help="Concurrent clients polling job status and lists."),
+    uploaders: int = typer.Option(10, help="Concurrent uploaders (mixed and big-upload phases)."),
+    upload_mb: float = typer.Option(20.0, help="Size of each big upload (MB); a valid GLB."),
+    big_uploads: int = typer.Option(None, help="Number of big uploads (default: --uploaders)."),
+    jobs: int = typer.Option(100, help="Small bicubic jobs drained by the workers (0: skip)."),
+    workers: int = typer.Option(2, help="Worker processes for the drain phase."),
+    drain_timeout: float = typer.Option(900.0, help="Most seconds the drain may take."),
+    redis_url: str = typer.Option(
+        None, help="Redis to use (default: a private redis-server on a free loopback port)."
+    ),
+    out: Path = typer.Option(Path("bench-out/load"), "--out", "-o", help="Output directory."),
+) -> None:
+    """The job service under load, on loopback only: one API process, a private Redis and
+    temporary storage; polling + uploads for --duration s, concurrent big uploads, then
+    --jobs small jobs drained by --workers workers. Fails (exit 1) on any error or lost job."""
+    from ..bench.load import print_table, run
+
+    result = run(
+        out,
+        duration=duration,
+        pollers=pollers,
+        uploaders=uploaders,
+        upload_mb=upload_mb,
+        big_uploads=big_uploads,
+        jobs=jobs,
+        workers=workers,
+        drain_timeout=drain_timeout,
+        redis_url=redis_url,
+        log=lambda m: typer.echo(m, err=True),
+    )
+    print_table(result)
+    typer.echo(f"wrote {out / 'load.json'} and {out / 'load.png'}")
+    if not result["ok"]:
+        raise typer.Exit(1)
+
+
 def register(app: typer.Typer) -> None:
     app.add_typer(bench_app, name="bench")
