@@ -257,3 +257,19 @@ def test_reference_switch(gbuffers, env, monkeypatch):
     assert shade.use_fused(gb, tex, env)
     half = {k: v.half() for k, v in tex.items()}
     assert not shade.use_fused(gb, half, env)  # only float32/float64 kernels
+
+
+def test_decode_normal_matches_torch_and_gradcheck():
+    g = torch.Generator().manual_seed(13)
+    t = torch.rand(40, 3, generator=g, dtype=torch.float64)
+    t[:5] = 0.5  # the zero vector: (0, 0, 1), no gradient
+    for s in (1.0, -0.7, 2.5):
+        v = (2 * t - 1) * torch.tensor([s, s, 1.0], dtype=torch.float64)
+        n2 = (v * v).sum(-1, keepdim=True)
+        ref = torch.where(n2 > 1e-12, v / n2.sqrt(), torch.tensor([0.0, 0.0, 1.0]).double())
+        torch.testing.assert_close(shade_kernels.DecodeNormal.apply(t, s), ref)
+        x = t[5:15].clone().requires_grad_(True)
+        assert torch.autograd.gradcheck(lambda a, s=s: shade_kernels.DecodeNormal.apply(a, s), (x,))
+    x = t.clone().requires_grad_(True)
+    shade_kernels.DecodeNormal.apply(x, 1.0).sum().backward()
+    assert (x.grad[:5] == 0).all() and torch.isfinite(x.grad).all()

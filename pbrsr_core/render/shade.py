@@ -30,7 +30,7 @@ from ..asset.model import DEFAULT_MATERIAL, Material, TextureRef
 from ..colour import linear_to_srgb
 from .light import EnvLight, brdf_lut, lookup_brdf
 from .raster import GBuffer
-from .shade_kernels import shade_fused, supported
+from .shade_kernels import DecodeNormal, shade_fused, supported
 from .texture import gather, prepare
 
 NDOTV_MIN = 1e-4
@@ -113,11 +113,15 @@ def material_inputs(
     materials: Sequence[Material] | Mapping[int, Material],
     textures: Mapping[int, torch.Tensor],
     dtype: torch.dtype = torch.float32,
+    *,
+    fused_decode: bool = False,
 ) -> dict[str, torch.Tensor]:
     """Per-pixel material values for every covered pixel: ``base`` (P, 4) linear RGBA,
     ``rough``/``metal``/``ao`` (P, 1), ``emissive`` (P, 3) (already times strength),
     ``normal_ts`` (P, 3) decoded unit tangent-space normal, ``alpha`` (P, 1) after the
-    material's alpha mode (OPAQUE 1, MASK step at the cutoff, BLEND base alpha)."""
+    material's alpha mode (OPAQUE 1, MASK step at the cutoff, BLEND base alpha).
+    ``fused_decode``: decode normal maps with :class:`shade_kernels.DecodeNormal` (one numba
+    pass each way, CPU) instead of the torch ops; the same values."""
     P = gb.num_pixels
     dev = gb.device
     fields = {
@@ -184,10 +188,13 @@ def material_inputs(
         if mat.normal is not None:
             t = _channels(smp(mat.normal).to(dtype), 3, 1.0)
             s = mat.normal_scale
-            v = (2.0 * t - 1.0) * torch.tensor([s, s, 1.0], dtype=dtype, device=dev)
-            n2 = (v * v).sum(-1, keepdim=True)
-            up = torch.tensor([0.0, 0.0, 1.0], dtype=dtype, device=dev).expand_as(v)
-            nts = torch.where(n2 > 1e-12, safe_normalize(v), up)
+            if fused_decode and supported(t):
+                nts = DecodeNormal.apply(t, s)  # the same arithmetic in one numba pass
+            else:
+                v = (2.0 * t - 1.0) * torch.tensor([s, s, 1.0], dtype=dtype, device=dev)
+                n2 = (v * v).sum(-1, keepdim=True)
+                up = torch.tensor([0.0, 0.0, 1.0], dtype=dtype, device=dev).expand_as(v)
+                nts = torch.where(n2 > 1e-12, safe_normalize(v), up)
         else:
             nts = const((0.0, 0.0, 1.0))
         for k, val in (
@@ -292,7 +299,7 @@ def shade(
     if gb.num_pixels == 0:
         return torch.zeros(0, 4, dtype=dtype, device=gb.device)
     if not reference and use_fused(gb, textures, light):
-        m = material_inputs(gb, materials, textures, dtype)
+        m = material_inputs(gb, materials, textures, dtype, fused_decode=True)
         table = brdf_lut() if lut is None else lut
         return shade_fused(m, gb.nrm, gb.tng, gb.view, light, table)
     t = shade_terms(gb, materials, textures, light, lut)
