@@ -54,6 +54,17 @@ class Settings(BaseSettings):
         "NFS path when API and workers run on different machines.",
     )
     queue: str = Field("pbrsr", description="RQ queue name (workers and API must agree).")
+    large_job_mpix: float = Field(
+        0.0,
+        ge=0.0,
+        description="Jobs whose output maps add up to at least this many megapixels go to the "
+        "queue '<PBRSR_QUEUE>-large' (for big GPU workers); 0 = one queue for every job.",
+    )
+    worker_queues: str = Field(
+        "all",
+        pattern="^(all|small|large)$",
+        description="Queues a worker takes jobs from: all (small first), small or large.",
+    )
     key_prefix: str = Field(
         "pbrsr", description="Prefix of pbrsr's own Redis keys (job index, cancel flags)."
     )
@@ -187,6 +198,26 @@ class Settings(BaseSettings):
             max_zip_entries=self.max_zip_entries,
             max_unpacked_bytes=int(self.max_unpacked_mb * _MB),
         )
+
+    @property
+    def large_queue(self) -> str:
+        """The queue of jobs at or over ``large_job_mpix``."""
+        return f"{self.queue}-large"
+
+    def queue_for(self, output_mpix: float) -> str:
+        """The queue a job with ``output_mpix`` megapixels of output maps goes to."""
+        if self.large_job_mpix > 0 and output_mpix >= self.large_job_mpix:
+            return self.large_queue
+        return self.queue
+
+    def listen_queues(self, which: str | None = None) -> list[str]:
+        """Queue names a worker listens on, in priority order."""
+        which = which or self.worker_queues
+        return {
+            "all": [self.queue, self.large_queue],
+            "small": [self.queue],
+            "large": [self.large_queue],
+        }[which]
 
     @property
     def retention_s(self) -> int:

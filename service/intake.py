@@ -54,8 +54,9 @@ def parse_options(text: str | None, settings: Settings) -> dict[str, Any]:
     return UpscaleOptions(**data).model_dump(exclude={"device"})
 
 
-def check_asset(path: Path, options: dict[str, Any], settings: Settings) -> None:
-    """Load the asset the way the worker will and check it can be processed."""
+def check_asset(path: Path, options: dict[str, Any], settings: Settings) -> float:
+    """Load the asset the way the worker will and check it can be processed. Returns the
+    megapixels of all output maps (the job's size, for queue routing)."""
     from pbrsr_core.asset import load_asset
     from pbrsr_core.maps import upscalable_images
 
@@ -76,6 +77,7 @@ def check_asset(path: Path, options: dict[str, Any], settings: Settings) -> None
                         f"{img.width * scale}x{img.height * scale}, over this server's output "
                         f"limit of {limits.max_output_dim} pixels per side"
                     )
+            return sum(img.width * img.height for img in images) * scale * scale / 1e6
         finally:
             del asset
             gc.collect()
@@ -127,7 +129,7 @@ def create_job(
 
         kind = detect_kind(upload.path)
         rel = _place_input(upload.path, kind, layout.input_dir(job_id), settings)
-        check_asset(layout.input_dir(job_id) / rel, options, settings)
+        output_mpix = check_asset(layout.input_dir(job_id) / rel, options, settings)
         name = safe_display_name(upload.filename, fallback=f"asset.{kind}")
         created = time.time()
         layout.write_manifest(
@@ -150,6 +152,9 @@ def create_job(
             "state": JobState.QUEUED.value,
         }
         index.add(job_id, owner, created)
+        target = settings.queue_for(output_mpix)
+        if target != queue.name:
+            queue = type(queue)(target, connection=queue.connection)
         try:
             queue.enqueue(
                 JOB_FUNC,

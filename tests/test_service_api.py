@@ -282,9 +282,25 @@ def test_metrics_report_queue_depth(client, tmp_path):
         post_asset(client, data)
     text = client.get("/metrics").text
     assert 'pbrsr_jobs{state="queued"} 2.0' in text
-    assert "pbrsr_queue_depth 2.0" in text
+    assert f'pbrsr_queue_depth{{queue="{client.app.state.settings.queue}"}} 2.0' in text
     assert "pbrsr_redis_up 1.0" in text
     assert 'pbrsr_http_requests_total{method="POST",status="2xx"} 2.0' in text
+
+
+def test_large_jobs_go_to_the_large_queue(tmp_path):
+    gen = settings_scope(tmp_path, large_job_mpix=0.001)
+    settings = next(gen)
+    try:
+        with TestClient(create_app(settings), raise_server_exceptions=False) as c:
+            job_id = post_asset(c, asset_bytes(tmp_path)).json()["id"]
+        redis = redis_client()
+        assert Job.fetch(job_id, connection=redis).origin == settings.large_queue
+        assert Queue(settings.large_queue, connection=redis).count == 1
+        assert Queue(settings.queue, connection=redis).count == 0
+        assert settings.listen_queues("small") == [settings.queue]
+        assert settings.listen_queues("all") == [settings.queue, settings.large_queue]
+    finally:
+        next(gen, None)
 
 
 def test_sweep_expires_old_jobs_only(client, settings, tmp_path):

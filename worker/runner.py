@@ -131,7 +131,7 @@ def build_worker(settings: Settings, *, name: str | None = None) -> PbrsrWorker:
             sweep_expired(redis, index, layout, settings.retention_s)
 
     worker = PbrsrWorker(
-        [Queue(settings.queue, connection=redis)],
+        [Queue(q, connection=redis) for q in settings.listen_queues()],
         connection=redis,
         name=name,
         # An idle worker blocks on the queue for worker_ttl - 15 s; keep that no longer than
@@ -162,5 +162,5 @@ def run_worker(
         level=settings.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s"
     )
     worker = build_worker(settings, name=name)
-    log.info("worker %s on queue %s", worker.name, settings.queue)
+    log.info("worker %s on queues %s", worker.name, ", ".join(settings.listen_queues()))
     return worker.work(burst=burst, logging_level=settings.log_level, max_jobs=max_jobs)

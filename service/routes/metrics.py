@@ -41,10 +41,13 @@ class QueueCollector:
         up = GaugeMetricFamily("pbrsr_redis_up", "1 when Redis answered this scrape.")
         try:
             redis = self.app.state.metrics_redis()
-            queue = Queue(settings.queue, connection=redis)
-            queued = queue.count + ScheduledJobRegistry(queue=queue).count
-            running = StartedJobRegistry(queue=queue).count
-            workers = Worker.count(queue=queue)
+            queues = [Queue(q, connection=redis) for q in settings.listen_queues("all")]
+            depths = {q.name: q.count for q in queues}
+            queued = sum(depths.values()) + sum(
+                ScheduledJobRegistry(queue=q).count for q in queues
+            )
+            running = sum(StartedJobRegistry(queue=q).count for q in queues)
+            workers = len({w.name for q in queues for w in Worker.all(queue=q)})
             index = JobIndex(redis, settings.key_prefix)
             outcomes = index.outcomes()
             buckets, _count, total = index.duration_histogram()
@@ -59,10 +62,13 @@ class QueueCollector:
         jobs.add_metric(["queued"], queued)
         jobs.add_metric(["running"], running)
         yield jobs
-        depth = GaugeMetricFamily("pbrsr_queue_depth", "Jobs waiting in the queue.")
-        depth.add_metric([], queue.count)
+        depth = GaugeMetricFamily(
+            "pbrsr_queue_depth", "Jobs waiting, per queue.", labels=["queue"]
+        )
+        for name, n in depths.items():
+            depth.add_metric([name], n)
         yield depth
-        w = GaugeMetricFamily("pbrsr_workers", "Workers listening on the queue.")
+        w = GaugeMetricFamily("pbrsr_workers", "Workers listening on the queues.")
         w.add_metric([], workers)
         yield w
         done = CounterMetricFamily(
