@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -110,10 +111,53 @@ def run(
     say=print,
 ) -> list[dict]:
     """Run the benchmark; write ``results.json``, ``results.md`` and ``speed_vs_error.png``."""
-    import torch
-
     out_dir.mkdir(parents=True, exist_ok=True)
     work_root = Path(tempfile.mkdtemp(prefix="pbrsr-bench-"))
+    try:
+        rows = _run_all(
+            work_root,
+            assets,
+            methods,
+            scale,
+            prior,
+            eval_res,
+            eval_views,
+            procedural_size,
+            include_procedural,
+            shared,
+            say,
+        )
+    finally:
+        shutil.rmtree(work_root, ignore_errors=True)
+    result = {
+        "scale": scale,
+        "prior": prior,
+        "eval_res": eval_res,
+        "eval_views": eval_views,
+        "lights": eval_lights(shared)[1],
+        "rows": rows,
+    }
+    (out_dir / "results.json").write_text(json.dumps(result, indent=2))
+    (out_dir / "results.md").write_text(markdown_table(rows))
+    plot(rows, out_dir / "speed_vs_error.png")
+    return rows
+
+
+def _run_all(
+    work_root,
+    assets,
+    methods,
+    scale,
+    prior,
+    eval_res,
+    eval_views,
+    procedural_size,
+    include_procedural,
+    shared,
+    say,
+) -> list[dict]:
+    import torch
+
     todo: list[tuple[str, Path]] = []
     if include_procedural:
         todo.append(
@@ -127,7 +171,7 @@ def run(
         todo.extend(found)
     else:
         say(f"shared assets folder {shared} not present: procedural asset only")
-    lights, light_names = eval_lights(shared)
+    lights, _ = eval_lights(shared)
     rows: list[dict] = []
     for name, gt_path in todo:
         say(f"== {name}: degrade x{scale}")
@@ -170,17 +214,6 @@ def run(
             }
             rows.append(row)
             say("   " + _row_text(row))
-    result = {
-        "scale": scale,
-        "prior": prior,
-        "eval_res": eval_res,
-        "eval_views": eval_views,
-        "lights": light_names,
-        "rows": rows,
-    }
-    (out_dir / "results.json").write_text(json.dumps(result, indent=2))
-    (out_dir / "results.md").write_text(markdown_table(rows))
-    plot(rows, out_dir / "speed_vs_error.png")
     return rows
 
 
