@@ -17,6 +17,8 @@ SIGKILLed worker: tests/test_worker_faults.py.
 
 from __future__ import annotations
 
+import contextlib
+import os
 import shutil
 import signal
 import subprocess
@@ -26,10 +28,14 @@ from pathlib import Path
 import httpx
 import pytest
 from test_service_support import (
+    PBRSR,
+    REPO,
     api_server,
     asset_bytes,
+    cleanup_redis,
     free_port,
     make_settings,
+    settings_env,
     stop_process,
     wait_for,
     worker_process,
@@ -66,6 +72,8 @@ def _assert_no_partial_bundle(job_dir: Path) -> None:
     names = sorted(p.name for p in job_dir.iterdir())
     assert "result.zip" not in names and "output" not in names and "thumbs" not in names, names
     assert [n for n in names if n.startswith(".tmp")] == [], names
+    files = sorted(p.relative_to(job_dir).as_posix() for p in job_dir.rglob("*") if p.is_file())
+    assert files == ["input/asset.glb", "job.json"], files  # nothing half-written anywhere
 
 
 # ----------------------------------------------------------------------------- (a) Redis
@@ -152,3 +160,95 @@ def test_redis_outage_mid_job_readyz_503_then_recovery_and_the_job_finishes(tmp_
         for proc in (redis_proc, restarted):
             if proc is not None:
                 stop_process(proc)
+
+
+# ----------------------------------------------------------------------------- (b) full disk
+@contextlib.contextmanager
+def _small_tmpfs(path: Path, size: str = "4m"):
+    """Mount a ``size`` tmpfs on ``path`` (root only); skip the test when mounting fails."""
+    path.mkdir(parents=True, exist_ok=True)
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        pytest.skip("mounting a tmpfs needs root")
+    r = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", f"size={size},mode=0755", "tmpfs", str(path)],
+        capture_output=True,
+        text=True,
+    )
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
+    try:
+        yield path
+    finally:
+        for _ in range(20):  # a process that just exited may still hold it for a moment
+            if subprocess.run(["umount", str(path)], capture_output=True).returncode == 0:
+                break
+            time.sleep(0.25)
+        else:
+            subprocess.run(["umount", "-l", str(path)], capture_output=True)
+
+
+def _fill(folder: Path, leave_bytes: int) -> None:
+    """Write a filler file so that about ``leave_bytes`` stay free on ``folder``'s filesystem."""
+    st = os.statvfs(folder)
+    free = st.f_bavail * st.f_frsize
+    with open(folder / "filler.bin", "wb") as f:
+        f.write(b"\0" * max(0, free - leave_bytes))
+    st = os.statvfs(folder)
+    assert st.f_bavail * st.f_frsize <= leave_bytes + 8192
+
+
+def _limited_worker(settings, log_path: Path, max_file_bytes: int) -> subprocess.Popen:
+    """A real ``pbrsr worker`` that cannot write a file beyond ``max_file_bytes``: writes past
+    it fail with EFBIG (SIGXFSZ ignored, so the write fails instead of killing the worker)."""
+    import resource
+
+    def limit() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (max_file_bytes, max_file_bytes))
+
+    log_path.write_bytes(b"")
+    with open(log_path, "ab") as log:
+        return subprocess.Popen(
+            [PBRSR, "worker"],
+            env=settings_env(settings),
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            cwd=REPO,
+            preexec_fn=limit,
+        )
+
+
+@pytest.mark.parametrize("mechanism", ["tmpfs", "rlimit"])
+def test_full_disk_fails_the_job_with_a_storage_error_and_no_partial_bundle(tmp_path, mechanism):
+    storage = tmp_path / "storage"
+    with contextlib.ExitStack() as stack:
+        if mechanism == "tmpfs":
+            stack.enter_context(_small_tmpfs(storage))
+        settings = make_settings(tmp_path, storage_dir=storage)
+        stack.callback(cleanup_redis, settings)
+        base = stack.enter_context(api_server(settings, tmp_path / "api.log"))
+        # submitted before a worker runs, so the disk fills between intake and the run
+        job_id = _post(base, asset_bytes(tmp_path)).json()["id"]
+        if mechanism == "tmpfs":
+            _fill(storage, leave_bytes=16 * 1024)
+            worker = stack.enter_context(worker_process(settings, tmp_path / "worker.log"))
+        else:
+            worker = _limited_worker(settings, tmp_path / "worker.log", 24 * 1024)
+            stack.callback(stop_process, worker)
+        job = _wait_end(base, job_id, 180)
+        log = (tmp_path / "worker.log").read_text()
+        assert job["status"] == "failed", (job, log[-3000:])
+        assert job["code"] == "storage-error", job
+        error = job["error"]
+        # a message the operator can act on: what failed and the reason
+        assert "write" in error, error
+        if mechanism == "tmpfs":
+            assert "No space left on device" in error or "disk space" in error, error
+        else:
+            assert "File too large" in error or "storage" in error, error
+        assert str(tmp_path) not in error and "/" not in error.split(":")[-1], error
+        assert "Traceback" not in error
+        assert httpx.get(f"{base}/v1/jobs/{job_id}/result", timeout=10).status_code == 409
+        _assert_no_partial_bundle(JobLayout(storage).job_dir(job_id))
+        assert not any((storage / "uploads").iterdir())
+        assert worker.poll() is None, log[-3000:]  # the worker lives on
