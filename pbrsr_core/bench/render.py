@@ -145,6 +145,9 @@ def bench_case(name, mesh: Mesh, materials, textures, res: int, n_views: int, en
     params = {k: v.detach().clone().requires_grad_(True) for k, v in textures.items()}
     for gb in gbs:  # warm the per-view caches (texel taps), as the optimiser's loop does
         shade.shade(gb, materials, params, env)
+    for ref in (True, False):  # and every kernel of both paths, backward included (numba
+        # compiles, or loads from its disk cache, on first use)
+        shade.shade(gbs[0], materials, params, env, reference=ref)[:, :3].sum().backward()
     fused = shade.use_fused(gbs[0], params, env)
     for path in ("reference", "default") if fused else ("default",):
         fwd, bwd, pixels = [], [], []

@@ -5,9 +5,11 @@ torch ops plus three ``grid_sample`` lookups per pixel; on a CPU its time goes i
 traffic of (P, 3) temporaries and autograd bookkeeping. Here the same arithmetic runs once per
 pixel in registers: :func:`shade_fused` takes the per-pixel material values that
 :func:`shade.material_inputs` produces and the G-buffer frame, and returns the (P, 4) RGB +
-alpha; its backward is a second kernel that recomputes the forward of a pixel and returns
-the exact derivatives w.r.t. every per-pixel input (autograd chains them back into the
-texel-side scatter of ``texture.gather``).
+alpha. The forward also stores, per pixel, the 33 looked-up values and their derivatives
+(:data:`NAUX`; buffers pooled between views); the backward kernel recomputes only the cheap
+per-pixel frame from the inputs and returns the exact derivatives w.r.t. every per-pixel
+input (autograd chains them back into the texel-side scatter of ``texture.gather``).
+:class:`DecodeNormal` does material_inputs' normal-map decoding the same way.
 
 Exactness: every clamp, guard and lookup is the reference's, including what its autograd
 does at the edges: ``clamp`` passes the gradient on its closed interval, ``where`` only to
@@ -16,7 +18,9 @@ the taken branch, and ``grid_sample`` (bilinear, ``padding_mode="border"``,
 exactly on, the border, treats a tap past the last texel as zero, and its bilinear /
 trilinear gradients are the one-sided slopes of the cell ``floor(coordinate)``. The kernels
 compute in float64 whatever the input dtype (float32 inputs therefore match the float32
-reference to rounding, ~1e-6 relative) and write the input dtype.
+reference to rounding, ~1e-6 relative; float64 ones to ~1e-15) and write the input dtype;
+the equirect mapping's arctangents are a double-precision rational approximation
+(:func:`_atan`, within 1 ulp of libm's, several times cheaper).
 
 Threads: the kernels run on ``min(torch.get_num_threads(), NUMBA_NUM_THREADS)`` numba
 threads (numba's OpenMP layer shares the thread count with torch).
