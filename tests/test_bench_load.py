@@ -46,6 +46,7 @@ def test_short_load_run_has_no_errors_and_drains_every_job(tmp_path, capsys):
     result = run(
         tmp_path / "out",
         duration=4,
+        baseline=1.5,
         pollers=5,
         uploaders=2,
         upload_mb=1,
@@ -62,6 +63,8 @@ def test_short_load_run_has_no_errors_and_drains_every_job(tmp_path, capsys):
         row = mixed["kinds"][kind]
         assert row["requests"] > 0 and row["errors"] == 0
         assert 0 < row["p50_ms"] <= row["p99_ms"] <= row["max_ms"]
+    assert result["poll_only"]["errors"] == 0
+    assert set(result["poll_only"]["kinds"]) == {"get_job", "list_jobs"}
     assert result["big"]["errors"] == 0 and result["big"]["kinds"]["big_upload"]["requests"] == 2
     assert result["cleanup"]["errors"] == 0
     drain = result["drain"]

@@ -9,10 +9,11 @@ temporary storage folder. This module talks to them over HTTP only (httpx); it n
 
 Phases (each bounded in count and time; the run stops by itself):
 
-a. ``mixed``: ``pollers`` clients loop on ``GET /v1/jobs/{id}`` and ``GET /v1/jobs`` while
-   ``uploaders`` clients loop on ``POST /v1/jobs`` with small procedural assets, for
-   ``duration`` seconds (no worker runs: the API alone is measured). Every answer that is not
-   the expected status (200, 202) and every transport error or timeout is an error.
+a. ``poll_only``: ``pollers`` clients alone loop on ``GET /v1/jobs/{id}`` and ``GET /v1/jobs``
+   for ``baseline`` seconds; then ``mixed``: the same pollers while ``uploaders`` clients loop
+   on ``POST /v1/jobs`` with small procedural assets, for ``duration`` seconds (no worker
+   runs: the API alone is measured). Every answer that is not the expected status (200, 202)
+   and every transport error or timeout is an error.
 b. ``big uploads``: ``uploaders`` concurrent clients post ``big_uploads`` GLBs of about
    ``upload_mb`` MB (a valid asset whose base colour is a noise texture, so it passes intake);
    time until the intake answer, MB/s per upload and aggregate.
@@ -570,6 +571,7 @@ def run(
     out_dir: Path = Path("bench-out/load"),
     *,
     duration: float = 60.0,
+    baseline: float = 10.0,
     pollers: int = 50,
     uploaders: int = 10,
     upload_mb: float = 20.0,
@@ -584,7 +586,8 @@ def run(
 ) -> dict[str, Any]:
     """Run the three phases (see the module docstring); returns (and writes) the results.
 
-    ``big_uploads`` defaults to ``uploaders`` (each concurrent client posts one big asset);
+    ``baseline`` seconds of pollers alone run first (0: skip), to show what the uploads'
+    intake costs the pollers. ``big_uploads`` defaults to ``uploaders`` (one big asset each);
     0 skips phase b; ``jobs`` 0 skips phase c. ``redis_url`` None = a private
     ``redis-server`` when installed (else db 13 of 127.0.0.1:6379 with a private prefix).
     """
@@ -599,6 +602,7 @@ def run(
     result: dict[str, Any] = {
         "config": {
             "duration": duration,
+            "baseline": baseline,
             "pollers": pollers,
             "uploaders": uploaders,
             "upload_mb": upload_mb,
@@ -622,6 +626,21 @@ def run(
                 asyncio.run(_upload_phase(stack.base_url, 1, 1, payloads[i], ids, seed_rec, "seed"))
             if seed_rec.errors or not ids:
                 raise LoadBenchError(f"could not submit the first jobs: {seed_rec.errors[:3]}")
+
+            if baseline > 0 and pollers > 0:
+                log(f"baseline: {pollers} pollers alone for {baseline:.0f} s")
+                prec = Recorder()
+                pwall = asyncio.run(
+                    _mixed_phase(
+                        stack.base_url, baseline, pollers, 0, payloads, ids, prec, request_timeout
+                    )
+                )
+                result["poll_only"] = {
+                    "wall_seconds": pwall,
+                    "kinds": prec.summary(pwall),
+                    "errors": len(prec.errors),
+                    "error_samples": [f"{k}: {e}" for k, e in prec.errors[:20]],
+                }
 
             log(f"phase a: {pollers} pollers + {uploaders} uploaders for {duration:.0f} s")
             rec = Recorder()
@@ -694,6 +713,8 @@ def run(
 
 def _passed(result: dict[str, Any]) -> bool:
     ok = result["mixed"]["errors"] == 0 and result["cleanup"]["errors"] == 0
+    if "poll_only" in result:
+        ok = ok and result["poll_only"]["errors"] == 0
     if "big" in result:
         ok = ok and result["big"]["errors"] == 0
     if "drain" in result:
@@ -759,7 +780,7 @@ def print_table(result: dict[str, Any]) -> None:
     for col in ("phase", "request", "count", "errors", "req/s", "p50 ms", "p99 ms", "max ms"):
         table.add_column(col, justify="left" if col in ("phase", "request") else "right")
     table.add_column("MB/s", justify="right")
-    for phase in ("mixed", "big", "cleanup"):
+    for phase in ("poll_only", "mixed", "big", "cleanup"):
         if phase not in result:
             continue
         for kind, row in result[phase]["kinds"].items():

@@ -131,6 +131,7 @@ def upscale_cmd(
 @bench_app.command("load")
 def load_cmd(
     duration: float = typer.Option(60.0, help="Seconds of the mixed polling + upload phase."),
+    baseline: float = typer.Option(10.0, help="Seconds of polling alone first (0: skip)."),
     pollers: int = typer.Option(50, help="Concurrent clients polling job status and lists."),
     uploaders: int = typer.Option(10, help="Concurrent uploaders (mixed and big-upload phases)."),
     upload_mb: float = typer.Option(20.0, help="Size of each big upload (MB); a valid GLB."),
@@ -151,6 +152,7 @@ def load_cmd(
     result = run(
         out,
         duration=duration,
+        baseline=baseline,
         pollers=pollers,
         uploaders=uploaders,
         upload_mb=upload_mb,
