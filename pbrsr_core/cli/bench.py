@@ -169,5 +169,36 @@ def load_cmd(
         raise typer.Exit(1)
 
 
+@bench_app.command("service")
+def service_cmd(
+    duration: float = typer.Option(
+        30.0, help="Seconds of polling alone, then of polling with uploads."
+    ),
+    pollers: int = typer.Option(50, help="Concurrent clients polling job status and lists."),
+    uploaders: int = typer.Option(10, help="Concurrent 20 MB uploads."),
+    upload_mb: float = typer.Option(20.0, help="Size of each big upload (MB); a valid GLB."),
+    out: Path = typer.Option(Path("bench-out/service"), "--out", "-o", help="Output directory."),
+) -> None:
+    """The API alone (the first phases of ``bench load``, no job drain): status-poll
+    throughput and p50/p99 latency with concurrent clients, and throughput of concurrent big
+    uploads, against one API process on loopback."""
+    from ..bench.load import print_table, run
+
+    result = run(
+        out,
+        duration=duration,
+        baseline=duration,
+        pollers=pollers,
+        uploaders=uploaders,
+        upload_mb=upload_mb,
+        jobs=0,
+        log=lambda m: typer.echo(m, err=True),
+    )
+    print_table(result)
+    typer.echo(f"wrote {out / 'load.json'} and {out / 'load.png'}")
+    if not result["ok"]:
+        raise typer.Exit(1)
+
+
 def register(app: typer.Typer) -> None:
     app.add_typer(bench_app, name="bench")
