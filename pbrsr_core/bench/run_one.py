@@ -22,6 +22,17 @@ from ..pipeline import upscale_asset
 SNAPSHOT_AT = (0, 10, 25, 50, 100, 200, 400, 800, 1600)
 
 
+def peak_rss_mib() -> float:
+    """This process's peak resident memory (VmHWM). Not ru_maxrss: Linux carries that over
+    from the parent through fork and exec, so a child of a big benchmark process would report
+    the parent's size."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 def main(spec_path: str) -> None:
     spec = json.loads(Path(spec_path).read_text())
     work = Path(spec["work"])
@@ -45,7 +56,7 @@ def main(spec_path: str) -> None:
         snapshots=(SNAPSHOT_AT, on_snapshot),
     )
     run_s = time.perf_counter() - t0 - overhead
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    peak = peak_rss_mib()
     (work / "result.json").write_text(
         json.dumps(
             {
