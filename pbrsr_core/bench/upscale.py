@@ -111,110 +111,85 @@ def run(
     say=print,
 ) -> list[dict]:
     """Run the benchmark; write ``results.json``, ``results.md`` and ``speed_vs_error.png``."""
+    import torch
+
     out_dir.mkdir(parents=True, exist_ok=True)
+    lights, light_names = eval_lights(shared)
     work_root = Path(tempfile.mkdtemp(prefix="pbrsr-bench-"))
-    try:
-        rows = _run_all(
-            work_root,
-            assets,
-            methods,
-            scale,
-            prior,
-            eval_res,
-            eval_views,
-            procedural_size,
-            include_procedural,
-            shared,
-            say,
-        )
-    finally:
-        shutil.rmtree(work_root, ignore_errors=True)
-    result = {
+    rows: list[dict] = []
+    meta = {
         "scale": scale,
         "prior": prior,
         "eval_res": eval_res,
         "eval_views": eval_views,
-        "lights": eval_lights(shared)[1],
-        "rows": rows,
+        "lights": light_names,
     }
-    (out_dir / "results.json").write_text(json.dumps(result, indent=2))
+    try:
+        todo: list[tuple[str, Path]] = []
+        if include_procedural:
+            todo.append(
+                (
+                    "procedural",
+                    make_demo_asset(work_root / "procedural" / "demo.glb", size=procedural_size),
+                )
+            )
+        found = find_assets(shared, assets)
+        if shared.is_dir():
+            todo.extend(found)
+        else:
+            say(f"shared assets folder {shared} not present: procedural asset only")
+        for name, gt_path in todo:
+            say(f"== {name}: degrade x{scale}")
+            lr_path = degrade_asset(gt_path, work_root / name / "lr" / gt_path.name, scale)[0]
+            gt = load_asset(gt_path)
+            evaluator = RenderEvaluator(
+                gt,
+                cameras=eval_cameras(eval_res, eval_views),
+                lights=lights,
+                device=torch.device("cpu"),
+            )
+            for method in methods:
+                work = work_root / name / method
+                work.mkdir(parents=True)
+                spec = {
+                    "label": f"{name}/{method}",
+                    "input": str(lr_path),
+                    "out": str(work / "out"),
+                    "work": str(work),
+                    "options": method_options(method, scale, prior),
+                }
+                say(f"   {method} ...")
+                res = run_subprocess(spec, work)
+                pred = load_asset(work / "out" / lr_path.name)
+                scores = _score(pred, gt, evaluator)
+                curve = []
+                for snap in res.get("snapshots", []):
+                    px = dict(np.load(work / snap["file"]))
+                    s = _score(_with_pixels(gt, {int(k): v for k, v in px.items()}), gt, evaluator)
+                    curve.append({"it": snap["it"], "seconds": snap["seconds"], **s})
+                row = {
+                    "asset": name,
+                    "method": method,
+                    "wall_s": round(res["wall_s"], 2),
+                    "run_s": round(res["run_s"], 2),
+                    "peak_rss_mib": round(res["peak_rss_mib"], 1),
+                    "timings": res["timings"],
+                    **{k: round(v, 3) for k, v in scores.items()},
+                    "curve": curve,
+                }
+                rows.append(row)
+                say("   " + _row_text(row))
+                _write_results(out_dir, rows, meta)
+    finally:
+        shutil.rmtree(work_root, ignore_errors=True)
+    return rows
+
+
+def _write_results(out_dir: Path, rows: list[dict], meta: dict) -> None:
+    """Written after every run, so an interrupted benchmark keeps what it measured."""
+    (out_dir / "results.json").write_text(json.dumps({**meta, "rows": rows}, indent=2))
     (out_dir / "results.md").write_text(markdown_table(rows))
     plot(rows, out_dir / "speed_vs_error.png")
-    return rows
-
-
-def _run_all(
-    work_root,
-    assets,
-    methods,
-    scale,
-    prior,
-    eval_res,
-    eval_views,
-    procedural_size,
-    include_procedural,
-    shared,
-    say,
-) -> list[dict]:
-    import torch
-
-    todo: list[tuple[str, Path]] = []
-    if include_procedural:
-        todo.append(
-            (
-                "procedural",
-                make_demo_asset(work_root / "procedural" / "demo.glb", size=procedural_size),
-            )
-        )
-    found = find_assets(shared, assets)
-    if shared.is_dir():
-        todo.extend(found)
-    else:
-        say(f"shared assets folder {shared} not present: procedural asset only")
-    lights, _ = eval_lights(shared)
-    rows: list[dict] = []
-    for name, gt_path in todo:
-        say(f"== {name}: degrade x{scale}")
-        lr_path = degrade_asset(gt_path, work_root / name / "lr" / gt_path.name, scale)[0]
-        gt = load_asset(gt_path)
-        evaluator = RenderEvaluator(
-            gt,
-            cameras=eval_cameras(eval_res, eval_views),
-            lights=lights,
-            device=torch.device("cpu"),
-        )
-        for method in methods:
-            work = work_root / name / method
-            work.mkdir(parents=True)
-            spec = {
-                "label": f"{name}/{method}",
-                "input": str(lr_path),
-                "out": str(work / "out"),
-                "work": str(work),
-                "options": method_options(method, scale, prior),
-            }
-            say(f"   {method} ...")
-            res = run_subprocess(spec, work)
-            pred = load_asset(work / "out" / lr_path.name)
-            scores = _score(pred, gt, evaluator)
-            curve = []
-            for snap in res.get("snapshots", []):
-                px = dict(np.load(work / snap["file"]))
-                s = _score(_with_pixels(gt, {int(k): v for k, v in px.items()}), gt, evaluator)
-                curve.append({"it": snap["it"], "seconds": snap["seconds"], **s})
-            row = {
-                "asset": name,
-                "method": method,
-                "wall_s": round(res["wall_s"], 2),
-                "run_s": round(res["run_s"], 2),
-                "peak_rss_mib": round(res["peak_rss_mib"], 1),
-                "timings": res["timings"],
-                **{k: round(v, 3) for k, v in scores.items()},
-                "curve": curve,
-            }
-            rows.append(row)
-            say("   " + _row_text(row))
-    return rows
 
 
 def _row_text(row: dict) -> str:
