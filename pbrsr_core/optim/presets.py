@@ -143,6 +143,11 @@ PAPER = PbrsrConfig(
 #   0.1 dB render PSNR; "detail" with 3 views per texel and lr 5e-4 kept every map at or above
 #   bicubic (albedo +0.3, roughness +0.5, occlusion +2.5 dB) and gained 0.6 dB render PSNR.
 #   Larger steps (5e-3) made Adam move every texel by its full step each iteration: speckle.
+# * iterations: `pbrsr bench upscale -a ph_painted_wooden_cabinet` (x4, 240 views, two HDRs)
+#   showed render PSNR peaking early and then overfitting the pseudo-GT: balanced at 0 / 10 /
+#   25 / 50 / 100 / 150 iterations gave 29.08 / 29.14 / 29.16 / 29.12 / 29.01 / 28.81 dB
+#   (bicubic 28.66); on the procedural asset 60 and 150 iterations gave 25.29 and 25.33 dB
+#   (bicubic 24.90). Hence 25 / 60 / 150 for fast / balanced / quality.
 FAST = PbrsrConfig(
     name="fast",
     view_mode="coverage",
@@ -153,7 +158,7 @@ FAST = PbrsrConfig(
     max_render_res=384,
     views_per_texel=2,
     target="detail",
-    iterations=60,
+    iterations=25,
     batch_views=2,
     lr=5e-4,
     mask_unseen=True,
@@ -170,7 +175,7 @@ BALANCED = PbrsrConfig(
     max_render_res=512,  # 512: one pixel per texel on a 512 map seen face-on
     views_per_texel=3,
     target="detail",
-    iterations=150,
+    iterations=60,
     batch_views=2,
     lr=5e-4,
     mask_unseen=True,
@@ -187,7 +192,7 @@ QUALITY = PbrsrConfig(
     max_render_res=768,
     views_per_texel=4,
     target="detail",
-    iterations=400,
+    iterations=150,
     batch_views=3,
     lr=5e-4,
     mask_unseen=True,
