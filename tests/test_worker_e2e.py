@@ -139,3 +139,30 @@ def test_failing_job_keeps_a_clear_error(env):
     assert "Traceback" not in job["error"] and str(settings.storage_dir) not in job["error"]
     assert client.get(f"/v1/jobs/{job_id}/result").status_code == 409
     assert client.get("/v1/jobs?status=failed").json()["total"] == 1
+
+
+def test_pbrsr_fast_job_reports_losses_and_returns_valid_hr_maps(env):
+    """The default method with a preset that takes seconds: losses and consistency PSNR
+    reach the status while it runs, and the bundle holds a valid asset at x2."""
+    from pbrsr_core.asset import load_asset, validate_gltf
+
+    settings, client, proc, tmp = env
+    opts = {"method": "pbrsr", "preset": "fast", "prior": "bicubic", "scale": 2}
+    job_id = post_asset(client, asset_bytes(tmp), options=opts).json()["id"]
+    job = _wait_state(client, job_id, ("finished", "failed", "canceled"), 240)
+    assert job["status"] == "finished", job
+    history = job["history"]  # the status keeps the optimiser's losses over time
+    assert any(h.get("losses") for h in history), history[-3:]
+    r = client.get(f"/v1/jobs/{job_id}/result")
+    zf = zipfile.ZipFile(io.BytesIO(r.content))
+    out = tmp / f"bundle-{job_id}"
+    zf.extractall(out)
+    assert validate_gltf(out / "asset.glb")["numErrors"] == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["num_views"] >= 1 and report["history"]
+    res = load_asset(out / "asset.glb")
+    for img in report["images"]:
+        assert [res.images[img["index"]].width, res.images[img["index"]].height] == [
+            2 * img["lr_size"][0],
+            2 * img["lr_size"][1],
+        ]

@@ -136,14 +136,17 @@ def run_job(job_id: str) -> dict[str, Any]:
         log.info("job %s: finished", job_id)
         return {"state": JobState.FINISHED.value, **summary}
     except Cancelled:
+        _remove_all(tmp_paths)  # before the state changes: a reader never sees leftovers
         log.info("job %s: canceled", job_id)
         reporter.finish(JobState.CANCELED)
         return {"state": JobState.CANCELED.value}
     except PbrsrError as exc:
+        _remove_all(tmp_paths)  # before the state changes: a reader never sees leftovers
         log.info("job %s: failed: %s", job_id, exc.message)
         reporter.finish(JobState.FAILED, error=exc.message, code=exc.code)
         return {"state": JobState.FAILED.value}
     except JobTimeoutException:
+        _remove_all(tmp_paths)  # before the state changes: a reader never sees leftovers
         message = (
             f"the job ran longer than the server's limit of {ctx.settings.job_timeout} s; "
             "try a faster preset or a smaller scale"
@@ -151,6 +154,7 @@ def run_job(job_id: str) -> dict[str, Any]:
         reporter.finish(JobState.FAILED, error=message, code="timeout")
         return {"state": JobState.FAILED.value}
     except OSError as exc:
+        _remove_all(tmp_paths)  # before the state changes: a reader never sees leftovers
         if exc.errno in (errno.ENOSPC, errno.EDQUOT):
             err = StorageError("the server ran out of disk space while writing the result")
         else:
@@ -159,6 +163,7 @@ def run_job(job_id: str) -> dict[str, Any]:
         reporter.finish(JobState.FAILED, error=err.message, code=err.code)
         return {"state": JobState.FAILED.value}
     except Exception:
+        _remove_all(tmp_paths)  # before the state changes: a reader never sees leftovers
         log.exception("job %s: internal error", job_id)
         reporter.finish(
             JobState.FAILED,
@@ -168,11 +173,7 @@ def run_job(job_id: str) -> dict[str, Any]:
         )
         return {"state": JobState.FAILED.value}
     finally:
-        for path in tmp_paths:
-            if path.exists():
-                from pbrsr_core.jobstore import _remove
-
-                _remove(path)
+        _remove_all(tmp_paths)
         _free_memory()
 
 
@@ -252,3 +253,12 @@ def _box_downsample(pixels: np.ndarray, size: int) -> np.ndarray:
     hh, ww = h // f * f, w // f * f
     block = pixels[:hh, :ww].reshape(hh // f, f, ww // f, f, pixels.shape[2])
     return block.mean(axis=(1, 3))
+
+
+def _remove_all(paths: list[Path]) -> None:
+    """Remove a run's temporary files and folders (idempotent)."""
+    from pbrsr_core.jobstore import _remove
+
+    for path in paths:
+        if path.exists():
+            _remove(path)
