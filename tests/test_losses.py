@@ -15,10 +15,10 @@ from pbrsr_core.optim.losses import (
     robust_pixel_loss,
     robust_pixel_terms,
     sample_weights,
-    tv_loss,
     upsample_weights,
 )
 from pbrsr_core.optim.ssim import ssim_per_channel, window_size_for
+from pbrsr_core.optim.texel_ops import tv_loss
 
 
 def _sk_ssim(a: np.ndarray, b: np.ndarray) -> float:

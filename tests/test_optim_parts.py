@@ -11,8 +11,9 @@ import torch
 
 from pbrsr_core.errors import InvalidOptions
 from pbrsr_core.optim import pseudo_gt
-from pbrsr_core.optim.pbrsr import dilate_islands, map_groups, project_
+from pbrsr_core.optim.pbrsr import map_groups
 from pbrsr_core.optim.presets import PRESETS, get_preset
+from pbrsr_core.optim.texel_ops import dilate_islands, project_
 from pbrsr_core.optim.views import fibonacci_directions, texel_density_resolution
 
 
@@ -76,9 +77,10 @@ def test_presets_paper_numbers_exact():
     assert (p.w_metallic, p.w_other, p.weight_map_res, p.eval_views) == (0.1, 1.0, 64, 240)
     assert p.view_mode == "orbit" and p.sampling == "views" and p.weight_map_lr == 1e-4
     assert set(PRESETS) == {"fast", "balanced", "quality", "paper"}
-    for name in ("fast", "balanced", "quality"):  # CPU presets keep the paper's losses
-        q = get_preset(name)
-        assert (q.lambda_pix, q.lambda_pbr, q.lambda_tv, q.lambda_ssim) == (100, 10, 0.5, 10)
+    for name in ("fast", "balanced", "quality"):  # CPU presets: the paper's losses, a weaker
+        q = get_preset(name)  # pixel term (the pseudo-GT of a small prior, presets.py)
+        assert (q.lambda_pix, q.lambda_pbr, q.lambda_tv, q.lambda_ssim) == (10, 10, 0.5, 10)
+        assert q.lambda_reg == 0.5
     with pytest.raises(InvalidOptions):
         get_preset("nope")
     with pytest.raises(InvalidOptions):

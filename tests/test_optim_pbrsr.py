@@ -61,7 +61,9 @@ def _quad_scene():
 
 
 def _cfg(**kw):
-    base = dict(iterations=60, lr=1e-2, batch_views=1, log_every=10, mask_unseen=True)
+    base = dict(
+        iterations=60, lr=1e-2, batch_views=1, log_every=10, mask_unseen=True, lambda_pix=100.0
+    )
     base.update(kw)
     return get_preset("fast").with_(**base)
 

@@ -11,7 +11,7 @@ every lambda to the map resolution, so like ``torch.nn.L1Loss`` we use means):
 * ``L_pbr = sum_T w_T (mean|AvgPool_s(T) - T_lr| + lambda_ssim (1 - SSIM(AvgPool_s(T), T_lr)))``
   where a "map" T is a :class:`MapGroup`: some channels of one image (roughness = G of the
   metallicRoughness image, metallic = B, occlusion = R, albedo = RGB of baseColor, ...).
-* ``L_tv = sum_T (mean|grad_x T| + mean|grad_y T|)``.
+* ``L_tv = sum_T (mean|grad_x T| + mean|grad_y T|)``: ``texel_ops.tv_loss`` (one fused pass).
 
 All functions accept float32 or float64 and never produce NaN/Inf for inputs in range
 (denominators are clamped, empty differences give 0).
@@ -144,8 +144,9 @@ def avg_pool_map(hr: torch.Tensor, scale: int) -> torch.Tensor:
         raise ValueError(f"map of {hr.shape[1]}x{hr.shape[0]} is not divisible by scale {scale}")
     if scale == 1:
         return hr
-    x = hr.permute(2, 0, 1)[None]
-    return F.avg_pool2d(x, kernel_size=scale, stride=scale)[0].permute(1, 2, 0)
+    h, w, c = hr.shape
+    # one pass over the texels (avg_pool2d on the (1, C, H, W) view would copy it first)
+    return hr.reshape(h // scale, scale, w // scale, scale, c).mean(dim=(1, 3))
 
 
 def pbr_consistency(
@@ -160,12 +161,22 @@ def pbr_consistency(
     ``hr`` (sH, sW, C), ``lr`` (H, W, C). Returns the weighted sum and the unweighted term of
     each group (by name).
     """
-    pooled = avg_pool_map(hr, scale)
+    return pooled_consistency(avg_pool_map(hr, scale), lr, groups, lambda_ssim)
+
+
+def pooled_consistency(
+    pooled: torch.Tensor,
+    lr: torch.Tensor,
+    groups: list[MapGroup],
+    lambda_ssim: float,
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """:func:`pbr_consistency` from the already pooled HR map (H, W, C): the optimiser
+    differentiates at this size and spreads the gradient over the texels itself."""
     if pooled.shape != lr.shape:
         raise ValueError(
             f"pooled HR map {tuple(pooled.shape)} does not match the LR map {tuple(lr.shape)}"
         )
-    total = hr.new_zeros(())
+    total = pooled.new_zeros(())
     terms: dict[str, torch.Tensor] = {}
     if not groups:
         return total, terms
@@ -178,21 +189,6 @@ def pbr_consistency(
         terms[g.name] = term
         total = total + g.weight * term
     return total, terms
-
-
-def tv_loss(t: torch.Tensor, groups: list[MapGroup]) -> torch.Tensor:
-    """``sum_T mean|grad_x T| + mean|grad_y T|`` over the groups of an (H, W, C) map.
-
-    A 1-pixel-wide map has no differences along that axis and contributes 0 there.
-    """
-    total = t.new_zeros(())
-    for g in groups:
-        x = t[..., list(g.channels)]
-        if x.shape[1] > 1:
-            total = total + (x[:, 1:] - x[:, :-1]).abs().mean()
-        if x.shape[0] > 1:
-            total = total + (x[1:] - x[:-1]).abs().mean()
-    return total
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor, data_range: float = 1.0) -> float:

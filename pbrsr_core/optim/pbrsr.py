@@ -40,15 +40,16 @@ from ..render import camera as cam
 from . import views as vsel
 from .losses import (
     MapGroup,
+    avg_pool_map,
     consistency_psnr,
-    pbr_consistency,
+    pooled_consistency,
     robust_pixel_terms,
     sample_weights,
-    tv_loss,
     upsample_weights,
 )
 from .presets import PbrsrConfig
 from .pseudo_gt import content_hash, load_cached, mapped, quantize, store_cached
+from .texel_ops import accumulate_map_grad_, project_
 
 PROBE_RES = 128  # side of the low-resolution renders used to select views and measure density
 BACKGROUND = 0.0
@@ -81,19 +82,6 @@ def map_groups(roles: set[str], channels: int, config: PbrsrConfig) -> list[MapG
             taken.update(ch)
             out.append(MapGroup(name, ch, w))
     return out
-
-
-@torch.no_grad()
-def project_(t: torch.Tensor, is_normal: bool) -> None:
-    """In place: values into [0, 1]; for normal maps the decoded n = 2t - 1 gets z >= 1e-3 and
-    unit length (a zero-length normal becomes (0, 0, 1)), then is re-encoded. NaN -> 0."""
-    torch.nan_to_num_(t, nan=0.0, posinf=1.0, neginf=0.0)
-    t.clamp_(0.0, 1.0)
-    if is_normal and t.shape[-1] >= 3:
-        n = t[..., :3] * 2.0 - 1.0
-        n[..., 2].clamp_(min=1e-3)
-        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        t[..., :3] = (n * 0.5 + 0.5).clamp(0.0, 1.0)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -338,6 +326,34 @@ def _choose_views(mesh, materials, images, sizes, scale, config, rasterize):
     return [vsel.with_resolution(c, res) for c in cams], res, info
 
 
+def regularize_grads(
+    params: dict[int, torch.Tensor],
+    lr_maps: dict[int, torch.Tensor],
+    groups: dict[int, list[MapGroup]],
+    grad_masks: dict[int, tuple[torch.Tensor, torch.Tensor]],
+    config: PbrsrConfig,
+    scale: int,
+) -> tuple[float, float]:
+    """The step's whole-map part, after the pixel loss's backward: add the PBR-consistency
+    gradient (differentiated at LR size, on the pooled map) and TV's to each map's gradient
+    and mask it, one pass per map (texel_ops). ``grad_masks[i]`` = ((H, W) texels, (C,)
+    channels) that may change. Returns the values of ``L_pbr`` and ``L_tv``."""
+    l_pbr_total, l_tv = 0.0, 0.0
+    for i, p in params.items():
+        if p.grad is None:  # no view of this batch samples the image
+            p.grad = torch.zeros_like(p)
+        pooled = avg_pool_map(p.detach(), scale).requires_grad_(True)
+        l_pbr = pooled_consistency(pooled, lr_maps[i], groups[i], config.lambda_ssim)[0]
+        pool_grad = torch.zeros_like(pooled)
+        if l_pbr.requires_grad:
+            (pool_grad,) = torch.autograd.grad(config.lambda_pbr * l_pbr, pooled)
+        l_pbr_total += float(l_pbr.detach())
+        l_tv += accumulate_map_grad_(
+            p, p.grad, groups[i], config.lambda_tv, pool_grad, scale, *grad_masks[i]
+        )
+    return l_pbr_total, l_tv
+
+
 def optimize_pbrsr(
     mesh: Mesh,
     materials: list[Material],
@@ -430,7 +446,8 @@ def optimize_pbrsr(
 
     # ---- 2. pseudo-GT -----------------------------------------------------------------------
     t0 = time.perf_counter()
-    init_dev = {i: init_maps[i].detach().to(device, torch.float32) for i in images}
+    # own copies (projected in place below, then optimised in place as the parameters)
+    init_dev = {i: init_maps[i].detach().to(device, torch.float32, copy=True) for i in images}
     lr_dev = {i: lr_maps[i].detach().to(device, torch.float32) for i in images}
     # images a material samples but that are not optimised render from their LR map
     static = {
@@ -459,6 +476,7 @@ def optimize_pbrsr(
                 materials,
                 light,
                 getattr(prior, "name", type(prior)),
+                prior.uses_bf16() if hasattr(prior, "uses_bf16") else False,
                 scale,
                 BACKGROUND,
                 config.lr_render,
@@ -481,10 +499,10 @@ def optimize_pbrsr(
 
     # ---- 3. optimise ------------------------------------------------------------------------
     t0 = time.perf_counter()
-    params = {i: init_dev[i].clone().requires_grad_(True) for i in images}
-    grad_masks = {}
+    params = {i: init_dev.pop(i).requires_grad_(True) for i in images}
+    grad_masks = {}  # image -> ((H, W) texels, (C,) channels) that may change
     for i in images:
-        h, w, c = init_dev[i].shape
+        h, w, c = params[i].shape
         ch = torch.zeros(c, dtype=torch.bool, device=device)
         for g in groups[i]:
             ch[list(g.channels)] = True
@@ -493,14 +511,15 @@ def optimize_pbrsr(
             if config.mask_unseen
             else torch.ones(h, w, dtype=torch.bool, device=device)
         )
-        grad_masks[i] = (texel[..., None] & ch).to(torch.float32)
+        grad_masks[i] = (texel.contiguous(), ch)
     wres = config.weight_map_res
     wmaps = torch.ones(n_views, wres, wres, device=device, requires_grad=True)
     opt = torch.optim.Adam(
         [
             {"params": [params[i] for i in images], "lr": config.lr},
             {"params": [wmaps], "lr": config.weight_map_lr},
-        ]
+        ],
+        fused=True,  # one pass over each parameter and its two moments (CPU and CUDA)
     )
 
     def target(v: int, pix: torch.Tensor) -> torch.Tensor:  # (P, 3) pseudo-GT at pixels
@@ -577,23 +596,12 @@ def optimize_pbrsr(
             l_pix, l_reg = robust_pixel_terms(sq, wv, vcat, len(present))
             batch = present
 
-        l_pbr = sum(
-            pbr_consistency(params[i], lr_dev[i], scale, groups[i], config.lambda_ssim)[0]
-            for i in images
-        )
-        l_tv = sum(tv_loss(params[i], groups[i]) for i in images)
-        loss = (
-            config.lambda_pix * l_pix
-            + config.lambda_reg * l_reg
-            + config.lambda_pbr * l_pbr
-            + config.lambda_tv * l_tv
-        )
-        opt.zero_grad(set_to_none=False)
+        loss = config.lambda_pix * l_pix + config.lambda_reg * l_reg
+        opt.zero_grad(set_to_none=True)
         loss.backward()
-        for i in images:
-            g = params[i].grad
-            torch.nan_to_num_(g, nan=0.0, posinf=0.0, neginf=0.0)
-            g.mul_(grad_masks[i])
+        l_pbr, l_tv = regularize_grads(params, lr_dev, groups, grad_masks, config, scale)
+        if wmaps.grad is None:
+            wmaps.grad = torch.zeros_like(wmaps)
         torch.nan_to_num_(wmaps.grad, nan=0.0, posinf=0.0, neginf=0.0)
         opt.step()
         with torch.no_grad():
@@ -604,11 +612,11 @@ def optimize_pbrsr(
         done = it + 1
         if done % config.log_every == 0 or done == config.iterations or it == 0:
             losses = {
-                "total": float(loss.detach()),
+                "total": float(loss.detach()) + config.lambda_pbr * l_pbr + config.lambda_tv * l_tv,
                 "pix": float(l_pix.detach()),
                 "reg": float(l_reg.detach()),
-                "pbr": float(l_pbr.detach()),
-                "tv": float(l_tv.detach()),
+                "pbr": l_pbr,
+                "tv": l_tv,
             }
             metrics = consistency_metrics()
             history.append(
@@ -648,57 +656,11 @@ def optimize_pbrsr(
     )
 
 
-def dilate_islands(map_: torch.Tensor | np.ndarray, covered_mask, pixels: int):
-    """Pad UV islands: texels outside ``covered_mask`` within ``pixels`` steps of it take the
-    mean of their already-filled 8-neighbours, ring by ring, so mipmaps and bilinear filtering
-    near island borders do not pull in unrelated texels.
-
-    ``map_`` (H, W, C) numpy or torch (returned in the same type, dtype, device);
-    ``covered_mask`` (H, W) bool. Covered texels are never changed.
-    """
-    is_np = isinstance(map_, np.ndarray)
-    t = torch.from_numpy(np.ascontiguousarray(map_)) if is_np else map_
-    if t.ndim != 3:
-        raise ValueError(f"map must be (H, W, C), got {tuple(t.shape)}")
-    m = (
-        torch.as_tensor(
-            np.asarray(covered_mask) if not isinstance(covered_mask, torch.Tensor) else covered_mask
-        )
-        .to(t.device)
-        .bool()
-    )
-    if m.shape != t.shape[:2]:
-        raise ValueError(f"mask {tuple(m.shape)} does not match map {tuple(t.shape[:2])}")
-    dtype = t.dtype
-    x = t.to(torch.float64).permute(2, 0, 1)[None].clone()
-    filled = m.to(torch.float64)[None, None]
-    x = x * filled
-    k = torch.ones(1, 1, 3, 3, dtype=torch.float64, device=t.device)
-    c = x.shape[1]
-    for _ in range(max(int(pixels), 0)):
-        if bool(filled.all()):
-            break
-        num = torch.nn.functional.conv2d(x, k.expand(c, 1, 3, 3), padding=1, groups=c)
-        den = torch.nn.functional.conv2d(filled, k, padding=1)
-        new = (den > 0) & (filled == 0)
-        if not bool(new.any()):
-            break
-        x = torch.where(new, num / den.clamp_min(1.0), x)
-        filled = torch.where(new, torch.ones_like(filled), filled)
-    out = x[0].permute(1, 2, 0)
-    orig = t.to(torch.float64)
-    keep = (filled[0, 0] > 0)[..., None]
-    out = torch.where(keep, out, orig)  # texels beyond the padding keep their value
-    out = torch.where(m[..., None], orig, out).to(dtype)
-    return out.cpu().numpy() if is_np else out
-
-
 __all__ = [
     "PbrsrResult",
     "concat_gbuffers",
-    "dilate_islands",
     "map_groups",
     "optimize_pbrsr",
-    "project_",
+    "regularize_grads",
     "subset_gbuffer",
 ]

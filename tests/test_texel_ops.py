@@ -1,0 +1,163 @@
+"""The fused whole-map kernels (numba, CPU) against plain torch references: TV value and
+gradient (float64 gradcheck), projection, gradient masking and island dilation."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from pbrsr_core.optim.losses import MapGroup
+from pbrsr_core.optim.texel_ops import (
+    accumulate_map_grad_,
+    dilate_islands,
+    mask_grad_,
+    project_,
+    tv_loss,
+)
+
+
+def _tv_reference(t: torch.Tensor, groups: list[MapGroup]) -> torch.Tensor:
+    total = t.new_zeros(())
+    for g in groups:
+        x = t[..., list(g.channels)]
+        if x.shape[1] > 1:
+            total = total + (x[:, 1:] - x[:, :-1]).abs().mean()
+        if x.shape[0] > 1:
+            total = total + (x[1:] - x[:-1]).abs().mean()
+    return total
+
+
+def test_tv_matches_torch_value_and_gradient():
+    g = torch.Generator().manual_seed(3)
+    groups = [MapGroup("base_color", (0, 1, 2)), MapGroup("metallic", (3,), 0.1)]
+    for shape in [(17, 23, 4), (1, 9, 4), (9, 1, 4), (1, 1, 4), (64, 48, 5)]:
+        for dtype in (torch.float32, torch.float64):
+            t = torch.rand(shape, generator=g, dtype=dtype)
+            t[:2, :2] = 0.5  # exact zeros among the differences (subgradient 0, as torch)
+            a = t.clone().requires_grad_()
+            b = t.clone().requires_grad_()
+            va, vb = tv_loss(a, groups), _tv_reference(b, groups) + 0.0 * b.sum()
+            va.backward()
+            vb.backward()
+            tol = 1e-12 if dtype == torch.float64 else 1e-5
+            va, vb = va.item(), vb.item()
+            assert abs(va - vb) <= tol * max(1.0, vb)
+            assert torch.allclose(a.grad, b.grad, atol=tol, rtol=0)
+            assert a.grad[..., 4:].abs().sum() == 0  # a channel no group reads gets nothing
+
+
+def test_tv_overlapping_groups_add_and_gradcheck():
+    g = torch.Generator().manual_seed(4)
+    t = torch.rand(6, 7, 3, generator=g, dtype=torch.float64).requires_grad_()
+    groups = [MapGroup("a", (0, 1)), MapGroup("b", (1, 2))]
+    assert torch.allclose(tv_loss(t, groups), _tv_reference(t, groups))
+    assert torch.autograd.gradcheck(lambda x: tv_loss(x, groups) * 3.0, (t,))
+
+
+def test_project_matches_reference_and_sanitises():
+    g = torch.Generator().manual_seed(5)
+    t = torch.rand(8, 9, 3, generator=g) * 1.6 - 0.3
+    t[0, 0] = float("nan")
+    t[0, 1] = torch.tensor([float("inf"), float("-inf"), 0.5])
+    t[0, 2] = 0.5  # zero-length normal -> (0, 0, 1)
+    t[0, 3] = torch.tensor([0.5, 0.5, 0.0])  # pointing inwards -> z clamped up
+    ref = torch.nan_to_num(t.clone(), nan=0.0, posinf=1.0, neginf=0.0).clamp(0, 1)
+    col = t.clone()
+    project_(col, is_normal=False)
+    assert torch.equal(col, ref)
+    n = ref * 2 - 1
+    n[..., 2].clamp_(min=1e-3)
+    n = (n / n.norm(dim=-1, keepdim=True) * 0.5 + 0.5).clamp(0, 1)
+    nm = t.clone()
+    project_(nm, is_normal=True)
+    assert torch.allclose(nm, n, atol=1e-6)
+    dec = nm * 2 - 1
+    assert torch.allclose(dec.norm(dim=-1), torch.ones(8, 9), atol=1e-5)
+    assert (dec[..., 2] > 0).all() and torch.isfinite(nm).all()
+    assert torch.allclose(nm[0, 2], torch.tensor([0.5, 0.5, 1.0]))
+    strided = t.clone().permute(1, 0, 2)  # not contiguous: the torch path, same numbers
+    project_(strided, is_normal=True)
+    assert torch.allclose(strided.permute(1, 0, 2), n, atol=1e-6)
+
+
+def test_mask_grad_zeroes_masked_and_non_finite():
+    g = torch.randn(5, 6, 3, generator=torch.Generator().manual_seed(6))
+    g[1, 1, 0] = float("nan")
+    g[2, 2, 1] = float("inf")
+    texels = torch.rand(5, 6, generator=torch.Generator().manual_seed(7)) > 0.3
+    channels = torch.tensor([True, True, False])
+    want = torch.nan_to_num(g.clone(), nan=0.0, posinf=0.0, neginf=0.0)
+    want = want * (texels[..., None] & channels)
+    mask_grad_(g, texels, channels)
+    assert torch.equal(g, want)
+
+
+def _dilate_reference(x: np.ndarray, m: np.ndarray, rings: int) -> np.ndarray:
+    out = x.astype(np.float64).copy()
+    filled = m.copy()
+    h, w, _ = x.shape
+    for _ in range(rings):
+        new = {}
+        for i in range(h):
+            for j in range(w):
+                if filled[i, j]:
+                    continue
+                nb = [
+                    out[a, b]
+                    for a in range(max(0, i - 1), min(h, i + 2))
+                    for b in range(max(0, j - 1), min(w, j + 2))
+                    if filled[a, b]
+                ]
+                if nb:
+                    new[i, j] = np.mean(nb, axis=0)
+        for (i, j), v in new.items():
+            out[i, j] = v
+            filled[i, j] = True
+    return out.astype(x.dtype)
+
+
+def test_dilate_matches_ring_by_ring_reference():
+    rng = np.random.default_rng(8)
+    x = rng.random((13, 11, 2), dtype=np.float32)
+    m = np.zeros((13, 11), bool)
+    m[2:4, 2:5] = True
+    m[9, 8] = True
+    for rings in (0, 1, 3, 20):
+        got = dilate_islands(x, m, rings)
+        assert np.allclose(got, _dilate_reference(x, m, rings), atol=1e-6)
+        assert np.array_equal(got[m], x[m])
+    t = torch.from_numpy(x).double()
+    assert torch.allclose(
+        dilate_islands(t, torch.from_numpy(m), 2),
+        torch.from_numpy(_dilate_reference(x.astype(np.float64), m, 2)),
+    )
+
+
+def test_accumulate_map_grad_equals_autograd_of_tv_and_consistency():
+    from pbrsr_core.optim.losses import avg_pool_map, pbr_consistency, pooled_consistency
+
+    g = torch.Generator().manual_seed(9)
+    s = 2
+    t = torch.rand(8, 6, 3, generator=g, dtype=torch.float64)
+    lr = torch.rand(4, 3, 3, generator=g, dtype=torch.float64)
+    render_grad = torch.randn(8, 6, 3, generator=g, dtype=torch.float64)
+    render_grad[0, 0, 0] = float("nan")
+    groups = [MapGroup("base_color", (0, 1)), MapGroup("metallic", (2,), 0.1)]
+    texels = torch.rand(8, 6, generator=g) > 0.25
+    channels = torch.tensor([True, False, True])
+    # reference: autograd through the full-size losses
+    x = t.clone().requires_grad_()
+    ref_tv = tv_loss(x, groups)
+    (10.0 * pbr_consistency(x, lr, s, groups, 10.0)[0] + 0.5 * ref_tv).backward()
+    want = torch.nan_to_num(x.grad + render_grad, nan=0.0) * (texels[..., None] & channels)
+    want[0, 0, 0] = 0.0
+    # fused: the consistency gradient at LR size, spread by the kernel
+    pooled = avg_pool_map(t, s).requires_grad_()
+    (10.0 * pooled_consistency(pooled, lr, groups, 10.0)[0]).backward()
+    for contiguous in (True, False):
+        grad = render_grad.clone()
+        if not contiguous:  # the torch path (other devices) must give the same numbers
+            grad = grad.permute(1, 0, 2).contiguous().permute(1, 0, 2)
+        tv = accumulate_map_grad_(t, grad, groups, 0.5, pooled.grad, s, texels, channels)
+        assert abs(tv - float(ref_tv.detach())) < 1e-12
+        assert torch.allclose(grad, want, atol=1e-12)
