@@ -26,6 +26,7 @@ from .asset import detect_kind, extract_zip, load_asset, save_asset, write_image
 from .asset.model import Asset
 from .device import resolve_device
 from .errors import LimitExceeded, PbrsrError, StorageError, UnprocessableAsset
+from .hostmem import reuse_large_blocks
 from .limits import Limits
 from .maps import (
     encoded_to_param,
@@ -40,6 +41,7 @@ from .options import UpscaleOptions
 from .preview import write_previews
 from .prior import load_prior
 from .prior.direct import bicubic_map, upscale_map
+from .prior.selfcheck import prior_self_check
 from .progress import Progress, ProgressFn, emit
 from .render.light import EnvLight
 from .scene import make_scene, procedural_light
@@ -110,10 +112,19 @@ def _upscale_maps(
         return out, {}
 
     # pbrsr: init = prior on colour maps, bicubic on the rest (paper 3.1)
-    from .optim.pbrsr import dilate_islands, optimize_pbrsr
+    from .optim.pbrsr import optimize_pbrsr
     from .optim.presets import get_preset
+    from .optim.texel_ops import dilate_islands
 
     config = get_preset(options.preset)
+    check = None
+    if config.check_prior and prior.name != "bicubic":
+        with timer("prior_check"):
+            emit(progress, Progress(stage="prior_check"))
+            colour = [img.pixels for img in images if kind_of(img.roles) == "colour"]
+            check = prior_self_check(prior, colour, s)
+        if check is not None and not check["use_prior"]:
+            prior = load_prior("bicubic", device)  # for the init and the pseudo-GT
     with timer("init"):
         init, lr = {}, {}
         for n, img in enumerate(images):
@@ -156,7 +167,7 @@ def _upscale_maps(
             )
             for i, t in result.maps.items()
         }
-    return out, result.report()
+    return out, {**result.report(), "prior_check": check, "prior_used": prior.name}
 
 
 Snapshots = tuple[Collection[int], Callable[[int, dict, dict[int, str]], None]]
@@ -208,7 +219,10 @@ def upscale_asset(
                     "nothing to upscale: no material of this asset uses a texture"
                 )
             _check_output_size(images, options.scale, limits)
-        hr, method_report = _upscale_maps(asset, options, device, timer, progress, work, snapshots)
+        with reuse_large_blocks():
+            hr, method_report = _upscale_maps(
+                asset, options, device, timer, progress, work, snapshots
+            )
         emit(progress, Progress(stage="export"))
         with timer("export"):
             report = _write_bundle(

@@ -9,8 +9,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from pbrsr_core.errors import PriorUnavailable, UnprocessableAsset
+from pbrsr_core.errors import InvalidOptions, PriorUnavailable, UnprocessableAsset
 from pbrsr_core.prior import rrdn, tfjs
+from pbrsr_core.prior.base import PRECISION_ENV, native_bf16
 from pbrsr_core.prior.registry import clear_cache, load_prior
 
 PKG = rrdn.package_dir()
@@ -148,10 +149,34 @@ def test_tiled_matches_untiled_within_1e3(cache):
     x = F.interpolate(base, size=(56, 56), mode="bicubic").clamp(0, 1)
     x[:, :, 25:31, :] = 0.9
     prior = load_prior("rrdn-thick", "cpu")
-    calls = []
-    whole = prior.upscale(x, 2, tile_size=128)
-    tiled = prior.upscale(
-        x, 2, tile_size=40, tile_overlap=24, progress=lambda d, t: calls.append((d, t))
-    )
+    prior.precision = "fp32"  # the tiling arithmetic itself, without bfloat16 rounding
+    try:
+        calls = []
+        whole = prior.upscale(x, 2, tile_size=128)
+        tiled = prior.upscale(
+            x, 2, tile_size=40, tile_overlap=24, progress=lambda d, t: calls.append((d, t))
+        )
+    finally:
+        prior.precision = None
     assert calls == [(1, 4), (2, 4), (3, 4), (4, 4)]
     assert float((whole - tiled).abs().max()) < 1e-3
+
+
+def test_bfloat16_stays_close_to_float32(cache, monkeypatch):
+    x, _ = _fixture_crop(4)
+    prior = load_prior("rrdn-thick", "cpu")
+    monkeypatch.setenv(PRECISION_ENV, "fp32")
+    assert not prior.uses_bf16() and prior.describe()["precision"] == "fp32"
+    full = prior.upscale(x, 4, tile_size=512)
+    monkeypatch.setenv(PRECISION_ENV, "bf16")
+    assert prior.uses_bf16()
+    half = prior.upscale(x, 4, tile_size=512)
+    assert half.dtype == torch.float32 and torch.isfinite(half).all()
+    assert 45.0 <= _psnr(half, full) < 100.0  # bfloat16 really ran, and stayed close
+    monkeypatch.setenv(PRECISION_ENV, "auto")
+    assert prior.uses_bf16() == native_bf16(torch.device("cpu"))
+    monkeypatch.setenv(PRECISION_ENV, "bf16")
+    assert not load_prior("bicubic", "cpu").uses_bf16()  # interpolation: never
+    monkeypatch.setenv(PRECISION_ENV, "half")
+    with pytest.raises(InvalidOptions, match="PBRSR_PRIOR_PRECISION"):
+        prior.upscale(x, 4)

@@ -31,14 +31,15 @@ from pbrsr_core.progress import Progress
 STAGE_WEIGHTS: dict[str, dict[str, float]] = {
     "bicubic": {"load": 0.05, "export": 0.90, "bundle": 0.05},
     "direct": {"load": 0.03, "load_prior": 0.05, "prior": 0.50, "export": 0.38, "bundle": 0.04},
-    "pbrsr": {
+    "pbrsr": {  # from a balanced run on WaterBottle (512 -> 2048, report.json timings)
         "load": 0.01,
-        "load_prior": 0.02,
-        "init": 0.06,
-        "gbuffers": 0.08,
-        "pseudo_gt": 0.10,
-        "optimize": 0.58,
-        "export": 0.13,
+        "load_prior": 0.01,
+        "prior_check": 0.02,
+        "init": 0.25,
+        "gbuffers": 0.02,
+        "pseudo_gt": 0.14,
+        "optimize": 0.47,
+        "export": 0.06,
         "bundle": 0.02,
     },
 }

@@ -6,18 +6,28 @@ inside to what the network needs, and large images run through overlapping tiles
 seams (:mod:`pbrsr_core.prior.tiling`). The output is clamped to [0, 1] and never NaN, lives on
 the input's device, and is an ordinary tensor (computed under ``torch.inference_mode`` but
 returned as a normal tensor, so it can serve as a loss target).
+
+Precision: a network prior whose bfloat16 output was measured against its float32 output
+(``bf16_validated``) runs under bfloat16 autocast where the hardware computes bfloat16
+natively (AVX512-BF16/AMX CPUs, CUDA GPUs with bf16): rrdn-thick at x4 ran 2.1x faster on this
+machine's CPU and its output stayed 56 dB from float32's. ``$PBRSR_PRIOR_PRECISION`` (or the
+``precision`` attribute) = ``fp32`` turns that off, ``bf16`` forces it for any network prior.
 """
 
 from __future__ import annotations
 
+import os
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
 
-from ..errors import UnprocessableAsset
+from ..errors import InvalidOptions, UnprocessableAsset
 from .tiling import count_tiles, default_tile_size, run_tiled
+
+PRECISION_ENV = "PBRSR_PRIOR_PRECISION"
+PRECISIONS = ("auto", "fp32", "bf16")
 
 TileProgress = Callable[[int, int], None]
 """``progress(done, total)`` in tiles; raise :class:`pbrsr_core.errors.Cancelled` to stop."""
@@ -36,10 +46,15 @@ class Prior(ABC):
     min_size: int = 1
     bytes_per_pixel: float = 4096.0
     default_overlap: int = 16
+    is_network: bool = True
+    """False for classical interpolation (never run in reduced precision)."""
+    bf16_validated: bool = False
+    """True when bfloat16 output was measured close to float32's (then ``auto`` uses it)."""
 
     def __init__(self) -> None:
         self.tile_size: int | None = None  # LR pixels; None: chosen from free memory
         self.tile_overlap: int | None = None  # LR pixels; None: default_overlap
+        self.precision: str | None = None  # auto, fp32, bf16; None: $PBRSR_PRIOR_PRECISION
 
     # -- to implement ------------------------------------------------------------------
     @abstractmethod
@@ -59,6 +74,18 @@ class Prior(ABC):
             raise UnprocessableAsset(
                 f"the prior '{self.name}' cannot upscale x{scale}; it supports {have}"
             )
+
+    def uses_bf16(self) -> bool:
+        """Whether the network runs under bfloat16 autocast (see the module docstring)."""
+        choice = self.precision or os.environ.get(PRECISION_ENV) or "auto"
+        if choice not in PRECISIONS:
+            raise InvalidOptions(
+                f"prior precision {choice!r} is not one of {', '.join(PRECISIONS)} "
+                f"(set by {PRECISION_ENV})"
+            )
+        if not self.is_network or choice == "fp32":
+            return False
+        return choice == "bf16" or (self.bf16_validated and native_bf16(self.device))
 
     def effective_tile(self, tile_size: int | None = None) -> int:
         """The tile side used for a run (argument, attribute, or from free memory)."""
@@ -88,6 +115,7 @@ class Prior(ABC):
         if images.shape[0] == 0 or images.shape[2] == 0 or images.shape[3] == 0:
             raise ValueError(f"images must not be empty, got {tuple(images.shape)}")
         self.check_scale(scale)
+        bf16 = self.uses_bf16()
         tile = self.effective_tile(tile_size)
         overlap = self.default_overlap if tile_overlap is None else int(tile_overlap)
         if self.tile_overlap is not None and tile_overlap is None:
@@ -107,7 +135,12 @@ class Prior(ABC):
             x = torch.nan_to_num(images.detach().float(), nan=0.0).clamp(0.0, 1.0)
             outs = [
                 run_tiled(
-                    lambda t: self._run_padded(t, scale), x[i : i + 1], scale, tile, overlap, tick
+                    lambda t: self._run_padded(t, scale, bf16),
+                    x[i : i + 1],
+                    scale,
+                    tile,
+                    overlap,
+                    tick,
                 )
                 for i in range(n)
             ]
@@ -115,7 +148,7 @@ class Prior(ABC):
             out = torch.nan_to_num(out, nan=0.0, posinf=1.0, neginf=0.0).clamp_(0.0, 1.0)
         return out.clone()  # outside inference mode: an ordinary tensor
 
-    def _run_padded(self, x: torch.Tensor, scale: int) -> torch.Tensor:
+    def _run_padded(self, x: torch.Tensor, scale: int, bf16: bool = False) -> torch.Tensor:
         """Pad x (B, 3, h, w) to the network's size requirements, run, crop back."""
         _, _, h, w = x.shape
         ph = _padded_size(h, self.pad_multiple, self.min_size) - h
@@ -124,7 +157,8 @@ class Prior(ABC):
         if ph or pw:
             mode = "reflect" if ph < h and pw < w else "replicate"
             x = F.pad(x, (0, pw, 0, ph), mode=mode)
-        y = self._forward(x, scale)
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=bf16):
+            y = self._forward(x, scale).float()
         expected = (x.shape[0], 3, x.shape[2] * scale, x.shape[3] * scale)
         if tuple(y.shape) != expected:
             raise RuntimeError(
@@ -139,7 +173,20 @@ class Prior(ABC):
             "scales": list(self.scales),
             "parameters": self.num_parameters(),
             "device": str(self.device),
+            "precision": "bf16" if self.uses_bf16() else "fp32",
         }
+
+
+def native_bf16(device: torch.device) -> bool:
+    """Whether ``device`` computes bfloat16 convolutions natively."""
+    if device.type == "cuda":
+        return bool(torch.cuda.is_bf16_supported())
+    if device.type == "cpu":
+        try:
+            return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+        except (AttributeError, RuntimeError):
+            return False
+    return False
 
 
 def _padded_size(n: int, multiple: int, minimum: int) -> int:

@@ -1,0 +1,85 @@
+"""The prior self-check: a prior that loses to bicubic on the asset's own maps one scale down
+is not used; one that wins is; the pipeline reports the decision and follows it."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from pbrsr_core.asset import make_demo_asset
+from pbrsr_core.optim import presets
+from pbrsr_core.options import UpscaleOptions
+from pbrsr_core.pipeline import upscale_asset
+from pbrsr_core.prior.base import Prior
+from pbrsr_core.prior.selfcheck import prior_self_check
+
+
+class BlurringPrior(Prior):
+    """A real, poor prior: nearest-neighbour upscaling followed by a wide box blur."""
+
+    name = "blurring"
+    scales = (2, 4)
+
+    def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
+        up = F.interpolate(x, scale_factor=scale, mode="nearest")
+        return F.avg_pool2d(up, 2 * scale + 1, stride=1, padding=scale, count_include_pad=False)
+
+
+class OraclePrior(Prior):
+    """A perfect prior for one image: returns the HR map the self-check's crop was degraded
+    from."""
+
+    name = "oracle"
+    scales = (4,)
+
+    def __init__(self, hr: np.ndarray):
+        super().__init__()
+        self.hr = torch.from_numpy(hr[..., :3]).permute(2, 0, 1)[None]
+
+    def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
+        h, w = x.shape[-2] * scale, x.shape[-1] * scale
+        return self.hr[..., :h, :w].clone()
+
+
+def _texture(size: int = 96, seed: int = 0) -> np.ndarray:
+    g = np.random.default_rng(seed)
+    base = g.random((size // 8, size // 8, 3)).astype(np.float32)
+    t = torch.from_numpy(base).permute(2, 0, 1)[None]
+    img = F.interpolate(t, size=(size, size), mode="bicubic", align_corners=False)
+    return img[0].permute(1, 2, 0).clamp(0, 1).numpy()
+
+
+def test_blurring_prior_is_rejected_and_a_perfect_one_accepted():
+    tex = _texture()
+    bad = prior_self_check(BlurringPrior(), [tex], 4)
+    assert bad is not None and not bad["use_prior"] and bad["prior_db"] < bad["bicubic_db"]
+    assert bad["texels"] == 96 * 96
+    good = prior_self_check(OraclePrior(tex), [tex], 4)
+    assert good["use_prior"] and good["prior_db"] == 100.0
+    assert prior_self_check(BlurringPrior(), [tex[:8, :8]], 4) is None  # too small to check
+
+
+def test_pipeline_reports_the_check_and_uses_bicubic_when_the_prior_loses(tmp_path, monkeypatch):
+    import pbrsr_core.pipeline as pipeline
+
+    real = pipeline.load_prior
+    monkeypatch.setattr(
+        pipeline, "load_prior", lambda n, d: BlurringPrior() if n == "blurring" else real(n, d)
+    )
+    asset = make_demo_asset(tmp_path / "demo.glb", size=64)
+    out = tmp_path / "out"
+    report = upscale_asset(asset, out, UpscaleOptions(preset="fast", prior="blurring"))
+    check = report["prior_check"]
+    assert set(check) == {"prior_db", "bicubic_db", "texels", "use_prior"}
+    assert not check["use_prior"] and report["prior_used"] == "bicubic"
+    assert "prior_check" in report["timings"]
+    assert json.loads((out / "report.json").read_text())["prior_check"] == check
+    # the paper preset never checks: it always uses its prior
+    out2 = tmp_path / "out2"
+    tiny_paper = presets.PAPER.with_(iterations=1, n_elev=1, n_azim=2, render_res=32)
+    monkeypatch.setitem(presets.PRESETS, "paper", tiny_paper)
+    report = upscale_asset(asset, out2, UpscaleOptions(preset="paper", prior="blurring"))
+    assert report["prior_check"] is None and report["prior_used"] == "blurring"
