@@ -22,7 +22,14 @@ import numpy as np
 import torch
 
 from . import __version__
-from .asset import detect_kind, extract_zip, load_asset, save_asset, write_image
+from .asset import (
+    detect_kind,
+    encode_images,
+    extract_zip,
+    load_asset,
+    save_asset,
+    write_image,
+)
 from .asset.model import Asset
 from .device import resolve_device
 from .errors import LimitExceeded, PbrsrError, StorageError, UnprocessableAsset
@@ -259,7 +266,8 @@ def _write_bundle(
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
     try:
-        save_asset(asset, stage / file_name, hr, options.image_format)
+        encoded = encode_images(asset, hr, options.image_format)
+        save_asset(asset, stage / file_name, encoded)
         maps_dir = stage / "maps"
         maps_dir.mkdir()
         map_files = {}
@@ -267,7 +275,10 @@ def _write_bundle(
             img = asset.images[i]
             bits = 16 if img.bit_depth >= 16 else 8
             name = f"{map_file_stem(img)}.png"
-            write_image(maps_dir / name, px, bits, "png")
+            if encoded[i].fmt == "png" and encoded[i].bit_depth == bits:
+                (maps_dir / name).write_bytes(encoded[i].data)  # the asset's own PNG bytes
+            else:
+                write_image(maps_dir / name, px, bits, "png")
             map_files[i] = f"maps/{name}"
         with timer("preview"):
             previews = write_previews(asset, hr, stage, device, options.envmap, progress)

@@ -14,6 +14,7 @@ from pbrsr_core.asset import (
     make_demo_asset,
     make_quad_asset,
     make_test_asset,
+    read_image,
     validate_gltf,
 )
 from pbrsr_core.errors import LimitExceeded, StorageError, UnprocessableAsset
@@ -47,9 +48,11 @@ def test_bicubic_bundle(demo: Path, tmp_path: Path):
         hr = res.images[img.index]
         assert (hr.width, hr.height) == (2 * img.width, 2 * img.height)
         assert hr.bit_depth >= img.bit_depth
-        assert (
-            out / report["images"][[i["index"] for i in report["images"]].index(img.index)]["file"]
-        ).is_file()
+        map_file = out / report["images"][
+            [i["index"] for i in report["images"]].index(img.index)
+        ]["file"]
+        # maps/ holds the same image as the asset (the same encoded PNG where formats agree)
+        assert np.array_equal(read_image(map_file.read_bytes(), map_file.name)[0], hr.pixels)
         kind = "normal" if "normal" in img.roles else "data"
         if kind == "data":  # bicubic maps round-trip through 8-bit PNG exactly as computed
             ref = bicubic_map(img.pixels, kind, 2)

@@ -110,8 +110,10 @@ def test_job_runs_to_finished_with_a_complete_bundle(env):
 
 def test_running_job_cancels_within_two_seconds(env):
     settings, client, proc, tmp = env
-    job_id = post_asset(client, asset_bytes(tmp), options={"method": "bicubic"}).json()["id"]
-    # wait until it is well inside the pipeline (rendering previews calls back rarely)
+    # 512^2 maps at x4: the export (2048^2 PNGs, previews) takes seconds, and calls back rarely
+    big = asset_bytes(tmp, size=512)
+    job_id = post_asset(client, big, options={"method": "bicubic"}).json()["id"]
+    # wait until it is well inside the pipeline
     _wait_state(client, job_id, ("running",), 120)
     wait_for(lambda: _status(client, job_id)["stage"] in ("export",), 60, 0.1, "export")
     time.sleep(0.5)

@@ -2,8 +2,8 @@
 procedural assets and the Khronos glTF-Validator. See docs/ARCHITECTURE.md."""
 
 from .archive import detect_kind, extract_zip
-from .gltf import load_asset, save_asset
-from .images import encode_image, output_format, read_image, write_image
+from .gltf import encode_images, load_asset, save_asset
+from .images import EncodedImage, encode_image, output_format, read_image, write_image
 from .model import (
     MAP_ROLES,
     SRGB_ROLES,
@@ -27,7 +27,9 @@ __all__ = [
     "Mesh",
     "TextureRef",
     "detect_kind",
+    "EncodedImage",
     "encode_image",
+    "encode_images",
     "extract_zip",
     "load_asset",
     "make_demo_asset",

@@ -28,7 +28,7 @@ from .gltf_read import (
     parse_json,
     read_accessor,
 )
-from .gltf_write import save_asset
+from .gltf_write import encode_images, save_asset
 from .images import read_image
 from .model import (
     MAP_ROLES,
@@ -44,7 +44,7 @@ from .tangents import generate_tangents, safe_normalize
 from .unwrap import unwrap_triangles
 from .uris import decode_data_uri, is_data_uri, read_resource, relative_path, safe_stem
 
-__all__ = ["load_asset", "save_asset", "texture_transform_matrix", "node_matrix"]
+__all__ = ["encode_images", "load_asset", "save_asset", "texture_transform_matrix", "node_matrix"]
 
 _SLOT_KEYS = {
     "base_color": ("pbrMetallicRoughness", "baseColorTexture"),

@@ -28,7 +28,7 @@ import numpy as np
 
 from ..errors import InvalidOptions, StorageError
 from .gltf_read import CHUNK_BIN, CHUNK_JSON, COMPONENT_DTYPES, read_accessor_raw
-from .images import encode_image, output_format
+from .images import EncodedImage, encode_image, output_format
 from .model import Asset, ImageData
 from .uris import encode_uri, is_data_uri, relative_path, resolve_inside, safe_stem
 
@@ -205,16 +205,20 @@ def _write_unwrapped(doc: dict, asset: Asset, out: bytearray, buffer: int) -> No
     out += b"\x00" * _pad(len(out))
 
 
-def _encode_all(
-    asset: Asset, new_images: dict[int, np.ndarray], image_format: str
-) -> dict[int, tuple[bytes, str, str]]:
-    """{image index: (encoded bytes, mime, ext)} for every replaced image."""
+def encode_images(
+    asset: Asset, new_images: dict[int, np.ndarray | EncodedImage], image_format: str = "same"
+) -> dict[int, EncodedImage]:
+    """{image index: :class:`EncodedImage`} for every replaced image, in the format
+    :func:`output_format` picks for it (images given already encoded are kept as they are)."""
     by_index = {im.index: im for im in asset.images}
     n_images = len(asset.document.get("images", []))
     out = {}
     for i, pixels in new_images.items():
         if not isinstance(i, int) or not 0 <= i < n_images:
             raise InvalidOptions(f"there is no image {i!r} to replace")
+        if isinstance(pixels, EncodedImage):
+            out[i] = pixels
+            continue
         arr = np.asarray(pixels, dtype=np.float32)
         if arr.ndim != 3 or not 1 <= arr.shape[2] <= 4:
             raise ValueError(f"image {i}: pixels must be (H, W, C), C in 1..4; got {arr.shape}")
@@ -227,7 +231,7 @@ def _encode_all(
             mime=src.mime if src else "image/png",
         )
         fmt, bits, mime, ext = output_format(probe, image_format)
-        out[i] = (encode_image(arr, bits, fmt), mime, ext)
+        out[i] = EncodedImage(encode_image(arr, bits, fmt), mime, ext, fmt, bits)
     return out
 
 
@@ -281,7 +285,7 @@ def _save_gltf(asset: Asset, out_path: Path, encoded: dict) -> list[Path]:
         buffers[-1].update({"uri": encode_uri(rel), "byteLength": len(geometry)})
         w.add_file(rel, bytes(geometry))
     for i in sorted(replaced):
-        data, mime, ext = encoded[i]
+        data, mime, ext = encoded[i].data, encoded[i].mime, encoded[i].ext
         img = doc["images"][i]
         was_data = isinstance(img.get("uri"), str) and is_data_uri(img["uri"])
         img.pop("bufferView", None)
@@ -309,7 +313,7 @@ def _save_glb(asset: Asset, out_path: Path, encoded: dict) -> list[Path]:
     replaced = set(encoded)
     # a GLB embeds only PNG/JPEG validly: other formats become files beside it
     for i in sorted(replaced):
-        data, mime, ext = encoded[i]
+        data, mime, ext = encoded[i].data, encoded[i].mime, encoded[i].ext
         if mime not in ("image/png", "image/jpeg"):
             img = doc["images"][i]
             img.pop("bufferView", None)
@@ -317,7 +321,7 @@ def _save_glb(asset: Asset, out_path: Path, encoded: dict) -> list[Path]:
             rel = w.unique(_image_file_name(asset, doc, i, ext))
             img["uri"] = encode_uri(rel)
             w.add_file(rel, data)
-    encoded = {i: e for i, e in encoded.items() if e[1] in ("image/png", "image/jpeg")}
+    encoded = {i: e for i, e in encoded.items() if e.mime in ("image/png", "image/jpeg")}
     external = replaced - set(encoded)
     replaced = set(encoded)
     buffers = (
@@ -372,8 +376,8 @@ def _save_glb(asset: Asset, out_path: Path, encoded: dict) -> list[Path]:
             for bvi, i in inplace.items():
                 new_bin += b"\x00" * _pad(len(new_bin))
                 views[bvi]["byteOffset"] = len(new_bin)
-                views[bvi]["byteLength"] = len(encoded[i][0])
-                new_bin += encoded[i][0]
+                views[bvi]["byteLength"] = len(encoded[i].data)
+                new_bin += encoded[i].data
         else:  # repack: views in their byte order, dead image bytes dropped
             order = sorted(
                 (j for j, bv in enumerate(views) if bv.get("buffer") == 0),
@@ -383,7 +387,7 @@ def _save_glb(asset: Asset, out_path: Path, encoded: dict) -> list[Path]:
                 bv = views[j]
                 old_off = bv.get("byteOffset", 0)
                 data = (
-                    encoded[inplace[j]][0]
+                    encoded[inplace[j]].data
                     if j in inplace
                     else old_bin[old_off : old_off + bv["byteLength"]]
                 )
@@ -396,15 +400,15 @@ def _save_glb(asset: Asset, out_path: Path, encoded: dict) -> list[Path]:
         for i in sorted(replaced - placed):
             new_bin += b"\x00" * _pad(len(new_bin))
             views.append(
-                {"buffer": 0, "byteOffset": len(new_bin), "byteLength": len(encoded[i][0])}
+                {"buffer": 0, "byteOffset": len(new_bin), "byteLength": len(encoded[i].data)}
             )
             doc["bufferViews"] = views
             img = doc["images"][i]
             img.pop("uri", None)
             img["bufferView"] = len(views) - 1
-            new_bin += encoded[i][0]
+            new_bin += encoded[i].data
         for i in replaced:
-            doc["images"][i]["mimeType"] = encoded[i][1]
+            doc["images"][i]["mimeType"] = encoded[i].mime
         if asset.generated_uvs:
             _write_unwrapped(doc, asset, new_bin, 0)
         buffers[0]["byteLength"] = len(new_bin)
@@ -422,11 +426,12 @@ def _save_glb(asset: Asset, out_path: Path, encoded: dict) -> list[Path]:
 def save_asset(
     asset: Asset,
     out_path: Path,
-    new_images: dict[int, np.ndarray] | None = None,
+    new_images: dict[int, np.ndarray | EncodedImage] | None = None,
     image_format: str = "same",
 ) -> list[Path]:
     """Write ``asset`` to ``out_path`` (``.glb`` or ``.gltf``, by its suffix) with the images
-    in ``new_images`` ({glTF image index: (H, W, C) float32 [0, 1] as stored}) replaced.
+    in ``new_images`` ({glTF image index: (H, W, C) float32 [0, 1] as stored, or an
+    :class:`EncodedImage` from :func:`encode_images`}) replaced.
 
     ``image_format``: "same", "png", "png16", "exr" or "jpeg" (see
     :func:`pbrsr_core.asset.images.output_format`: precision never drops below the input's).
@@ -438,7 +443,7 @@ def save_asset(
     if suffix not in (".glb", ".gltf"):
         raise InvalidOptions(f"the output must be a .glb or .gltf file, not '{out_path.name}'")
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    encoded = _encode_all(asset, dict(new_images or {}), image_format)
+    encoded = encode_images(asset, dict(new_images or {}), image_format)
     if suffix == ".glb":
         return _save_glb(asset, out_path, encoded)
     return _save_gltf(asset, out_path, encoded)

@@ -21,7 +21,7 @@ import os
 import struct
 import tempfile
 from pathlib import Path
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 import OpenImageIO as oiio
@@ -40,6 +40,17 @@ MIME = {
 }
 EXT = {"png": ".png", "jpeg": ".jpg", "exr": ".exr", "tiff": ".tif"}
 FORMAT_OF_MIME = {v: k for k, v in MIME.items()}
+
+
+class EncodedImage(NamedTuple):
+    """An image's encoded file bytes, with what they were encoded as."""
+
+    data: bytes
+    mime: str
+    ext: str
+    fmt: ImageFormat
+    bit_depth: int
+
 
 _UNSUPPORTED_MAGIC = {
     b"RIFF": "WebP",
@@ -251,7 +262,12 @@ def write_image(path: Path, pixels: np.ndarray, bit_depth: int, fmt: ImageFormat
         out = oiio.ImageOutput.create(tmp)
         if out is None or not out.open(tmp, spec):
             raise OSError(f"cannot write image: {oiio.geterror()}")
-        ok = out.write_image(arr)
+        # in strips of ~0.5 Mpixel: a 2048^2 PNG takes ~1 s to encode, and between strips the
+        # interpreter runs (a job's cancel watchdog can interrupt; other threads get the GIL)
+        rows = max(1, (1 << 19) // w)
+        ok = True
+        for y in range(0, h, rows):
+            ok = ok and out.write_scanlines(y, min(h, y + rows), 0, arr[y : y + rows])
         out.close()
         if not ok:
             raise OSError(f"cannot write image: {oiio.geterror()}")

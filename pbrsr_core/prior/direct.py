@@ -78,7 +78,8 @@ def renormalize_encoded_normals(t: torch.Tensor) -> torch.Tensor:
     unit length, re-encoded to [0, 1]. Same shape."""
     n = t * 2.0 - 1.0
     n = torch.cat([n[:, :2], n[:, 2:3].clamp_min(_MIN_Z)], 1)
-    n = n / n.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    # sum of squares, not Tensor.norm(dim=1): torch's strided channel norm is ~30x slower on CPU
+    n = n / (n * n).sum(1, keepdim=True).clamp_min(1e-24).sqrt()
     return (n + 1.0) * 0.5
 
 
