@@ -32,3 +32,41 @@ def test_bench_upscale_small_run(tmp_path: Path):
     assert len(saved["rows"]) == 1
     assert (tmp_path / "out" / "speed_vs_error.png").stat().st_size > 0
     assert "| procedural | fast |" in (tmp_path / "out" / "results.md").read_text()
+
+
+def _row(asset, method, render, albedo, run_s):
+    return {
+        "asset": asset,
+        "method": method,
+        "render.psnr": render,
+        "maps.albedo.psnr": albedo,
+        "maps.normal.psnr": 30.0,
+        "run_s": run_s,
+        "peak_rss_mib": 100.0 * run_s,
+        "curve": [],
+    }
+
+
+def test_summary_gains_worst_map_and_fast_share():
+    from pbrsr_core.bench.upscale import summary, summary_table
+
+    rows = [
+        _row("a", "bicubic", 28.0, 27.0, 1.0),
+        _row("a", "fast", 28.4, 27.5, 10.0),
+        _row("a", "balanced", 29.0, 26.8, 40.0),
+        _row("b", "bicubic", 30.0, 31.0, 1.0),
+        _row("b", "fast", 30.2, 31.1, 10.0),
+        _row("b", "balanced", 30.6, 31.2, 40.0),
+        _row("procedural", "bicubic", 20.0, 20.0, 1.0),  # left out of the means
+        _row("procedural", "balanced", 30.0, 10.0, 1.0),
+    ]
+    s = {r["method"]: r for r in summary(rows)}
+    assert set(s) == {"fast", "balanced"}
+    assert s["balanced"]["render_gain_db"] == 0.8 and s["fast"]["render_gain_db"] == 0.3
+    assert s["balanced"]["worst_map_db"] == -0.2 and s["balanced"]["worst_map_at"] == "a albedo"
+    assert s["fast"]["worst_map_db"] == 0.0  # normals equal, albedo above
+    assert s["balanced"]["mean_run_s"] == 40.0 and s["balanced"]["max_peak_mib"] == 4000
+    text = summary_table(rows)
+    assert (
+        "fast keeps 37 % of balanced's mean render-PSNR gain in 25 % of its mean run time" in text
+    )

@@ -188,7 +188,7 @@ def run(
 def _write_results(out_dir: Path, rows: list[dict], meta: dict) -> None:
     """Written after every run, so an interrupted benchmark keeps what it measured."""
     (out_dir / "results.json").write_text(json.dumps({**meta, "rows": rows}, indent=2))
-    (out_dir / "results.md").write_text(markdown_table(rows))
+    (out_dir / "results.md").write_text(markdown_table(rows) + "\n" + summary_table(rows))
     plot(rows, out_dir / "speed_vs_error.png")
 
 
@@ -217,6 +217,65 @@ def markdown_table(rows: list[dict]) -> str:
         cells += [f"{r.get(f'maps.{m}.psnr', float('nan')):.2f}" for m in MAP_COLUMNS]
         lines.append("| " + " | ".join(cells) + " |")
     return head + "\n".join(lines) + "\n"
+
+
+def summary(rows: list[dict], exclude: tuple[str, ...] = ("procedural",)) -> list[dict]:
+    """Per method, over the assets that also have a bicubic row (``exclude`` left out): mean
+    render PSNR gain over bicubic, the worst map PSNR difference to bicubic (any asset, any
+    map), mean run seconds and the largest peak memory; the targets are stated on these."""
+    bic = {r["asset"]: r for r in rows if r["method"] == "bicubic" and r["asset"] not in exclude}
+    out = []
+    for method in dict.fromkeys(r["method"] for r in rows):
+        mine = [r for r in rows if r["method"] == method and r["asset"] in bic]
+        if method == "bicubic" or not mine:
+            continue
+        gains = [r["render.psnr"] - bic[r["asset"]]["render.psnr"] for r in mine]
+        worst, worst_at = float("inf"), ""
+        for r in mine:
+            for m in MAP_COLUMNS:
+                a, b = r.get(f"maps.{m}.psnr"), bic[r["asset"]].get(f"maps.{m}.psnr")
+                if a is not None and b is not None and a - b < worst:
+                    worst, worst_at = a - b, f"{r['asset']} {m}"
+        out.append(
+            {
+                "method": method,
+                "assets": len(mine),
+                "render_gain_db": round(float(np.mean(gains)), 3),
+                "worst_map_db": round(worst, 3),
+                "worst_map_at": worst_at,
+                "mean_run_s": round(float(np.mean([r["run_s"] for r in mine])), 1),
+                "max_peak_mib": round(max(r["peak_rss_mib"] for r in mine)),
+            }
+        )
+    return out
+
+
+def summary_table(rows: list[dict]) -> str:
+    """:func:`summary` as markdown, with fast's share of balanced's gain and time."""
+    s = summary(rows)
+    if not s:
+        return ""
+    lines = [
+        "| method | assets | render PSNR gain over bicubic (mean) | worst map vs bicubic "
+        "| mean run s | max peak MiB |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in s:
+        lines.append(
+            f"| {r['method']} | {r['assets']} | {r['render_gain_db']:+.2f} dB "
+            f"| {r['worst_map_db']:+.2f} dB ({r['worst_map_at']}) | {r['mean_run_s']:.1f} "
+            f"| {r['max_peak_mib']} |"
+        )
+    by = {r["method"]: r for r in s}
+    if "fast" in by and "balanced" in by and by["balanced"]["render_gain_db"] > 0:
+        share = by["fast"]["render_gain_db"] / by["balanced"]["render_gain_db"]
+        time_share = by["fast"]["mean_run_s"] / by["balanced"]["mean_run_s"]
+        lines.append("")
+        lines.append(
+            f"fast keeps {100 * share:.0f} % of balanced's mean render-PSNR gain in "
+            f"{100 * time_share:.0f} % of its mean run time."
+        )
+    return "\n".join(lines) + "\n"
 
 
 def plot(rows: list[dict], path: Path) -> None:

@@ -92,6 +92,32 @@ def render_cmd(
     typer.echo(f"wrote {out / 'render.json'} and {out / 'render.png'}")
 
 
+@bench_app.command("step")
+def step_cmd(
+    out: Path = typer.Option(Path("bench-out/step"), "--out", "-o", help="Output directory."),
+    sizes: str = typer.Option("1024,2048,4096", help="HR map sides, comma-separated."),
+    images: int = typer.Option(3, help="Optimised maps (images)."),
+    channels: int = typer.Option(3, help="Channels per map."),
+    steps: int = typer.Option(5, help="Timed steps per size (medians are reported)."),
+    threads: int = typer.Option(0, help="torch intra-op threads (0: torch's default)."),
+) -> None:
+    """The optimiser step's whole-map part (consistency + TV gradient and masking, Adam,
+    projection) against its memory-traffic floor, per map size."""
+    from ..bench.step import print_table, run
+
+    result = run(
+        out_dir=out,
+        sizes=_ints(sizes),
+        images=images,
+        channels=channels,
+        steps=steps,
+        threads=threads or None,
+        log=lambda m: typer.echo(m, err=True),
+    )
+    print_table(result)
+    typer.echo(f"wrote {out / 'step.json'} and {out / 'step.png'}")
+
+
 @bench_app.command("upscale")
 def upscale_cmd(
     out: Path = typer.Option(Path("bench-out/upscale"), "--out", "-o", help="Output directory."),
@@ -110,7 +136,7 @@ def upscale_cmd(
 ) -> None:
     """Speed against error: bicubic, direct prior and each PBR-SR preset on degraded assets;
     wall time, peak memory, PSNR per map and render PSNR, with curves over iterations."""
-    from ..bench.upscale import markdown_table, run
+    from ..bench.upscale import markdown_table, run, summary_table
 
     rows = run(
         out_dir=out,
@@ -125,6 +151,7 @@ def upscale_cmd(
         say=lambda m: typer.echo(m, err=True),
     )
     typer.echo(markdown_table(rows))
+    typer.echo(summary_table(rows))
     typer.echo(f"wrote {out / 'results.json'}, {out / 'results.md'}, {out / 'speed_vs_error.png'}")
 
 
