@@ -11,7 +11,7 @@ import torch
 
 from pbrsr_core.errors import InvalidOptions
 from pbrsr_core.optim import pseudo_gt
-from pbrsr_core.optim.pbrsr import map_groups
+from pbrsr_core.optim.pbrsr import channel_lr, map_groups
 from pbrsr_core.optim.presets import PRESETS, get_preset
 from pbrsr_core.optim.texel_ops import dilate_islands, project_
 from pbrsr_core.optim.views import fibonacci_directions, texel_density_resolution
@@ -28,6 +28,18 @@ def test_map_groups_follow_gltf_packing():
     bc = map_groups({"base_color"}, 4, cfg)
     assert bc[0].channels == (0, 1, 2)  # alpha is kept, not optimised
     assert map_groups({"base_color"}, 1, cfg)[0].channels == (0,)
+
+
+def test_channel_lr_per_map():
+    cfg = get_preset("paper").with_(lr=1e-3, map_lr={"metallic": 0.5, "occlusion": 0.0})
+    orm = channel_lr(map_groups({"metallic_roughness", "occlusion"}, 4, cfg), 4, cfg)
+    assert orm.tolist() == pytest.approx([0.0, 1e-3, 5e-4, 0.0])  # occlusion frozen, A unowned
+    assert get_preset("paper").map_lr == {}  # the paper: one learning rate
+    assert get_preset("balanced").map_lr == {"normal": 0.3}
+    with pytest.raises(InvalidOptions, match="map_lr keys"):
+        cfg.with_(map_lr={"albedo": 1.0})
+    with pytest.raises(InvalidOptions, match="map_lr factors"):
+        cfg.with_(map_lr={"normal": -1.0})
 
 
 def test_project_ranges_and_normals():

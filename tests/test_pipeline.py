@@ -48,9 +48,9 @@ def test_bicubic_bundle(demo: Path, tmp_path: Path):
         hr = res.images[img.index]
         assert (hr.width, hr.height) == (2 * img.width, 2 * img.height)
         assert hr.bit_depth >= img.bit_depth
-        map_file = out / report["images"][
-            [i["index"] for i in report["images"]].index(img.index)
-        ]["file"]
+        map_file = (
+            out / report["images"][[i["index"] for i in report["images"]].index(img.index)]["file"]
+        )
         # maps/ holds the same image as the asset (the same encoded PNG where formats agree)
         assert np.array_equal(read_image(map_file.read_bytes(), map_file.name)[0], hr.pixels)
         kind = "normal" if "normal" in img.roles else "data"

@@ -1,5 +1,6 @@
 """The fused whole-map kernels (numba, CPU) against plain torch references: TV value and
-gradient (float64 gradcheck), projection, gradient masking and island dilation."""
+gradient (float64 gradcheck), projection, Adam fused with projection, gradient masking and
+island dilation."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import torch
 
 from pbrsr_core.optim.losses import MapGroup
 from pbrsr_core.optim.texel_ops import (
+    MapAdam,
     accumulate_map_grad_,
     dilate_islands,
     mask_grad_,
@@ -78,6 +80,45 @@ def test_project_matches_reference_and_sanitises():
     strided = t.clone().permute(1, 0, 2)  # not contiguous: the torch path, same numbers
     project_(strided, is_normal=True)
     assert torch.allclose(strided.permute(1, 0, 2), n, atol=1e-6)
+
+
+def test_map_adam_is_torch_adam_then_projection():
+    """Per-channel learning rates: equal ones give torch's Adam followed by project_ (both the
+    numba kernel and the torch path, taken by a non-contiguous map); a 0 freezes a channel."""
+    gen = torch.Generator().manual_seed(5)
+    for normal, shape in [(False, (33, 21, 4)), (True, (16, 40, 3))]:
+        init = torch.rand(shape, generator=gen)
+        project_(init, normal)
+        grads = [torch.randn(shape, generator=gen) * 10.0**-k for k in (2, 4, 6, 3, 5)]
+        ref = init.clone().requires_grad_()
+        opt = torch.optim.Adam([ref], lr=3e-2)
+        for g in grads:
+            ref.grad = g.clone()
+            opt.step()
+            with torch.no_grad():
+                project_(ref, normal)
+        lr = torch.full((shape[2],), 3e-2)
+        for contiguous in (True, False):
+            p = init.clone() if contiguous else init.clone().permute(1, 0, 2).contiguous()
+            p = p if contiguous else p.permute(1, 0, 2)  # same values, strided
+            p.requires_grad_()
+            adam = MapAdam({0: p}, {0: lr}, {0: normal})
+            for g in grads:
+                p.grad = g.clone()
+                adam.step()
+            assert torch.allclose(p.detach(), ref.detach(), atol=2e-6), (normal, contiguous)
+    # a channel with learning rate 0 keeps its init; the others move
+    p = torch.rand(8, 8, 3, generator=gen).requires_grad_()
+    before = p.detach().clone()
+    adam = MapAdam({0: p}, {0: torch.tensor([1e-2, 0.0, 1e-2])}, {0: False})
+    p.grad = torch.randn(8, 8, 3, generator=gen)
+    adam.step()
+    assert torch.equal(p.detach()[..., 1], before[..., 1])
+    assert (p.detach()[..., 0] != before[..., 0]).all()
+    # NaN gradients never reach a map: non-finite updates are projected into [0, 1]
+    p.grad = torch.full((8, 8, 3), float("nan"))
+    adam.step()
+    assert torch.isfinite(p.detach()).all() and p.min() >= 0 and p.max() <= 1
 
 
 def test_mask_grad_zeroes_masked_and_non_finite():

@@ -49,7 +49,7 @@ from .losses import (
 )
 from .presets import PbrsrConfig
 from .pseudo_gt import content_hash, load_cached, mapped, quantize, store_cached
-from .texel_ops import accumulate_map_grad_, project_
+from .texel_ops import MapAdam, accumulate_map_grad_, project_
 
 PROBE_RES = 128  # side of the low-resolution renders used to select views and measure density
 BACKGROUND = 0.0
@@ -81,6 +81,15 @@ def map_groups(roles: set[str], channels: int, config: PbrsrConfig) -> list[MapG
         if ch:
             taken.update(ch)
             out.append(MapGroup(name, ch, w))
+    return out
+
+
+def channel_lr(groups: list[MapGroup], channels: int, config: PbrsrConfig) -> torch.Tensor:
+    """(C,) Adam learning rates of one image's channels: ``config.lr`` times the map's factor
+    in ``config.map_lr``; channels no group owns get 0 (they keep their init)."""
+    out = torch.zeros(channels, dtype=torch.float32)
+    for g in groups:
+        out[list(g.channels)] = config.lr * config.map_lr.get(g.name, 1.0)
     return out
 
 
@@ -514,13 +523,13 @@ def optimize_pbrsr(
         grad_masks[i] = (texel.contiguous(), ch)
     wres = config.weight_map_res
     wmaps = torch.ones(n_views, wres, wres, device=device, requires_grad=True)
-    opt = torch.optim.Adam(
-        [
-            {"params": [params[i] for i in images], "lr": config.lr},
-            {"params": [wmaps], "lr": config.weight_map_lr},
-        ],
-        fused=True,  # one pass over each parameter and its two moments (CPU and CUDA)
+    map_opt = MapAdam(
+        params,
+        {i: channel_lr(groups[i], int(params[i].shape[2]), config) for i in images},
+        {i: "normal" in roles[i] for i in images},
     )
+    # fused: one pass over the weight maps and their two moments (CPU and CUDA)
+    wmap_opt = torch.optim.Adam([wmaps], lr=config.weight_map_lr, fused=True)
 
     def target(v: int, pix: torch.Tensor) -> torch.Tensor:  # (P, 3) pseudo-GT at pixels
         q = np.asarray(targets[v].reshape(-1, 3)[pix.cpu().numpy()], dtype=np.float32)
@@ -597,16 +606,16 @@ def optimize_pbrsr(
             batch = present
 
         loss = config.lambda_pix * l_pix + config.lambda_reg * l_reg
-        opt.zero_grad(set_to_none=True)
+        for t in (*params.values(), wmaps):
+            t.grad = None
         loss.backward()
         l_pbr, l_tv = regularize_grads(params, lr_dev, groups, grad_masks, config, scale)
         if wmaps.grad is None:
             wmaps.grad = torch.zeros_like(wmaps)
         torch.nan_to_num_(wmaps.grad, nan=0.0, posinf=0.0, neginf=0.0)
-        opt.step()
+        map_opt.step()  # Adam and the projection to valid ranges, one pass per map
+        wmap_opt.step()
         with torch.no_grad():
-            for i in images:
-                project_(params[i], "normal" in roles[i])
             wmaps.clamp_(0.0, 1.0)
 
         done = it + 1
@@ -658,6 +667,7 @@ def optimize_pbrsr(
 
 __all__ = [
     "PbrsrResult",
+    "channel_lr",
     "concat_gbuffers",
     "map_groups",
     "optimize_pbrsr",

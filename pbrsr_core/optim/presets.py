@@ -12,10 +12,12 @@ measurements on the procedural demo asset (comments below) and ``pbrsr bench ups
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from typing import Literal
 
 from ..errors import InvalidOptions
+
+MAP_NAMES = ("base_color", "emissive", "normal", "occlusion", "roughness", "metallic")
 
 
 @dataclass(frozen=True)
@@ -68,6 +70,9 @@ class PbrsrConfig:
     iterations: int = 2000
     batch_views: int = 4
     lr: float = 1e-4
+    map_lr: dict[str, float] = field(default_factory=dict)
+    """Factor on ``lr`` per map (base_color, emissive, normal, occlusion, roughness,
+    metallic); maps not named use ``lr``. 0 keeps a map at its init."""
     lr_weight_maps: float | None = None
     """Adam step of the per-view weight maps; None = ``lr`` (the paper uses one lr)."""
     sampling: Literal["views", "pixels"] = "views"
@@ -85,6 +90,7 @@ class PbrsrConfig:
     lambda_tv: float = 0.5
     w_metallic: float = 0.1
     w_other: float = 1.0
+
     # --- bookkeeping ----------------------------------------------------------------------
     gbuffer_cache_mb: int = 2048
     """G-buffers kept in memory (LRU); views beyond are rasterised again when used."""
@@ -106,6 +112,8 @@ class PbrsrConfig:
             (self.render_res is None or self.render_res >= 8, "render_res must be >= 8"),
             (8 <= self.min_render_res <= self.max_render_res, "bad min/max render resolution"),
             (self.log_every >= 1, "log_every must be >= 1"),
+            (set(self.map_lr) <= set(MAP_NAMES), f"map_lr keys must be among {MAP_NAMES}"),
+            (all(v >= 0 for v in self.map_lr.values()), "map_lr factors must be >= 0"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -165,6 +173,11 @@ PAPER = PbrsrConfig(
 #   maps (prior/selfcheck.py); on the Avocado, fast with the check gave 41.46 dB render PSNR
 #   and albedo 45.89 (bicubic 41.18 / 45.81) against 41.26 / 44.53 without it, in 22 s
 #   instead of 43 s.
+# * map_lr normal 0.3: the render loss moved the normal maps more than their pseudo-GT
+#   supports (cabinet normal PSNR 35.82 bicubic -> 35.53 balanced). Balanced at x4 (120
+#   evaluation views, two HDRs), normal lr x1 -> x0.3: render PSNR cabinet 28.98 -> 29.08,
+#   tea set 31.75 -> 31.75, table 31.30 -> 31.29, ToyCar 33.55 -> 33.62; cabinet normal 35.53
+#   -> 35.78. Metallic x0.3 lost 0.2-0.5 dB of metallic PSNR on the tea set and ToyCar.
 FAST = PbrsrConfig(
     name="fast",
     view_mode="coverage",
@@ -179,6 +192,7 @@ FAST = PbrsrConfig(
     iterations=25,
     batch_views=2,
     lr=1e-3,
+    map_lr={"normal": 0.3},
     lambda_pix=10.0,
     mask_unseen=True,
     log_every=5,
@@ -198,6 +212,7 @@ BALANCED = PbrsrConfig(
     iterations=60,
     batch_views=2,
     lr=1e-3,
+    map_lr={"normal": 0.3},
     lambda_pix=10.0,
     mask_unseen=True,
     log_every=10,
@@ -217,6 +232,7 @@ QUALITY = PbrsrConfig(
     iterations=150,
     batch_views=3,
     lr=1e-3,
+    map_lr={"normal": 0.3},
     lambda_pix=10.0,
     mask_unseen=True,
     log_every=10,

@@ -8,6 +8,7 @@ loop (parallel over rows); on other devices the same numbers come from plain tor
 * :func:`tv_loss`: ``sum_T mean|grad_x T| + mean|grad_y T|`` with its gradient computed in the
   same pass (a custom autograd function; the subgradient of ``|0|`` is 0, as torch's).
 * :func:`project_`: values into [0, 1], NaN -> 0, normal maps renormalised with z > 0.
+* :class:`MapAdam`: Adam with a learning rate per channel, fused with the projection.
 * :func:`mask_grad_`: zero non-finite gradient entries and those outside a texel/channel mask.
 * :func:`accumulate_map_grad_`: the step's whole-map gradient in one pass: TV's gradient and
   the PBR-consistency gradient (computed at LR size on the pooled map) added to the
@@ -197,27 +198,32 @@ def accumulate_map_grad_(
 # ---------------------------------------------------------------------------------------------
 
 
+@numba.njit(cache=True, inline="always")
+def _project_texel(t, i, j, nc, normal):
+    one, zero, two = np.float32(1.0), np.float32(0.0), np.float32(2.0)  # float32 maps stay float32
+    for c in range(nc):
+        v = t[i, j, c]
+        if not (v >= zero):  # negative or NaN
+            v = zero
+        elif v > one:
+            v = one
+        t[i, j, c] = v
+    if normal:
+        x = t[i, j, 0] * two - one
+        y = t[i, j, 1] * two - one
+        z = max(t[i, j, 2] * two - one, np.float32(NORMAL_Z_MIN))
+        inv = np.float32(0.5) / np.sqrt(x * x + y * y + z * z)
+        t[i, j, 0] = min(max(x * inv + np.float32(0.5), zero), one)
+        t[i, j, 1] = min(max(y * inv + np.float32(0.5), zero), one)
+        t[i, j, 2] = min(max(z * inv + np.float32(0.5), zero), one)
+
+
 @numba.njit(**_JIT)
 def _project_kernel(t, normal):
-    one, zero, two = np.float32(1.0), np.float32(0.0), np.float32(2.0)  # float32 maps stay float32
     h, w, nc = t.shape
     for i in numba.prange(h):
         for j in range(w):
-            for c in range(nc):
-                v = t[i, j, c]
-                if not (v >= zero):  # negative or NaN
-                    v = zero
-                elif v > one:
-                    v = one
-                t[i, j, c] = v
-            if normal:
-                x = t[i, j, 0] * two - one
-                y = t[i, j, 1] * two - one
-                z = max(t[i, j, 2] * two - one, np.float32(NORMAL_Z_MIN))
-                inv = np.float32(0.5) / np.sqrt(x * x + y * y + z * z)
-                t[i, j, 0] = min(max(x * inv + np.float32(0.5), zero), one)
-                t[i, j, 1] = min(max(y * inv + np.float32(0.5), zero), one)
-                t[i, j, 2] = min(max(z * inv + np.float32(0.5), zero), one)
+            _project_texel(t, i, j, nc, normal)
 
 
 @torch.no_grad()
@@ -236,6 +242,81 @@ def project_(t: torch.Tensor, is_normal: bool) -> None:
         n[..., 2].clamp_(min=NORMAL_Z_MIN)
         n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         t[..., :3] = (n * 0.5 + 0.5).clamp(0.0, 1.0)
+
+
+@numba.njit(**_JIT)
+def _adam_project_kernel(p, g, m, v, step_c, b1, b2, inv_bc2_sqrt, eps, normal):
+    h, w, nc = p.shape
+    one = np.float32(1.0)
+    for i in numba.prange(h):
+        for j in range(w):
+            for c in range(nc):
+                gi = g[i, j, c]
+                mi = b1 * m[i, j, c] + (one - b1) * gi
+                vi = b2 * v[i, j, c] + (one - b2) * gi * gi
+                m[i, j, c] = mi
+                v[i, j, c] = vi
+                p[i, j, c] -= step_c[c] * mi / (np.sqrt(vi) * inv_bc2_sqrt + eps)
+            _project_texel(p, i, j, nc, normal)
+
+
+class MapAdam:
+    """Adam over the HR maps with a learning rate per channel, fused with :func:`project_`:
+    one pass per map reads the map, its gradient and both moments and writes the projected
+    map (torch's Adam and a projection pass would read and write the map twice). The update is
+    torch's Adam (no weight decay, no amsgrad) to float32 rounding.
+
+    ``channel_lr[i]``: (C,) learning rates of map ``i``'s channels (0 freezes a channel);
+    ``normal[i]``: whether map ``i`` is a normal map (projected to unit z > 0 normals)."""
+
+    def __init__(
+        self,
+        maps: dict[int, torch.Tensor],
+        channel_lr: dict[int, torch.Tensor],
+        normal: dict[int, bool],
+        betas: tuple[float, float] = (0.9, 0.999),
+        eps: float = 1e-8,
+    ):
+        self.maps = maps
+        self.channel_lr = {i: channel_lr[i].to(torch.float32).cpu() for i in maps}
+        self.normal = {i: bool(normal[i] and maps[i].shape[-1] >= 3) for i in maps}
+        self.betas, self.eps = betas, eps
+        self.m = {i: torch.zeros_like(t) for i, t in maps.items()}
+        self.v = {i: torch.zeros_like(t) for i, t in maps.items()}
+        self.steps = 0
+
+    @torch.no_grad()
+    def step(self) -> None:
+        self.steps += 1
+        b1, b2 = self.betas
+        bc1 = 1.0 - b1**self.steps
+        inv_bc2_sqrt = 1.0 / (1.0 - b2**self.steps) ** 0.5
+        for i, p in self.maps.items():
+            g, m, v = p.grad, self.m[i], self.v[i]
+            if g is None:
+                g = torch.zeros_like(p)
+            step_c = self.channel_lr[i] / bc1
+            if _on_cpu(p, g) and all(t.is_contiguous() for t in (p, g, m, v)) and p.ndim == 3:
+                _threads()
+                f32 = np.float32
+                _adam_project_kernel(
+                    p.detach().numpy(),
+                    g.numpy(),
+                    m.numpy(),
+                    v.numpy(),
+                    step_c.numpy(),
+                    f32(b1),
+                    f32(b2),
+                    f32(inv_bc2_sqrt),
+                    f32(self.eps),
+                    self.normal[i],
+                )
+                continue
+            m.mul_(b1).add_(g, alpha=1.0 - b1)
+            v.mul_(b2).addcmul_(g, g, value=1.0 - b2)
+            denom = v.sqrt().mul_(inv_bc2_sqrt).add_(self.eps)
+            p.sub_(step_c.to(p.device) * m / denom)
+            project_(p, self.normal[i])
 
 
 @numba.njit(**_JIT)
