@@ -5,6 +5,7 @@ island dilation."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from pbrsr_core.optim.losses import MapGroup
@@ -83,9 +84,11 @@ def test_project_matches_reference_and_sanitises():
 
 
 def test_map_adam_is_torch_adam_then_projection():
-    """Per-channel learning rates: equal ones give torch's Adam followed by project_ (both the
-    numba kernel and the torch path, taken by a non-contiguous map); a 0 freezes a channel."""
+    """Equal rates: torch's Adam followed by project_. Mixed rates: each channel's update is
+    Adam's at the largest rate times its share (Adam's step does not depend on the rate
+    otherwise). A rate of 0 freezes a channel; a map with only zero rates is not optimised."""
     gen = torch.Generator().manual_seed(5)
+    owned = torch.ones(4, dtype=torch.bool)
     for normal, shape in [(False, (33, 21, 4)), (True, (16, 40, 3))]:
         init = torch.rand(shape, generator=gen)
         project_(init, normal)
@@ -97,27 +100,37 @@ def test_map_adam_is_torch_adam_then_projection():
             opt.step()
             with torch.no_grad():
                 project_(ref, normal)
-        lr = torch.full((shape[2],), 3e-2)
-        for contiguous in (True, False):
-            p = init.clone() if contiguous else init.clone().permute(1, 0, 2).contiguous()
-            p = p if contiguous else p.permute(1, 0, 2)  # same values, strided
-            p.requires_grad_()
-            adam = MapAdam({0: p}, {0: lr}, {0: normal})
-            for g in grads:
-                p.grad = g.clone()
-                adam.step()
-            assert torch.allclose(p.detach(), ref.detach(), atol=2e-6), (normal, contiguous)
-    # a channel with learning rate 0 keeps its init; the others move
-    p = torch.rand(8, 8, 3, generator=gen).requires_grad_()
-    before = p.detach().clone()
-    adam = MapAdam({0: p}, {0: torch.tensor([1e-2, 0.0, 1e-2])}, {0: False})
-    p.grad = torch.randn(8, 8, 3, generator=gen)
+        p = init.clone().requires_grad_()
+        c = shape[2]
+        adam = MapAdam({0: p}, {0: torch.full((c,), 3e-2)}, {0: normal}, {0: owned[:c]})
+        for g in grads:
+            p.grad = g.clone()
+            adam.step()
+        assert torch.allclose(p.detach(), ref.detach(), atol=2e-6), normal
+    # mixed rates: one step from a fresh Adam moves each channel by rate * m / (sqrt(v) + eps)
+    init = torch.rand(8, 8, 4, generator=gen) * 0.5 + 0.25
+    g = torch.randn(8, 8, 4, generator=gen)
+    rates = torch.tensor([1e-2, 0.0, 5e-3, 1e-2])
+    p = init.clone().requires_grad_()
+    adam = MapAdam({0: p}, {0: rates}, {0: False}, {0: owned})
+    p.grad = g.clone()
     adam.step()
-    assert torch.equal(p.detach()[..., 1], before[..., 1])
-    assert (p.detach()[..., 0] != before[..., 0]).all()
-    # NaN gradients never reach a map: non-finite updates are projected into [0, 1]
-    p.grad = torch.full((8, 8, 3), float("nan"))
-    adam.step()
+    want = init - rates * g / (g.abs() + 1e-8)  # Adam's first step: lr * sign(g)
+    assert torch.allclose(p.detach(), want, atol=1e-6)
+    assert torch.equal(p.detach()[..., 1], init[..., 1])
+    # unowned channels do not make a map "mixed"; all-zero rates leave it out
+    q = torch.rand(4, 4, 3, generator=gen).requires_grad_()
+    r = torch.rand(4, 4, 1, generator=gen).requires_grad_()
+    adam = MapAdam(
+        {0: q, 1: r},
+        {0: torch.tensor([0.0, 1e-3, 1e-3]), 1: torch.zeros(1)},
+        {0: False, 1: False},
+        {0: torch.tensor([False, True, True]), 1: torch.ones(1, dtype=torch.bool)},
+    )
+    assert adam.scale == {} and [g["lr"] for g in adam.opt.param_groups] == pytest.approx([1e-3])
+    # NaN gradients never reach a map: non-finite values are projected into [0, 1]
+    p.grad = torch.full((8, 8, 4), float("nan"))
+    MapAdam({0: p}, {0: rates}, {0: False}, {0: owned}).step()
     assert torch.isfinite(p.detach()).all() and p.min() >= 0 and p.max() <= 1
 
 

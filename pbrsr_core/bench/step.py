@@ -2,9 +2,9 @@
 
 Outside the renderer, every step touches every texel of every optimised map: the PBR
 consistency and TV gradients are added and the gradient masked (``regularize_grads``), then
-Adam updates the maps and its two moments and projects the maps to valid ranges in the same
-pass (``MapAdam``). At 2048^2
-and above this part, not the shading of a few hundred thousand pixels, sets the step's time.
+Adam updates the maps and its two moments and the maps are projected to valid ranges
+(``MapAdam``). At 2048^2 and above this part, not the shading of a few hundred thousand
+pixels, sets the step's time.
 
 For each map size this times those passes on ``images`` maps of ``channels`` channels (the
 renderer's gradient is stood in by a random one; the shading cost is ``pbrsr bench render``'s)
@@ -61,6 +61,7 @@ def _time_passes(size: int, images: int, channels: int, scale: int, steps: int) 
         params,
         {i: channel_lr(groups[i], channels, config) for i in params},
         dict.fromkeys(params, False),
+        {i: masks[i][1] for i in params},
     )
     times: dict[str, list[float]] = {k: [] for k in PASSES}
     for step in range(steps + 1):  # the first step warms up (kernels compiled, pages mapped)

@@ -527,6 +527,7 @@ def optimize_pbrsr(
         params,
         {i: channel_lr(groups[i], int(params[i].shape[2]), config) for i in images},
         {i: "normal" in roles[i] for i in images},
+        {i: grad_masks[i][1] for i in images},
     )
     # fused: one pass over the weight maps and their two moments (CPU and CUDA)
     wmap_opt = torch.optim.Adam([wmaps], lr=config.weight_map_lr, fused=True)
@@ -613,7 +614,7 @@ def optimize_pbrsr(
         if wmaps.grad is None:
             wmaps.grad = torch.zeros_like(wmaps)
         torch.nan_to_num_(wmaps.grad, nan=0.0, posinf=0.0, neginf=0.0)
-        map_opt.step()  # Adam and the projection to valid ranges, one pass per map
+        map_opt.step()  # Adam, then the projection to valid ranges
         wmap_opt.step()
         with torch.no_grad():
             wmaps.clamp_(0.0, 1.0)

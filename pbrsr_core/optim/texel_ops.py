@@ -8,7 +8,7 @@ loop (parallel over rows); on other devices the same numbers come from plain tor
 * :func:`tv_loss`: ``sum_T mean|grad_x T| + mean|grad_y T|`` with its gradient computed in the
   same pass (a custom autograd function; the subgradient of ``|0|`` is 0, as torch's).
 * :func:`project_`: values into [0, 1], NaN -> 0, normal maps renormalised with z > 0.
-* :class:`MapAdam`: Adam with a learning rate per channel, fused with the projection.
+* :class:`MapAdam`: torch's fused Adam with a learning rate per channel, then the projection.
 * :func:`mask_grad_`: zero non-finite gradient entries and those outside a texel/channel mask.
 * :func:`accumulate_map_grad_`: the step's whole-map gradient in one pass: TV's gradient and
   the PBR-consistency gradient (computed at LR size on the pooled map) added to the
@@ -244,79 +244,51 @@ def project_(t: torch.Tensor, is_normal: bool) -> None:
         t[..., :3] = (n * 0.5 + 0.5).clamp(0.0, 1.0)
 
 
-@numba.njit(**_JIT)
-def _adam_project_kernel(p, g, m, v, step_c, b1, b2, inv_bc2_sqrt, eps, normal):
-    h, w, nc = p.shape
-    one = np.float32(1.0)
-    for i in numba.prange(h):
-        for j in range(w):
-            for c in range(nc):
-                gi = g[i, j, c]
-                mi = b1 * m[i, j, c] + (one - b1) * gi
-                vi = b2 * v[i, j, c] + (one - b2) * gi * gi
-                m[i, j, c] = mi
-                v[i, j, c] = vi
-                p[i, j, c] -= step_c[c] * mi / (np.sqrt(vi) * inv_bc2_sqrt + eps)
-            _project_texel(p, i, j, nc, normal)
-
-
 class MapAdam:
-    """Adam over the HR maps with a learning rate per channel, fused with :func:`project_`:
-    one pass per map reads the map, its gradient and both moments and writes the projected
-    map (torch's Adam and a projection pass would read and write the map twice). The update is
-    torch's Adam (no weight decay, no amsgrad) to float32 rounding.
+    """Adam over the HR maps with a learning rate per channel, each step followed by
+    :func:`project_`.
 
-    ``channel_lr[i]``: (C,) learning rates of map ``i``'s channels (0 freezes a channel);
-    ``normal[i]``: whether map ``i`` is a normal map (projected to unit z > 0 normals)."""
+    Torch's fused Adam (one pass over a map and its two moments) with one parameter group per
+    rate. A map whose optimised channels (``channels[i]``, (C,) bool) have different rates steps
+    at the largest and has its update scaled per channel afterwards (one copy of that map per
+    step); a map whose rates are all 0 is not optimised. ``channel_lr[i]``: (C,) rates;
+    ``normal[i]``: whether map ``i`` is a normal map (projected to unit, z > 0 normals).
+    Channels outside ``channels[i]`` must get no gradient (the optimiser masks them)."""
 
     def __init__(
         self,
         maps: dict[int, torch.Tensor],
         channel_lr: dict[int, torch.Tensor],
         normal: dict[int, bool],
-        betas: tuple[float, float] = (0.9, 0.999),
-        eps: float = 1e-8,
+        channels: dict[int, torch.Tensor],
     ):
         self.maps = maps
-        self.channel_lr = {i: channel_lr[i].to(torch.float32).cpu() for i in maps}
-        self.normal = {i: bool(normal[i] and maps[i].shape[-1] >= 3) for i in maps}
-        self.betas, self.eps = betas, eps
-        self.m = {i: torch.zeros_like(t) for i, t in maps.items()}
-        self.v = {i: torch.zeros_like(t) for i, t in maps.items()}
-        self.steps = 0
+        self.normal = normal
+        self.scale: dict[int, torch.Tensor] = {}  # per-channel factor on the update
+        by_lr: dict[float, list[torch.Tensor]] = {}
+        for i, p in maps.items():
+            rates = channel_lr[i].detach().to(torch.float64).cpu()
+            own = channels[i].detach().cpu()
+            top = float(rates[own].max()) if bool(own.any()) else 0.0
+            if top <= 0.0:
+                continue
+            by_lr.setdefault(top, []).append(p)
+            if not bool((rates[own] == top).all()):
+                factor = torch.where(own, rates / top, torch.ones_like(rates))
+                self.scale[i] = factor.to(p.device, p.dtype)
+        groups = [{"params": ps, "lr": lr} for lr, ps in sorted(by_lr.items())]
+        self.opt = torch.optim.Adam(groups, fused=True) if groups else None
 
     @torch.no_grad()
     def step(self) -> None:
-        self.steps += 1
-        b1, b2 = self.betas
-        bc1 = 1.0 - b1**self.steps
-        inv_bc2_sqrt = 1.0 / (1.0 - b2**self.steps) ** 0.5
+        before = {i: self.maps[i].detach().clone() for i in self.scale}
+        if self.opt is not None:
+            self.opt.step()
+        for i, factor in self.scale.items():
+            p = self.maps[i].detach()
+            p.sub_(before[i]).mul_(factor).add_(before[i])
         for i, p in self.maps.items():
-            g, m, v = p.grad, self.m[i], self.v[i]
-            if g is None:
-                g = torch.zeros_like(p)
-            step_c = self.channel_lr[i] / bc1
-            if _on_cpu(p, g) and all(t.is_contiguous() for t in (p, g, m, v)) and p.ndim == 3:
-                _threads()
-                f32 = np.float32
-                _adam_project_kernel(
-                    p.detach().numpy(),
-                    g.numpy(),
-                    m.numpy(),
-                    v.numpy(),
-                    step_c.numpy(),
-                    f32(b1),
-                    f32(b2),
-                    f32(inv_bc2_sqrt),
-                    f32(self.eps),
-                    self.normal[i],
-                )
-                continue
-            m.mul_(b1).add_(g, alpha=1.0 - b1)
-            v.mul_(b2).addcmul_(g, g, value=1.0 - b2)
-            denom = v.sqrt().mul_(inv_bc2_sqrt).add_(self.eps)
-            p.sub_(step_c.to(p.device) * m / denom)
-            project_(p, self.normal[i])
+            project_(p.detach(), self.normal[i])
 
 
 @numba.njit(**_JIT)
