@@ -87,7 +87,7 @@ def map_groups(roles: set[str], channels: int, config: PbrsrConfig) -> list[MapG
 def channel_lr(groups: list[MapGroup], channels: int, config: PbrsrConfig) -> torch.Tensor:
     """(C,) Adam learning rates of one image's channels: ``config.lr`` times the map's factor
     in ``config.map_lr``; channels no group owns get 0 (they keep their init)."""
-    out = torch.zeros(channels, dtype=torch.float32)
+    out = torch.zeros(channels, dtype=torch.float64)  # exact config values for Adam
     for g in groups:
         out[list(g.channels)] = config.lr * config.map_lr.get(g.name, 1.0)
     return out

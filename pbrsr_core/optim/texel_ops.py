@@ -198,32 +198,27 @@ def accumulate_map_grad_(
 # ---------------------------------------------------------------------------------------------
 
 
-@numba.njit(cache=True, inline="always")
-def _project_texel(t, i, j, nc, normal):
-    one, zero, two = np.float32(1.0), np.float32(0.0), np.float32(2.0)  # float32 maps stay float32
-    for c in range(nc):
-        v = t[i, j, c]
-        if not (v >= zero):  # negative or NaN
-            v = zero
-        elif v > one:
-            v = one
-        t[i, j, c] = v
-    if normal:
-        x = t[i, j, 0] * two - one
-        y = t[i, j, 1] * two - one
-        z = max(t[i, j, 2] * two - one, np.float32(NORMAL_Z_MIN))
-        inv = np.float32(0.5) / np.sqrt(x * x + y * y + z * z)
-        t[i, j, 0] = min(max(x * inv + np.float32(0.5), zero), one)
-        t[i, j, 1] = min(max(y * inv + np.float32(0.5), zero), one)
-        t[i, j, 2] = min(max(z * inv + np.float32(0.5), zero), one)
-
-
 @numba.njit(**_JIT)
 def _project_kernel(t, normal):
+    one, zero, two = np.float32(1.0), np.float32(0.0), np.float32(2.0)  # float32 maps stay float32
     h, w, nc = t.shape
     for i in numba.prange(h):
         for j in range(w):
-            _project_texel(t, i, j, nc, normal)
+            for c in range(nc):
+                v = t[i, j, c]
+                if not (v >= zero):  # negative or NaN
+                    v = zero
+                elif v > one:
+                    v = one
+                t[i, j, c] = v
+            if normal:
+                x = t[i, j, 0] * two - one
+                y = t[i, j, 1] * two - one
+                z = max(t[i, j, 2] * two - one, np.float32(NORMAL_Z_MIN))
+                inv = np.float32(0.5) / np.sqrt(x * x + y * y + z * z)
+                t[i, j, 0] = min(max(x * inv + np.float32(0.5), zero), one)
+                t[i, j, 1] = min(max(y * inv + np.float32(0.5), zero), one)
+                t[i, j, 2] = min(max(z * inv + np.float32(0.5), zero), one)
 
 
 @torch.no_grad()
