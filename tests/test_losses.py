@@ -12,9 +12,11 @@ from pbrsr_core.optim.losses import (
     avg_pool_map,
     consistency_psnr,
     pbr_consistency,
+    pooled_consistency,
     robust_pixel_loss,
     robust_pixel_terms,
     sample_weights,
+    ssim_target,
     upsample_weights,
 )
 from pbrsr_core.optim.ssim import ssim_per_channel, window_size_for
@@ -142,6 +144,23 @@ def test_consistency_zero_when_pool_matches_and_hand_value():
     s = (2 * 0.6 * 0.5 + c1) / (0.36 + 0.25 + c1)
     assert float(terms["metallic"]) == pytest.approx(0.1 + 10 * (1 - s))
     assert float(total) == pytest.approx(0.1 * (0.1 + 10 * (1 - s)))
+
+
+def test_consistency_with_a_kept_ssim_target_is_the_same_loss():
+    """The optimiser keeps the LR map's SSIM moments across steps: same value, same gradient."""
+    g = torch.Generator().manual_seed(4)
+    lr = torch.rand(20, 17, 3, generator=g, dtype=torch.float64)
+    groups = [MapGroup("base_color", (0, 1, 2))]
+    target = ssim_target(lr)
+    for _ in range(2):  # reused
+        pooled = torch.rand(20, 17, 3, generator=g, dtype=torch.float64)
+        a, b = pooled.clone().requires_grad_(), pooled.clone().requires_grad_()
+        la = pooled_consistency(a, lr, groups, 10.0, target)[0]
+        lb = pooled_consistency(b, lr, groups, 10.0)[0]
+        la.backward()
+        lb.backward()
+        assert float(la.detach()) == pytest.approx(float(lb.detach()), abs=1e-14)
+        assert torch.allclose(a.grad, b.grad, atol=1e-14)
 
 
 def test_avg_pool_and_shape_errors():

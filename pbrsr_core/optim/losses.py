@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from .ssim import ssim_per_channel
+from .ssim import SsimTarget
 
 _EPS = 1e-12
 
@@ -164,14 +164,22 @@ def pbr_consistency(
     return pooled_consistency(avg_pool_map(hr, scale), lr, groups, lambda_ssim)
 
 
+def ssim_target(lr: torch.Tensor) -> SsimTarget:
+    """The LR map (H, W, C) as the fixed side of the consistency loss's SSIM (its local
+    moments computed once, not at every step)."""
+    return SsimTarget(lr.permute(2, 0, 1)[None])
+
+
 def pooled_consistency(
     pooled: torch.Tensor,
     lr: torch.Tensor,
     groups: list[MapGroup],
     lambda_ssim: float,
+    target: SsimTarget | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """:func:`pbr_consistency` from the already pooled HR map (H, W, C): the optimiser
-    differentiates at this size and spreads the gradient over the texels itself."""
+    differentiates at this size and spreads the gradient over the texels itself.
+    ``target``: ``ssim_target(lr)``, when the caller keeps it across steps."""
     if pooled.shape != lr.shape:
         raise ValueError(
             f"pooled HR map {tuple(pooled.shape)} does not match the LR map {tuple(lr.shape)}"
@@ -182,7 +190,8 @@ def pooled_consistency(
         return total, terms
     # per-channel L1 and SSIM once for every channel, then averaged over each group's channels
     l1 = (pooled - lr).abs().mean(dim=(0, 1))  # (C,)
-    s = ssim_per_channel(pooled.permute(2, 0, 1)[None], lr.permute(2, 0, 1)[None])[0]  # (C,)
+    target = ssim_target(lr) if target is None else target
+    s = target.per_channel(pooled.permute(2, 0, 1)[None])[0]  # (C,)
     for g in groups:
         idx = list(g.channels)
         term = l1[idx].mean() + lambda_ssim * (1.0 - s[idx].mean())

@@ -45,10 +45,12 @@ from .losses import (
     pooled_consistency,
     robust_pixel_terms,
     sample_weights,
+    ssim_target,
     upsample_weights,
 )
 from .presets import PbrsrConfig
 from .pseudo_gt import content_hash, load_cached, mapped, quantize, store_cached
+from .ssim import SsimTarget
 from .texel_ops import MapAdam, accumulate_map_grad_, project_
 
 PROBE_RES = 128  # side of the low-resolution renders used to select views and measure density
@@ -338,6 +340,7 @@ def _choose_views(mesh, materials, images, sizes, scale, config, rasterize):
 def regularize_grads(
     params: dict[int, torch.Tensor],
     lr_maps: dict[int, torch.Tensor],
+    ssim_targets: dict[int, SsimTarget],
     groups: dict[int, list[MapGroup]],
     grad_masks: dict[int, tuple[torch.Tensor, torch.Tensor]],
     config: PbrsrConfig,
@@ -345,14 +348,17 @@ def regularize_grads(
 ) -> tuple[float, float]:
     """The step's whole-map part, after the pixel loss's backward: add the PBR-consistency
     gradient (differentiated at LR size, on the pooled map) and TV's to each map's gradient
-    and mask it, one pass per map (texel_ops). ``grad_masks[i]`` = ((H, W) texels, (C,)
-    channels) that may change. Returns the values of ``L_pbr`` and ``L_tv``."""
+    and mask it, one pass per map (texel_ops). ``ssim_targets[i]``: ``ssim_target(lr_maps[i])``,
+    made once per run; ``grad_masks[i]`` = ((H, W) texels, (C,) channels) that may change.
+    Returns the values of ``L_pbr`` and ``L_tv``."""
     l_pbr_total, l_tv = 0.0, 0.0
     for i, p in params.items():
         if p.grad is None:  # no view of this batch samples the image
             p.grad = torch.zeros_like(p)
         pooled = avg_pool_map(p.detach(), scale).requires_grad_(True)
-        l_pbr = pooled_consistency(pooled, lr_maps[i], groups[i], config.lambda_ssim)[0]
+        l_pbr = pooled_consistency(
+            pooled, lr_maps[i], groups[i], config.lambda_ssim, ssim_targets[i]
+        )[0]
         pool_grad = torch.zeros_like(pooled)
         if l_pbr.requires_grad:
             (pool_grad,) = torch.autograd.grad(config.lambda_pbr * l_pbr, pooled)
@@ -521,6 +527,7 @@ def optimize_pbrsr(
             else torch.ones(h, w, dtype=torch.bool, device=device)
         )
         grad_masks[i] = (texel.contiguous(), ch)
+    ssim_targets = {i: ssim_target(lr_dev[i]) for i in images}
     wres = config.weight_map_res
     wmaps = torch.ones(n_views, wres, wres, device=device, requires_grad=True)
     map_opt = MapAdam(
@@ -610,7 +617,9 @@ def optimize_pbrsr(
         for t in (*params.values(), wmaps):
             t.grad = None
         loss.backward()
-        l_pbr, l_tv = regularize_grads(params, lr_dev, groups, grad_masks, config, scale)
+        l_pbr, l_tv = regularize_grads(
+            params, lr_dev, ssim_targets, groups, grad_masks, config, scale
+        )
         if wmaps.grad is None:
             wmaps.grad = torch.zeros_like(wmaps)
         torch.nan_to_num_(wmaps.grad, nan=0.0, posinf=0.0, neginf=0.0)

@@ -34,6 +34,54 @@ def _window_size(h: int, w: int, sigma: float, truncate: float) -> int:
     return fit if fit % 2 == 1 else fit - 1
 
 
+class SsimTarget:
+    """The reference side of SSIM, precomputed: ``y`` (N, C, H, W) and its local mean and mean
+    square. :meth:`per_channel` then blurs only the three moments that involve ``x`` (the
+    optimiser compares each step's pooled map with the same LR map)."""
+
+    def __init__(
+        self,
+        y: torch.Tensor,
+        *,
+        data_range: float = 1.0,
+        sigma: float = DEFAULT_SIGMA,
+        truncate: float = DEFAULT_TRUNCATE,
+    ):
+        if y.ndim != 4:
+            raise ValueError(f"ssim: expected (N, C, H, W), got shape {tuple(y.shape)}")
+        n, c, h, w = y.shape
+        if h == 0 or w == 0:
+            raise ValueError("ssim: empty image")
+        self.y = y.detach()
+        self.size = _window_size(h, w, sigma, truncate)
+        self.g = gaussian_window(self.size, sigma, dtype=y.dtype, device=y.device)
+        self.c1 = (K1 * data_range) ** 2
+        self.c2 = (K2 * data_range) ** 2
+        with torch.no_grad():
+            self.my, self.eyy = self._blur(torch.cat([self.y, self.y * self.y], 1)).split(c, 1)
+
+    def _blur(self, stack: torch.Tensor) -> torch.Tensor:
+        """Separable Gaussian of every channel of (N, K, H, W), "valid" region only."""
+        k = stack.shape[1]
+        kx = self.g.view(1, 1, 1, self.size).expand(k, 1, 1, self.size)
+        ky = self.g.view(1, 1, self.size, 1).expand(k, 1, self.size, 1)
+        return F.conv2d(F.conv2d(stack, kx, groups=k), ky, groups=k)
+
+    def per_channel(self, x: torch.Tensor) -> torch.Tensor:
+        """Mean SSIM of each channel of ``x`` (same shape as ``y``) against ``y`` -> (N, C)."""
+        if x.shape != self.y.shape:
+            raise ValueError(f"ssim: shapes differ: {tuple(x.shape)} vs {tuple(self.y.shape)}")
+        c = x.shape[1]
+        mx, exx, exy = self._blur(torch.cat([x, x * x, x * self.y], 1)).split(c, 1)
+        my, eyy = self.my, self.eyy
+        sxx = exx - mx * mx
+        syy = eyy - my * my
+        sxy = exy - mx * my
+        num = (2 * mx * my + self.c1) * (2 * sxy + self.c2)
+        den = (mx * mx + my * my + self.c1) * (sxx + syy + self.c2)
+        return (num / den).mean(dim=(2, 3))
+
+
 def ssim_per_channel(
     x: torch.Tensor,
     y: torch.Tensor,
@@ -44,32 +92,14 @@ def ssim_per_channel(
 ) -> torch.Tensor:
     """Mean SSIM of each channel.
 
-    ``x``, ``y``: (N, C, H, W), same shape, any float dtype. Returns (N, C). Differentiable;
-    finite for constant images (the stabilising constants keep denominators > 0).
+    ``x``, ``y``: (N, C, H, W), same shape, any float dtype. Returns (N, C). Differentiable
+    in ``x`` (``y`` is the reference: no gradient flows to it); finite for constant images
+    (the stabilising constants keep denominators > 0).
     """
     if x.shape != y.shape:
         raise ValueError(f"ssim: shapes differ: {tuple(x.shape)} vs {tuple(y.shape)}")
-    if x.ndim != 4:
-        raise ValueError(f"ssim: expected (N, C, H, W), got shape {tuple(x.shape)}")
-    n, c, h, w = x.shape
-    if h == 0 or w == 0:
-        raise ValueError("ssim: empty image")
-    size = _window_size(h, w, sigma, truncate)
-    g = gaussian_window(size, sigma, dtype=x.dtype, device=x.device)
-    # the five local moments in one separable, grouped convolution (2 conv calls in all)
-    stack = torch.cat([x, y, x * x, y * y, x * y], dim=1)  # (N, 5C, H, W)
-    kx = g.view(1, 1, 1, size).expand(5 * c, 1, 1, size)
-    ky = g.view(1, 1, size, 1).expand(5 * c, 1, size, 1)
-    blurred = F.conv2d(F.conv2d(stack, kx, groups=5 * c), ky, groups=5 * c)
-    mx, my, exx, eyy, exy = blurred.split(c, dim=1)
-    c1 = (K1 * data_range) ** 2
-    c2 = (K2 * data_range) ** 2
-    sxx = exx - mx * mx
-    syy = eyy - my * my
-    sxy = exy - mx * my
-    num = (2 * mx * my + c1) * (2 * sxy + c2)
-    den = (mx * mx + my * my + c1) * (sxx + syy + c2)
-    return (num / den).mean(dim=(2, 3))
+    target = SsimTarget(y, data_range=data_range, sigma=sigma, truncate=truncate)
+    return target.per_channel(x)
 
 
 def ssim(x: torch.Tensor, y: torch.Tensor, **kwargs) -> torch.Tensor:
@@ -82,4 +112,4 @@ def window_size_for(h: int, w: int) -> int:
     return _window_size(h, w, DEFAULT_SIGMA, DEFAULT_TRUNCATE)
 
 
-__all__ = ["gaussian_window", "ssim", "ssim_per_channel", "window_size_for"]
+__all__ = ["SsimTarget", "gaussian_window", "ssim", "ssim_per_channel", "window_size_for"]
