@@ -69,10 +69,17 @@ def degrade_image(image: np.ndarray, scale: int, *, normal_map: bool = False) ->
 
 
 def degrade_asset(
-    in_path: Path, out_path: Path, scale: int, limits: Limits = Limits()
+    in_path: Path,
+    out_path: Path,
+    scale: int,
+    limits: Limits = Limits(),
+    image_format: str = "same",
 ) -> list[Path]:
     """Write ``out_path`` (.glb/.gltf): the asset at ``in_path`` with every material image
-    degraded by ``scale``. Returns the written paths, main file first."""
+    degraded by ``scale``, stored as ``image_format`` ("same" keeps each image's format, so
+    JPEG textures are JPEG-compressed again; "png", "png16", "exr": lossless, the protocol's
+    LR values as they are; see ``asset.images.output_format``). Returns the written paths,
+    main file first."""
     from .asset.gltf import load_asset, save_asset
 
     if scale not in (2, 3, 4, 8, 16):
@@ -83,4 +90,4 @@ def degrade_asset(
         if not im.roles or im.pixels.size == 0:
             continue
         new[im.index] = degrade_image(im.pixels, scale, normal_map="normal" in im.roles)
-    return save_asset(asset, Path(out_path), new, "same")
+    return save_asset(asset, Path(out_path), new, image_format)

@@ -106,6 +106,14 @@ def test_bad_options(quad, tmp_path, capfd, extra, says):
     assert not out.exists() or not any(out.iterdir())
 
 
+def test_degrade_rejects_unknown_format(quad, tmp_path, capfd):
+    out = tmp_path / "lr.glb"
+    code, err = run_cli(["degrade", str(quad), "-o", str(out), "--format", "webp"], capfd)
+    assert code == InvalidOptions.exit_code, err
+    assert_one_line(err, "unknown image format 'webp'")
+    assert not out.exists()
+
+
 def test_real_binary_prints_no_traceback(corpus, tmp_path):
     """The installed console script, as a user runs it (one subprocess: torch import cost)."""
     exe = REPO / ".venv" / "bin" / "pbrsr"

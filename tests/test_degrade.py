@@ -58,3 +58,21 @@ def test_degrade_asset(tmp_path):
         assert b.height == a.height // 4 and b.width == a.width // 4
         assert b.bit_depth >= a.bit_depth
     assert hr.mesh.v_pos.equal(lr.mesh.v_pos)
+
+
+def test_degrade_asset_format(tmp_path):
+    """JPEG textures: "same" compresses the LR maps again as JPEG; "png" stores the protocol's
+    values losslessly (8-bit), which the benchmark uses to separate the method's error from
+    the LR file's compression."""
+    src = make_test_asset(tmp_path / "hr.glb", size=32, features={"jpeg"})
+    hr = load_asset(src)
+    jpegs = [im.index for im in hr.images if im.roles and im.mime == "image/jpeg"]
+    assert jpegs
+    same = load_asset(degrade_asset(src, tmp_path / "same" / "lr.glb", 4)[0])
+    png = load_asset(degrade_asset(src, tmp_path / "png" / "lr.glb", 4, image_format="png")[0])
+    for i in jpegs:
+        a, b, c = hr.images[i], same.images[i], png.images[i]
+        assert b.mime == "image/jpeg" and c.mime == "image/png"
+        want = degrade_image(a.pixels, 4, normal_map="normal" in a.roles)
+        assert np.abs(c.pixels - want).max() <= 0.5 / 255 + 1e-6  # 8-bit rounding only
+        assert np.abs(b.pixels - want).max() > 0.5 / 255  # JPEG changes more than rounding

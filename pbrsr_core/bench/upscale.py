@@ -107,6 +107,7 @@ def run(
     eval_views: int = 240,
     procedural_size: int = 512,
     include_procedural: bool = True,
+    lr_format: str = "same",
     shared: Path = SHARED_ASSETS,
     say=print,
 ) -> list[dict]:
@@ -123,6 +124,7 @@ def run(
         "eval_res": eval_res,
         "eval_views": eval_views,
         "lights": light_names,
+        "lr_format": lr_format,
     }
     try:
         todo: list[tuple[str, Path]] = []
@@ -140,7 +142,9 @@ def run(
             say(f"shared assets folder {shared} not present: procedural asset only")
         for name, gt_path in todo:
             say(f"== {name}: degrade x{scale}")
-            lr_path = degrade_asset(gt_path, work_root / name / "lr" / gt_path.name, scale)[0]
+            lr_path = degrade_asset(
+                gt_path, work_root / name / "lr" / gt_path.name, scale, image_format=lr_format
+            )[0]
             gt = load_asset(gt_path)
             evaluator = RenderEvaluator(
                 gt,

@@ -133,6 +133,9 @@ def upscale_cmd(
     eval_views: int = typer.Option(240, help="Evaluation views (the paper's 240)."),
     procedural: bool = typer.Option(True, help="Include the procedural demo asset."),
     procedural_size: int = typer.Option(512, help="HR texture size of the procedural asset."),
+    lr_format: str = typer.Option(
+        "same", help="LR image format (pbrsr degrade --format): same, png, png16, exr."
+    ),
 ) -> None:
     """Speed against error: bicubic, direct prior and each PBR-SR preset on degraded assets;
     wall time, peak memory, PSNR per map and render PSNR, with curves over iterations."""
@@ -148,6 +151,7 @@ def upscale_cmd(
         eval_views=eval_views,
         include_procedural=procedural,
         procedural_size=procedural_size,
+        lr_format=lr_format,
         say=lambda m: typer.echo(m, err=True),
     )
     typer.echo(markdown_table(rows))

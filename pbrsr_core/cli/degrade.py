@@ -13,10 +13,15 @@ def register(app: typer.Typer) -> None:
         input: Path = typer.Argument(..., help="A .glb or .gltf asset (the HR ground truth)."),
         output: Path = typer.Option(..., "-o", "--output", help="The LR .glb/.gltf to write."),
         scale: int = typer.Option(4, "--scale", "-s", help="Downsampling factor (2, 4, 8)."),
+        image_format: str = typer.Option(
+            "same",
+            "--format",
+            help="LR image format: same (JPEG stays JPEG, compressed again), png, png16, exr.",
+        ),
     ) -> None:
         """Make the LR input of the evaluation protocol: Gaussian blur (sigma = 0.375 x
         scale) then bicubic downsampling of every texture; everything else unchanged."""
         from ..degrade import degrade_asset
 
-        written = degrade_asset(input, output, scale)
+        written = degrade_asset(input, output, scale, image_format=image_format)
         typer.echo(f"wrote {written[0]} ({len(written) - 1} extra files)")
