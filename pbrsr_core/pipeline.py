@@ -41,7 +41,6 @@ from .maps import (
     map_file_stem,
     param_to_encoded,
     role_label,
-    to_param,
     upscalable_images,
 )
 from .options import UpscaleOptions
@@ -119,16 +118,27 @@ def _upscale_maps(
         return out, {}
 
     # pbrsr: init = prior on colour maps, bicubic on the rest (paper 3.1)
+    from .asset.jpeg import deblock
     from .optim.pbrsr import optimize_pbrsr
     from .optim.presets import get_preset
     from .optim.texel_ops import dilate_islands
 
     config = get_preset(options.preset)
+    # the LR maps as the method sees them: JPEG block artefacts reduced with the file's own
+    # tables (asset/jpeg.py), so the consistency term does not copy them to the HR maps
+    lr_pixels = {img.index: img.pixels for img in images}
+    deblocked = []
+    if config.deblock_jpeg:
+        with timer("deblock"):
+            for img in images:
+                if img.jpeg is not None:
+                    lr_pixels[img.index] = deblock(img.pixels, img.jpeg)
+                    deblocked.append(img.name)
     check = None
     if config.check_prior and prior.name != "bicubic":
         with timer("prior_check"):
             emit(progress, Progress(stage="prior_check"))
-            colour = [img.pixels for img in images if kind_of(img.roles) == "colour"]
+            colour = [lr_pixels[img.index] for img in images if kind_of(img.roles) == "colour"]
             check = prior_self_check(prior, colour, s)
         if check is not None and not check["use_prior"]:
             prior = load_prior("bicubic", device)  # for the init and the pseudo-GT
@@ -137,13 +147,10 @@ def _upscale_maps(
         for n, img in enumerate(images):
             emit(progress, Progress(stage="init", step=n, total=len(images)))
             kind = kind_of(img.roles)
-            hr = (
-                upscale_map(prior, img.pixels, kind, s)
-                if kind == "colour"
-                else bicubic_map(img.pixels, kind, s)
-            )
+            px = lr_pixels[img.index]
+            hr = upscale_map(prior, px, kind, s) if kind == "colour" else bicubic_map(px, kind, s)
             init[img.index] = encoded_to_param(torch.from_numpy(hr), kind)
-            lr[img.index] = to_param(img)
+            lr[img.index] = encoded_to_param(torch.from_numpy(px), kind)
     with timer("load_light"):
         light = load_light(options.envmap).to(device)
     scene = make_scene(asset, device)
@@ -174,7 +181,8 @@ def _upscale_maps(
             )
             for i, t in result.maps.items()
         }
-    return out, {**result.report(), "prior_check": check, "prior_used": prior.name}
+    report = {**result.report(), "prior_check": check, "prior_used": prior.name}
+    return out, {**report, "jpeg_deblocked": deblocked}
 
 
 Snapshots = tuple[Collection[int], Callable[[int, dict, dict[int, str]], None]]

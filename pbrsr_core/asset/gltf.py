@@ -30,6 +30,7 @@ from .gltf_read import (
 )
 from .gltf_write import encode_images, save_asset
 from .images import read_image
+from .jpeg import quant_tables
 from .model import (
     MAP_ROLES,
     REPEAT,
@@ -221,7 +222,10 @@ def _load_images(
             declared = img.get("mimeType")
             pixels = np.zeros((0, 0, 4), dtype=np.float32)
             depth, mime = 8, declared if isinstance(declared, str) else "application/octet-stream"
-        out.append(ImageData(index=i, name=label, pixels=pixels, bit_depth=depth, mime=mime))
+        jpeg = quant_tables(data) if mime == "image/jpeg" else None
+        out.append(
+            ImageData(index=i, name=label, pixels=pixels, bit_depth=depth, mime=mime, jpeg=jpeg)
+        )
     return out
 
 

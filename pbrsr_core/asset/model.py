@@ -22,6 +22,8 @@ from typing import Literal
 import numpy as np
 import torch
 
+from .jpeg import JpegQuant
+
 MapRole = Literal["base_color", "metallic_roughness", "normal", "occlusion", "emissive"]
 MAP_ROLES: tuple[MapRole, ...] = (
     "base_color",
@@ -123,6 +125,7 @@ class ImageData:
     8, 16 or 32 (float); ``mime`` is the source type ("image/png", "image/jpeg",
     "image/x-exr", "image/tiff"); ``roles`` lists the material slots that use the image.
     ``name`` is a safe, asset-relative label for messages and output file names.
+    ``jpeg``: the quantisation tables of a 4:4:4 JPEG file (``asset.jpeg``), else None.
     """
 
     index: int
@@ -131,6 +134,7 @@ class ImageData:
     bit_depth: int
     mime: str
     roles: set[str] = field(default_factory=set)
+    jpeg: JpegQuant | None = None
 
     @property
     def height(self) -> int:

@@ -57,6 +57,10 @@ class PbrsrConfig:
     """Check the prior against bicubic on the asset's own colour maps one scale down
     (prior/selfcheck.py) and use bicubic for the init and the pseudo-GT when it loses. The
     paper always uses its prior."""
+    deblock_jpeg: bool = False
+    """LR maps stored as JPEG (4:4:4) have their block artefacts reduced with the file's own
+    quantisation tables before they become the init and the consistency target
+    (asset/jpeg.py). The paper takes the LR maps as they are."""
     # --- pseudo-GT -------------------------------------------------------------------------
     lr_render: Literal["supersample", "raster"] = "supersample"
     """How the LR render handed to the prior is made: area-averaged from the HR render
@@ -189,6 +193,7 @@ FAST = PbrsrConfig(
     views_per_texel=2,
     target="detail",
     check_prior=True,
+    deblock_jpeg=True,
     iterations=25,
     batch_views=2,
     lr=1e-3,
@@ -209,6 +214,7 @@ BALANCED = PbrsrConfig(
     views_per_texel=3,
     target="detail",
     check_prior=True,
+    deblock_jpeg=True,
     iterations=60,
     batch_views=2,
     lr=1e-3,
@@ -229,6 +235,7 @@ QUALITY = PbrsrConfig(
     views_per_texel=4,
     target="detail",
     check_prior=True,
+    deblock_jpeg=True,
     iterations=150,
     batch_views=3,
     lr=1e-3,
