@@ -181,8 +181,12 @@ def _upscale_maps(
             )
             for i, t in result.maps.items()
         }
-    report = {**result.report(), "prior_check": check, "prior_used": prior.name}
-    return out, {**report, "jpeg_deblocked": deblocked}
+    return out, {
+        **result.report(),
+        "prior_check": check,
+        "prior_used": prior.name,
+        "jpeg_deblocked": deblocked,
+    }
 
 
 Snapshots = tuple[Collection[int], Callable[[int, dict, dict[int, str]], None]]
