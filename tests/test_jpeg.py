@@ -73,6 +73,8 @@ def test_files_it_cannot_model_give_none():
     for cut in (2, 20, 100):  # truncated before the frame: no crash, no tables
         assert quant_tables(data[:cut]) is None
     assert quant_tables(b"\xff\xd8\x00garbage") is None
+    # a frame header announcing three components but holding none
+    assert quant_tables(b"\xff\xd8\xff\xc0\x00\x08\x08\x00\x10\x00\x10\x03") is None
 
 
 @pytest.mark.parametrize("quality", [50, 95])
@@ -109,3 +111,15 @@ def test_pipeline_deblocks_jpeg_maps_in_the_cpu_presets_only(tmp_path: Path):
     for img in res.images:
         assert np.isfinite(img.pixels).all()
     assert not get_preset("paper").deblock_jpeg  # the paper takes the LR maps as they are
+
+
+def test_mangled_headers_never_raise():
+    """The tables are read from every JPEG an asset holds, so no header may crash loading."""
+    data = bytearray(encode_image(_texture(), 8, "jpeg"))
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        b = bytearray(data[:700])
+        for pos in rng.integers(2, len(b), size=4):
+            b[pos] = int(rng.integers(0, 256))
+        q = quant_tables(bytes(b[: int(rng.integers(2, len(b)))]))
+        assert q is None or all(t.shape == (8, 8) and (t > 0).all() for t in q.tables)

@@ -79,6 +79,8 @@ def quant_tables(data: bytes) -> JpegQuant | None:
                 j += 1 + 64 * size
         elif marker in _SOF:
             n = body[5] if len(body) > 5 else 0
+            if len(body) < 6 + 3 * n:
+                return None  # truncated frame header
             comps = [(body[6 + 3 * k + 1], body[6 + 3 * k + 2]) for k in range(n)]
         elif marker == 0xEE and body[:5] == b"Adobe":
             return None  # Adobe APP14: the colour transform is the file's own
