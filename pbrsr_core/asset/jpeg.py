@@ -132,8 +132,6 @@ def deblock(pixels: np.ndarray, quant: JpegQuant) -> np.ndarray:
     if ncomp == 3:
         y = y @ torch.linalg.inv(_RGB_TO_YCC).T
     out = arr.copy()
-    vals = (y / 255.0).clamp(0.0, 1.0).to(torch.float32).numpy()
-    out[..., :ncomp] = vals
-    if ncomp == 1:  # grey expanded to RGB on reading
-        out[..., : min(c, 3)] = vals
+    filled = min(c, 3) if ncomp == 1 else ncomp  # grey was expanded to RGB on reading
+    out[..., :filled] = (y / 255.0).clamp(0.0, 1.0).to(torch.float32).numpy()
     return out
