@@ -134,21 +134,37 @@ def _upscale_maps(
                 if img.jpeg is not None:
                     lr_pixels[img.index] = deblock(img.pixels, img.jpeg)
                     deblocked.append(img.name)
-    check = None
-    if config.check_prior and prior.name != "bicubic":
+    # the maps the prior initialises: the colour maps the preset names (prior_maps), and of
+    # those, with check_prior, only the ones where it beats bicubic one scale down
+    by_prior = {
+        img.index
+        for img in images
+        if kind_of(img.roles) == "colour" and img.roles & set(config.prior_maps)
+    }
+    checks: list[dict] | None = None
+    if config.check_prior and prior.name != "bicubic" and by_prior:
+        checks = []
         with timer("prior_check"):
             emit(progress, Progress(stage="prior_check"))
-            colour = [lr_pixels[img.index] for img in images if kind_of(img.roles) == "colour"]
-            check = prior_self_check(prior, colour, s)
-        if check is not None and not check["use_prior"]:
-            prior = load_prior("bicubic", device)  # for the init and the pseudo-GT
+            for img in images:
+                if img.index not in by_prior:
+                    continue
+                c = prior_self_check(prior, lr_pixels[img.index], s)
+                checks.append({"image": img.name, "index": img.index, **(c or {})})
+                if c is not None and not c["use_prior"]:
+                    by_prior.discard(img.index)
+        if not by_prior:
+            prior = load_prior("bicubic", device)  # for the pseudo-GT
     with timer("init"):
         init, lr = {}, {}
         for n, img in enumerate(images):
             emit(progress, Progress(stage="init", step=n, total=len(images)))
             kind = kind_of(img.roles)
             px = lr_pixels[img.index]
-            hr = upscale_map(prior, px, kind, s) if kind == "colour" else bicubic_map(px, kind, s)
+            if img.index in by_prior:
+                hr = upscale_map(prior, px, kind, s)
+            else:
+                hr = bicubic_map(px, kind, s)
             init[img.index] = encoded_to_param(torch.from_numpy(hr), kind)
             lr[img.index] = encoded_to_param(torch.from_numpy(px), kind)
     with timer("load_light"):
@@ -183,8 +199,9 @@ def _upscale_maps(
         }
     return out, {
         **result.report(),
-        "prior_check": check,
+        "prior_check": checks,
         "prior_used": prior.name,
+        "prior_init": sorted(img.name for img in images if img.index in by_prior),
         "jpeg_deblocked": deblocked,
     }
 

@@ -35,7 +35,11 @@ def test_channel_lr_per_map():
     orm = channel_lr(map_groups({"metallic_roughness", "occlusion"}, 4, cfg), 4, cfg)
     assert orm.tolist() == pytest.approx([0.0, 1e-3, 5e-4, 0.0])  # occlusion frozen, A unowned
     assert get_preset("paper").map_lr == {}  # the paper: one learning rate
-    assert get_preset("balanced").map_lr == {"normal": 0.3}
+    assert get_preset("balanced").map_lr == {"normal": 0.3, "emissive": 0.0}
+    assert get_preset("paper").prior_maps == ("base_color", "emissive")  # paper 3.1
+    assert get_preset("balanced").prior_maps == ("base_color",)
+    with pytest.raises(InvalidOptions, match="prior_maps"):
+        cfg.with_(prior_maps=("normal",))
     with pytest.raises(InvalidOptions, match="map_lr keys"):
         cfg.with_(map_lr={"albedo": 1.0})
     with pytest.raises(InvalidOptions, match="map_lr factors"):

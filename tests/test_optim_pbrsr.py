@@ -266,6 +266,44 @@ def test_pseudo_gt_is_cached_on_disk_and_reused(tmp_path):
     assert p3.calls == 2
 
 
+def test_maps_with_rate_zero_keep_their_init_and_cost_no_prior_calls(tmp_path):
+    """map_lr 0 (the CPU presets' emissive): the map is rendered as its init and never
+    differentiated, the others still optimise; with nothing to optimise no pseudo-GT is made."""
+    s = 2
+    lr_c, lr_e = _down(_pattern(16, 16), s), _down(_pattern(16, 16, seed=3), s) * 0.5
+    init = {0: _bicubic(lr_c, s), 1: _bicubic(lr_e, s)}
+    mesh = shapes.quad(1.0, n_sub=2)
+    mats = [
+        Material(
+            index=0,
+            base_color=TextureRef(image=0),
+            emissive=TextureRef(image=1),
+            emissive_factor=(1.0, 1.0, 1.0),
+            metallic_factor=0.0,
+            roughness_factor=0.9,
+        )
+    ]
+    kw = dict(
+        scale=s,
+        light=EnvLight.uniform(1.0),
+        device=CPU,
+        cameras=[_front_camera(32)],
+        cache_dir=tmp_path,
+    )
+    lrs, roles = {0: lr_c, 1: lr_e}, {0: {"base_color"}, 1: {"emissive"}}
+    frozen = _cfg(iterations=4, map_lr={"emissive": 0.0})
+    prior = _CountingPrior()
+    res = optimize_pbrsr(mesh, mats, lrs, init, roles, prior=prior, config=frozen, **kw)
+    assert torch.equal(res.maps[1], init[1])
+    assert not torch.equal(res.maps[0], init[0])
+    assert res.optimized == {0: ["base_color"], 1: []} and prior.calls == 1
+    nothing = frozen.with_(map_lr={"emissive": 0.0, "base_color": 0.0})
+    prior = _CountingPrior()
+    res = optimize_pbrsr(mesh, mats, lrs, init, roles, prior=prior, config=nothing, **kw)
+    assert all(torch.equal(res.maps[i], init[i]) for i in (0, 1))
+    assert prior.calls == 0 and res.history == []
+
+
 def test_coverage_views_on_a_sphere_and_progress_cancel():
     s = 2
     mesh = shapes.uv_sphere(8, 16, radius=0.5)

@@ -1,5 +1,6 @@
-"""The prior self-check: a prior that loses to bicubic on the asset's own maps one scale down
-is not used; one that wins is; the pipeline reports the decision and follows it."""
+"""The prior self-check: a prior that loses to bicubic on a map of the asset one scale down
+does not initialise that map; one that wins does; the pipeline reports each map's decision
+and follows it."""
 
 from __future__ import annotations
 
@@ -9,7 +10,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pbrsr_core.asset import make_demo_asset
+from pbrsr_core.asset import load_asset, make_demo_asset
+from pbrsr_core.asset.procedural import make_quad_asset
+from pbrsr_core.degrade import degrade_image
 from pbrsr_core.optim import presets
 from pbrsr_core.options import UpscaleOptions
 from pbrsr_core.pipeline import upscale_asset
@@ -44,6 +47,23 @@ class OraclePrior(Prior):
         return self.hr[..., :h, :w].clone()
 
 
+class SelectivePrior(BlurringPrior):
+    """Perfect on the self-check of one LR map (it knows which HR crop that check degraded),
+    the blurring prior on every other input."""
+
+    name = "selective"
+
+    def __init__(self, lr_map: np.ndarray, scale: int = 4):
+        super().__init__()
+        self.small = torch.from_numpy(degrade_image(lr_map[..., :3], scale)).permute(2, 0, 1)
+        self.hr = torch.from_numpy(np.ascontiguousarray(lr_map[..., :3])).permute(2, 0, 1)
+
+    def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
+        if x.shape[1:] == self.small.shape and torch.allclose(x[0], self.small, atol=1e-6):
+            return self.hr[None].clone()
+        return super()._forward(x, scale)
+
+
 def _texture(size: int = 96, seed: int = 0) -> np.ndarray:
     g = np.random.default_rng(seed)
     base = g.random((size // 8, size // 8, 3)).astype(np.float32)
@@ -54,12 +74,12 @@ def _texture(size: int = 96, seed: int = 0) -> np.ndarray:
 
 def test_blurring_prior_is_rejected_and_a_perfect_one_accepted():
     tex = _texture()
-    bad = prior_self_check(BlurringPrior(), [tex], 4)
+    bad = prior_self_check(BlurringPrior(), tex, 4)
     assert bad is not None and not bad["use_prior"] and bad["prior_db"] < bad["bicubic_db"]
     assert bad["texels"] == 96 * 96
-    good = prior_self_check(OraclePrior(tex), [tex], 4)
+    good = prior_self_check(OraclePrior(tex), tex, 4)
     assert good["use_prior"] and good["prior_db"] == 100.0
-    assert prior_self_check(BlurringPrior(), [tex[:8, :8]], 4) is None  # too small to check
+    assert prior_self_check(BlurringPrior(), tex[:8, :8], 4) is None  # too small to check
 
 
 def test_pipeline_reports_the_check_and_uses_bicubic_when_the_prior_loses(tmp_path, monkeypatch):
@@ -72,14 +92,42 @@ def test_pipeline_reports_the_check_and_uses_bicubic_when_the_prior_loses(tmp_pa
     asset = make_demo_asset(tmp_path / "demo.glb", size=64)
     out = tmp_path / "out"
     report = upscale_asset(asset, out, UpscaleOptions(preset="fast", prior="blurring"))
-    check = report["prior_check"]
-    assert set(check) == {"prior_db", "bicubic_db", "texels", "use_prior"}
-    assert not check["use_prior"] and report["prior_used"] == "bicubic"
+    (check,) = report["prior_check"]
+    assert set(check) == {"image", "index", "prior_db", "bicubic_db", "texels", "use_prior"}
+    assert check["image"] == "bricks_albedo" and not check["use_prior"]
+    assert report["prior_used"] == "bicubic" and report["prior_init"] == []
     assert "prior_check" in report["timings"]
-    assert json.loads((out / "report.json").read_text())["prior_check"] == check
+    assert json.loads((out / "report.json").read_text())["prior_check"] == [check]
     # the paper preset never checks: it always uses its prior
     out2 = tmp_path / "out2"
     tiny_paper = presets.PAPER.with_(iterations=1, n_elev=1, n_azim=2, render_res=32)
     monkeypatch.setitem(presets.PRESETS, "paper", tiny_paper)
     report = upscale_asset(asset, out2, UpscaleOptions(preset="paper", prior="blurring"))
     assert report["prior_check"] is None and report["prior_used"] == "blurring"
+    assert report["prior_init"] == ["bricks_albedo"]
+
+
+def test_each_colour_map_is_checked_on_its_own(tmp_path, monkeypatch):
+    """Albedo and emissive of one material: the prior wins the check on the albedo only, so
+    it initialises the albedo, bicubic the emissive, and the pseudo-GT still uses it."""
+    import pbrsr_core.pipeline as pipeline
+
+    albedo, emissive = _texture(64, seed=1), _texture(64, seed=2)
+    asset = make_quad_asset(tmp_path / "q.gltf", {"base_color": albedo, "emissive": emissive})
+    lr_albedo = load_asset(asset).images[0].pixels  # as stored: 8-bit rounded
+    prior = SelectivePrior(np.asarray(lr_albedo, np.float32))
+    real = pipeline.load_prior
+    monkeypatch.setattr(
+        pipeline, "load_prior", lambda n, d: prior if n == "selective" else real(n, d)
+    )
+    both = presets.FAST.with_(iterations=2, prior_maps=("base_color", "emissive"))
+    monkeypatch.setitem(presets.PRESETS, "fast", both)
+    report = upscale_asset(asset, tmp_path / "a", UpscaleOptions(preset="fast", prior="selective"))
+    decided = {c["image"]: c["use_prior"] for c in report["prior_check"]}
+    assert decided == {"base_color.png": True, "emissive.png": False}
+    assert report["prior_init"] == ["base_color.png"] and report["prior_used"] == "selective"
+    # a preset that leaves the emissive map out of prior_maps does not check it
+    monkeypatch.setitem(presets.PRESETS, "fast", both.with_(prior_maps=("base_color",)))
+    report = upscale_asset(asset, tmp_path / "b", UpscaleOptions(preset="fast", prior="selective"))
+    assert [c["image"] for c in report["prior_check"]] == ["base_color.png"]
+    assert report["prior_init"] == ["base_color.png"]

@@ -413,6 +413,9 @@ def optimize_pbrsr(
     images = sorted(init_maps)
     hr_sizes = {i: (int(init_maps[i].shape[0]), int(init_maps[i].shape[1])) for i in images}
     groups = {i: map_groups(roles[i], int(init_maps[i].shape[2]), config) for i in images}
+    rates = {i: channel_lr(groups[i], int(init_maps[i].shape[2]), config) for i in images}
+    # maps whose every rate is 0 (map_lr) keep their init: rendered, never differentiated
+    trained = [i for i in images if bool(rates[i].any())]
 
     def rasterize(c):
         return raster.rasterize(mesh, c).to(device)
@@ -472,7 +475,9 @@ def optimize_pbrsr(
         project_(init_dev[i], "normal" in roles[i])
     targets: list[np.ndarray] = []
     with torch.no_grad():
-        if reference_maps is not None:
+        if not trained:
+            pass  # nothing to optimise: no targets
+        elif reference_maps is not None:
             ref = {**static, **{i: t.to(device, torch.float32) for i, t in reference_maps.items()}}
             for k in range(n_views):
                 gb = gbs.get(k)
@@ -514,9 +519,10 @@ def optimize_pbrsr(
 
     # ---- 3. optimise ------------------------------------------------------------------------
     t0 = time.perf_counter()
-    params = {i: init_dev.pop(i).requires_grad_(True) for i in images}
+    params = {i: init_dev.pop(i).requires_grad_(True) for i in trained}
+    fixed = {i: init_dev.pop(i) for i in images if i not in params}
     grad_masks = {}  # image -> ((H, W) texels, (C,) channels) that may change
-    for i in images:
+    for i in trained:
         h, w, c = params[i].shape
         ch = torch.zeros(c, dtype=torch.bool, device=device)
         for g in groups[i]:
@@ -527,14 +533,14 @@ def optimize_pbrsr(
             else torch.ones(h, w, dtype=torch.bool, device=device)
         )
         grad_masks[i] = (texel.contiguous(), ch)
-    ssim_targets = {i: ssim_target(lr_dev[i]) for i in images}
+    ssim_targets = {i: ssim_target(lr_dev[i]) for i in trained}
     wres = config.weight_map_res
     wmaps = torch.ones(n_views, wres, wres, device=device, requires_grad=True)
     map_opt = MapAdam(
         params,
-        {i: channel_lr(groups[i], int(params[i].shape[2]), config) for i in images},
-        {i: "normal" in roles[i] for i in images},
-        {i: grad_masks[i][1] for i in images},
+        {i: rates[i] for i in trained},
+        {i: "normal" in roles[i] for i in trained},
+        {i: grad_masks[i][1] for i in trained},
     )
     # fused: one pass over the weight maps and their two moments (CPU and CUDA)
     wmap_opt = torch.optim.Adam([wmaps], lr=config.weight_map_lr, fused=True)
@@ -548,20 +554,24 @@ def optimize_pbrsr(
     history: list[dict] = []
     eta = Eta(config.iterations)
 
+    def current() -> dict[int, torch.Tensor]:
+        return {i: (params[i] if i in params else fixed[i]).detach() for i in images}
+
     def consistency_metrics() -> dict[str, float]:
+        maps = current()
         return {
-            f"{i}:{g.name}": consistency_psnr(params[i].detach(), lr_dev[i], scale, g)
+            f"{i}:{g.name}": consistency_psnr(maps[i], lr_dev[i], scale, g)
             for i in images
             for g in groups[i]
         }
 
     def snapshot(it: int) -> None:
         if on_snapshot is not None and it in snapshot_at:
-            on_snapshot(it, {i: params[i].detach() for i in images})
+            on_snapshot(it, current())
 
-    for it in range(config.iterations):
+    for it in range(config.iterations if trained else 0):
         snapshot(it)
-        textures = {**static, **params}
+        textures = {**static, **fixed, **params}
         if config.sampling == "views":
             while len(order) < config.batch_views:
                 order.extend(torch.randperm(n_views, generator=gen).tolist())
@@ -660,7 +670,7 @@ def optimize_pbrsr(
     snapshot(config.iterations)
     timings["optimize"] = time.perf_counter() - t0
 
-    maps = {i: params[i].detach().clone() for i in images}
+    maps = {i: t.clone() for i, t in current().items()}
     return PbrsrResult(
         maps=maps,
         history=history,
@@ -669,7 +679,10 @@ def optimize_pbrsr(
         coverage=coverage,
         consistency_psnr=consistency_metrics(),
         render_res=res,
-        optimized={i: [g.name for g in groups[i]] for i in images},
+        optimized={
+            i: [g.name for g in groups[i] if bool(rates[i][list(g.channels)].any())]
+            for i in images
+        },
         seen_masks={i: torch.from_numpy(seen[i] & islands[i]) for i in images},
         config={**config.to_dict(), "views": view_info, "seed": seed, "scale": scale},
     )

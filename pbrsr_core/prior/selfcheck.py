@@ -1,11 +1,11 @@
-"""Does the prior help on this asset? A check on the asset's own colour maps, one scale down.
+"""Does the prior help on this map? A check on each of the asset's own colour maps, one scale down.
 
 A photo-trained prior can make textures worse than bicubic interpolation: on the Avocado at
 x4 rrdn-thick's albedo was 0.9 dB below bicubic's (``pbrsr bench upscale``). Before a PBR-SR
 run spends prior calls on the init and the pseudo-GT, each LR colour map (a centre crop of at
 most ``CROP`` texels a side) is degraded once more by the scale (``degrade.degrade_image``,
 the declared LR model), upscaled back by the prior and by bicubic, and both are compared
-with the LR map itself: the prior is used only if it wins, texel-weighted over the maps
+with the LR map itself: the prior initialises a map only if it wins on that map
 (self-similarity across scales, as in zero-shot SR). The cost is one prior call on at most
 ``(CROP / s)^2`` pixels per colour map.
 """
@@ -29,35 +29,24 @@ def _centre(a: np.ndarray, size: int) -> np.ndarray:
     return a[y : y + size, x : x + size]
 
 
-def prior_self_check(prior: Prior, colour_maps: list[np.ndarray], scale: int) -> dict | None:
-    """``{"prior_db", "bicubic_db", "texels", "use_prior"}`` from the colour maps (H, W, C)
-    as stored (sRGB), or None when no map is at least ``4 * scale`` texels a side (nothing to
+def prior_self_check(prior: Prior, colour_map: np.ndarray, scale: int) -> dict | None:
+    """``{"prior_db", "bicubic_db", "texels", "use_prior"}`` for one colour map (H, W, C) as
+    stored (sRGB), or None when it is not at least ``4 * scale`` texels a side (nothing to
     check on: the prior is used, as the paper does)."""
-    se_p = se_b = 0.0
-    n = 0
-    for m in colour_maps:
-        rgb = _centre(np.asarray(m, dtype=np.float32)[..., :3], CROP)
-        if min(rgb.shape[:2]) < 4 * scale:
-            continue
-        small = degrade_image(rgb, scale)
-        up_p = upscale_map(prior, small, "colour", scale)
-        up_b = bicubic_map(small, "colour", scale)
-        h = min(rgb.shape[0], up_p.shape[0])
-        w = min(rgb.shape[1], up_p.shape[1])
-        ref = rgb[:h, :w]
-        se_p += float(((up_p[:h, :w, :3] - ref) ** 2).sum())
-        se_b += float(((up_b[:h, :w, :3] - ref) ** 2).sum())
-        n += ref.size
-    if n == 0:
+    rgb = _centre(np.asarray(colour_map, dtype=np.float32)[..., :3], CROP)
+    if min(rgb.shape[:2]) < 4 * scale:
         return None
+    small = degrade_image(rgb, scale)
+    up_p = upscale_map(prior, small, "colour", scale)
+    up_b = bicubic_map(small, "colour", scale)
+    h = min(rgb.shape[0], up_p.shape[0])
+    w = min(rgb.shape[1], up_p.shape[1])
+    ref = rgb[:h, :w]
+    n = ref.size
 
-    def db(se: float) -> float:
+    def db(up: np.ndarray) -> float:
+        se = float(((up[:h, :w, :3] - ref) ** 2).sum())
         return 100.0 if se <= 0 else 10.0 * math.log10(n / se)
 
-    p, b = db(se_p), db(se_b)
-    return {
-        "prior_db": round(p, 3),
-        "bicubic_db": round(b, 3),
-        "texels": n // 3,
-        "use_prior": p > b,
-    }
+    p, b = db(up_p), db(up_b)
+    return {"prior_db": round(p, 3), "bicubic_db": round(b, 3), "texels": h * w, "use_prior": p > b}
