@@ -414,8 +414,9 @@ def optimize_pbrsr(
     hr_sizes = {i: (int(init_maps[i].shape[0]), int(init_maps[i].shape[1])) for i in images}
     groups = {i: map_groups(roles[i], int(init_maps[i].shape[2]), config) for i in images}
     rates = {i: channel_lr(groups[i], int(init_maps[i].shape[2]), config) for i in images}
-    # maps whose every rate is 0 (map_lr) keep their init: rendered, never differentiated
-    trained = [i for i in images if bool(rates[i].any())]
+    # maps whose every rate is 0 (map_lr) keep their init: rendered, never differentiated;
+    # with 0 iterations nothing is optimised and no pseudo-GT is made
+    trained = [i for i in images if bool(rates[i].any())] if config.iterations else []
 
     def rasterize(c):
         return raster.rasterize(mesh, c).to(device)
@@ -476,7 +477,7 @@ def optimize_pbrsr(
     targets: list[np.ndarray] = []
     with torch.no_grad():
         if not trained:
-            pass  # nothing to optimise: no targets
+            pass  # nothing to optimise: no targets, no prior calls
         elif reference_maps is not None:
             ref = {**static, **{i: t.to(device, torch.float32) for i, t in reference_maps.items()}}
             for k in range(n_views):
