@@ -140,7 +140,8 @@ def _bad_cases(tmp_path: Path) -> list[tuple[str, bytes, str | dict | None, int,
     bare = make_quad_asset(tmp_path / "bare.glb", maps={}).read_bytes()
     return [
         ("empty", b"", None, 400, "invalid-asset"),
-        ("random bytes", os.urandom(4096), None, 415, "unsupported-asset"),
+        # a NUL first: random bytes that happen to start with "{" would be sniffed as glTF JSON
+        ("random bytes", b"\x00" + os.urandom(4095), None, 415, "unsupported-asset"),
         ("truncated glb", glb[: len(glb) // 2], None, 400, "invalid-asset"),
         ("json that is not gltf", b'{"hello": 1}', None, 400, None),
         ("options not json", glb, "{scale: 4", 422, "invalid-options"),
