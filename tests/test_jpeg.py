@@ -67,7 +67,6 @@ def test_tables_of_our_own_writer_and_of_pillow():
 
 def test_files_it_cannot_model_give_none():
     img = _texture()
-    assert quant_tables(_pil_jpeg(img, 80, subsampling=2)) is None  # 4:2:0 chroma
     assert quant_tables(encode_image(img, 8, "png")) is None
     data = encode_image(img, 8, "jpeg")
     for cut in (2, 20, 100):  # truncated before the frame: no crash, no tables
@@ -87,6 +86,27 @@ def test_deblocking_brings_the_pixels_closer_to_what_was_compressed(quality):
     assert np.isfinite(out).all() and out.min() >= 0.0 and out.max() <= 1.0
     # measured on this texture: +2.2 dB at quality 50, +3.4 dB at 95
     assert _psnr(out, img) > _psnr(decoded, img) + 1.0
+
+
+@pytest.mark.parametrize("subsampling", [1, 2])  # 4:2:2, 4:2:0
+def test_subsampled_chroma_stays_as_decoded_and_the_luma_is_deblocked(subsampling):
+    img = _texture()
+    data = _pil_jpeg(img, 50, subsampling=subsampling)
+    q = quant_tables(data)
+    assert q is not None and q.full == (True, False, False)
+    decoded = read_image(data, "s.jpg")[0]
+    out = deblock(decoded, q)
+    assert np.isfinite(out).all() and out.min() >= 0.0 and out.max() <= 1.0
+
+    def ycc(a):
+        return a.astype(np.float64) @ np.array(
+            [[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]]
+        ).T
+
+    inside = (out > 0.002).all(-1) & (out < 0.998).all(-1)  # no clamping at 0 or 1
+    np.testing.assert_allclose(ycc(out)[inside][:, 1:], ycc(decoded)[inside][:, 1:], atol=1e-5)
+    assert _psnr(ycc(out)[..., 0], ycc(img)[..., 0]) > _psnr(ycc(decoded)[..., 0], ycc(img)[..., 0])
+    assert _psnr(out, img) > _psnr(decoded, img)
 
 
 def test_deblocking_grey_and_odd_sizes():

@@ -5,15 +5,20 @@ was DCT-transformed and every coefficient rounded to a multiple of the file's qu
 table. PBR-SR holds its HR maps to their LR maps (the PBR-consistency term), so with JPEG
 inputs it would reproduce that rounding noise at four times the size.
 
-:func:`quant_tables` reads the tables from the file (DQT and SOF markers); it returns
-``None`` for files it cannot model exactly: chroma subsampled (not 4:4:4), Adobe-transformed
+:func:`quant_tables` reads the tables and each component's sampling factors from the file
+(DQT and SOF markers); it returns ``None`` for files it cannot model: Adobe-transformed
 (RGB/CMYK stored without YCbCr), or not 1 or 3 components. :func:`deblock` is re-application
 of JPEG at shifted block grids (Nosratinia, "Enhancement of JPEG-compressed images by
 re-application of JPEG", 2001): the image is compressed again with the file's own tables on
-each of the 64 grid offsets and the 64 results are averaged. On the cabinet's three x4 LR maps
-(written by ``pbrsr degrade`` at quality 95) it brings the decoded pixels 1.0-1.4 dB closer to
-the values that were compressed, in 0.1 s per 256² map; its effect on PBR-SR is in the README
-("Why some maps fall below bicubic").
+each of the 64 grid offsets and the 64 results are averaged. Components stored at full
+resolution take part; subsampled chroma (4:2:0, 4:2:2: the decoder interpolated it, so its
+8x8 grid is not the image's) stays as decoded, so those files get their luma deblocked. On
+the cabinet's three x4 LR maps (written by ``pbrsr degrade`` at quality 95) it brings the
+decoded pixels 1.0-1.4 dB closer to the values that were compressed, in 0.1 s per 256² map;
+its effect on PBR-SR is in the README ("Why some maps fall below bicubic"). The same maps
+written 4:2:0 at quality 85 gain only 0.02-0.5 dB (normal 30.93 -> 31.02, albedo 35.68 ->
+36.16, ORM 28.82 -> 28.87 dB against the values compressed): there the error is mostly the
+subsampled chroma, which this does not restore.
 """
 
 from __future__ import annotations
@@ -43,9 +48,15 @@ _RGB_TO_YCC = torch.tensor(
 @dataclass(frozen=True)
 class JpegQuant:
     """The quantisation table (8x8, natural order) of each colour component (Y, Cb, Cr or
-    one grey component) of a 4:4:4 JPEG file."""
+    one grey component) of a JPEG file, and whether the component is stored at full
+    resolution (its sampling factors are the frame's largest; all True for 4:4:4)."""
 
     tables: tuple[np.ndarray, ...]
+    full: tuple[bool, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not self.full:
+            object.__setattr__(self, "full", (True,) * len(self.tables))
 
 
 def quant_tables(data: bytes) -> JpegQuant | None:
@@ -87,11 +98,13 @@ def quant_tables(data: bytes) -> JpegQuant | None:
         elif marker == 0xDA:  # start of scan: every table and the frame are known
             break
         i += 2 + length
-    if not comps or len(comps) not in (1, 3) or len({s for s, _ in comps}) != 1:
-        return None  # no frame, other component counts, or chroma subsampled
+    if not comps or len(comps) not in (1, 3):
+        return None  # no frame, or other component counts
     if any(t not in dqt or (dqt[t] <= 0).any() for _, t in comps):
         return None
-    return JpegQuant(tuple(dqt[t] for _, t in comps))
+    h_max, v_max = max(s >> 4 for s, _ in comps), max(s & 15 for s, _ in comps)
+    full = tuple((s >> 4, s & 15) == (h_max, v_max) for s, _ in comps)
+    return JpegQuant(tuple(dqt[t] for _, t in comps), full)
 
 
 def _dct_matrix() -> torch.Tensor:
@@ -102,20 +115,22 @@ def _dct_matrix() -> torch.Tensor:
 
 
 def deblock(pixels: np.ndarray, quant: JpegQuant) -> np.ndarray:
-    """(H, W, C) float32 [0, 1] as decoded -> the same with the block artefacts reduced.
-    Channels beyond the file's components (expanded grey, alpha) follow the first / stay."""
+    """(H, W, C) float32 [0, 1] as decoded -> the same with the block artefacts reduced in
+    the components stored at full resolution. Channels beyond the file's components
+    (expanded grey, alpha) follow the first / stay."""
     arr = np.asarray(pixels, dtype=np.float32)
     h, w, c = arr.shape
     ncomp = len(quant.tables)
-    if c < ncomp:
+    if c < ncomp or not any(quant.full):
         return arr.copy()
+    sel = [k for k in range(ncomp) if quant.full[k]]
     x = torch.from_numpy(arr[..., :ncomp].astype(np.float64)) * 255.0
     if ncomp == 3:
         x = x @ _RGB_TO_YCC.T
     x[..., 0] -= 128.0  # level shift of Y (Cb and Cr are centred by the matrix)
-    q = torch.from_numpy(np.stack(quant.tables))[:, None, None]  # (K, 1, 1, 8, 8)
+    q = torch.from_numpy(np.stack([quant.tables[k] for k in sel]))[:, None, None]  # (K,1,1,8,8)
     d = _dct_matrix()
-    img = x.permute(2, 0, 1)[None]  # (1, K, H, W)
+    img = x.permute(2, 0, 1)[None, sel]  # (1, K, H, W): the full-resolution components
     acc = torch.zeros_like(img[0])
     for dy in range(8):
         for dx in range(8):
@@ -127,7 +142,8 @@ def deblock(pixels: np.ndarray, quant: JpegQuant) -> np.ndarray:
             back = d.T @ (torch.round(coef / q) * q) @ d
             back = back.transpose(2, 3).reshape(k, ph, pw)
             acc += back[:, dy : dy + h, dx : dx + w]
-    y = (acc / 64.0).permute(1, 2, 0)
+    y = x.clone()
+    y[..., sel] = (acc / 64.0).permute(1, 2, 0)
     y[..., 0] += 128.0
     if ncomp == 3:
         y = y @ torch.linalg.inv(_RGB_TO_YCC).T
