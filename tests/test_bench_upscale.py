@@ -48,7 +48,7 @@ def _row(asset, method, render, albedo, run_s):
 
 
 def test_summary_gains_worst_map_and_fast_share():
-    from pbrsr_core.bench.upscale import summary, summary_table
+    from pbrsr_core.bench.upscale import markdown_table, summary, summary_table
 
     rows = [
         _row("a", "bicubic", 28.0, 27.0, 1.0),
@@ -60,12 +60,18 @@ def test_summary_gains_worst_map_and_fast_share():
         _row("procedural", "bicubic", 20.0, 20.0, 1.0),  # left out of the means
         _row("procedural", "balanced", 30.0, 10.0, 1.0),
     ]
+    rows[0]["maps.emissive.psnr"], rows[1]["maps.emissive.psnr"] = 40.0, 39.0
     s = {r["method"]: r for r in summary(rows)}
     assert set(s) == {"fast", "balanced"}
+    assert s["fast"]["worst_map_db"] == -1.0 and s["fast"]["worst_map_at"] == "a emissive"
+    del rows[1]["maps.emissive.psnr"]
+    s = {r["method"]: r for r in summary(rows)}
     assert s["balanced"]["render_gain_db"] == 0.8 and s["fast"]["render_gain_db"] == 0.3
     assert s["balanced"]["worst_map_db"] == -0.2 and s["balanced"]["worst_map_at"] == "a albedo"
     assert s["fast"]["worst_map_db"] == 0.0  # normals equal, albedo above
     assert s["balanced"]["mean_run_s"] == 40.0 and s["balanced"]["max_peak_mib"] == 4000
+    table = markdown_table(rows)
+    assert "| occlusion | emissive |" in table and "| 27.50 | - | - | 30.00 | - | - |" in table
     text = summary_table(rows)
     assert (
         "fast keeps 37 % of balanced's mean render-PSNR gain in 25 % of its mean run time" in text

@@ -32,7 +32,7 @@ from ..scene import procedural_light, rotated_procedural_light
 SHARED_ASSETS = Path(__file__).resolve().parents[2].parent / "shared" / "assets"
 DEFAULT_METHODS = ("bicubic", "direct", "fast", "balanced")
 ENVMAPS = ("studio_small_03_1k.hdr", "venice_sunset_1k.hdr")
-MAP_COLUMNS = ("albedo", "roughness", "metallic", "normal")
+MAP_COLUMNS = ("albedo", "roughness", "metallic", "normal", "occlusion", "emissive")
 
 
 def find_assets(shared: Path, names: list[str] | None) -> list[tuple[str, Path]]:
@@ -196,8 +196,13 @@ def _write_results(out_dir: Path, rows: list[dict], meta: dict) -> None:
     plot(rows, out_dir / "speed_vs_error.png")
 
 
+def _map_cell(row: dict, m: str) -> str:
+    v = row.get(f"maps.{m}.psnr")
+    return "-" if v is None else f"{v:.2f}"
+
+
 def _row_text(row: dict) -> str:
-    maps = " ".join(f"{m}={row.get(f'maps.{m}.psnr', float('nan')):.2f}" for m in MAP_COLUMNS)
+    maps = " ".join(f"{m}={_map_cell(row, m)}" for m in MAP_COLUMNS if f"maps.{m}.psnr" in row)
     return (
         f"{row['method']:<9} {row['run_s']:8.1f}s {row['peak_rss_mib']:7.0f}MiB "
         f"render={row.get('render.psnr', float('nan')):.2f} {maps}"
@@ -218,7 +223,7 @@ def markdown_table(rows: list[dict]) -> str:
             f"{r['peak_rss_mib']:.0f}",
             f"{r.get('render.psnr', float('nan')):.2f}",
         ]
-        cells += [f"{r.get(f'maps.{m}.psnr', float('nan')):.2f}" for m in MAP_COLUMNS]
+        cells += [_map_cell(r, m) for m in MAP_COLUMNS]
         lines.append("| " + " | ".join(cells) + " |")
     return head + "\n".join(lines) + "\n"
 
@@ -226,7 +231,8 @@ def markdown_table(rows: list[dict]) -> str:
 def summary(rows: list[dict], exclude: tuple[str, ...] = ("procedural",)) -> list[dict]:
     """Per method, over the assets that also have a bicubic row (``exclude`` left out): mean
     render PSNR gain over bicubic, the worst map PSNR difference to bicubic (any asset, any
-    map), mean run seconds and the largest peak memory; the targets are stated on these."""
+    map the two rows both score, occlusion and emissive included), mean run seconds and the
+    largest peak memory; the targets are stated on these."""
     bic = {r["asset"]: r for r in rows if r["method"] == "bicubic" and r["asset"] not in exclude}
     out = []
     for method in dict.fromkeys(r["method"] for r in rows):
@@ -236,10 +242,10 @@ def summary(rows: list[dict], exclude: tuple[str, ...] = ("procedural",)) -> lis
         gains = [r["render.psnr"] - bic[r["asset"]]["render.psnr"] for r in mine]
         worst, worst_at = float("inf"), ""
         for r in mine:
-            for m in MAP_COLUMNS:
-                a, b = r.get(f"maps.{m}.psnr"), bic[r["asset"]].get(f"maps.{m}.psnr")
-                if a is not None and b is not None and a - b < worst:
-                    worst, worst_at = a - b, f"{r['asset']} {m}"
+            ref = bic[r["asset"]]
+            for key in (k for k in r if k.startswith("maps.") and k.endswith(".psnr")):
+                if key in ref and r[key] - ref[key] < worst:
+                    worst, worst_at = r[key] - ref[key], f"{r['asset']} {key[5:-5]}"
         out.append(
             {
                 "method": method,
