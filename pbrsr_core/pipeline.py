@@ -117,7 +117,7 @@ def _upscale_maps(
                 out[img.index] = upscale_map(prior, img.pixels, kind_of(img.roles), s)
         return out, {}
 
-    # pbrsr: init = prior on colour maps, bicubic on the rest (paper 3.1)
+    # pbrsr: init = prior on the colour maps, bicubic on the rest (paper 3.1)
     from .asset.jpeg import deblock
     from .optim.pbrsr import optimize_pbrsr
     from .optim.presets import get_preset
@@ -150,7 +150,8 @@ def _upscale_maps(
                 if img.index not in by_prior:
                     continue
                 c = prior_self_check(prior, lr_pixels[img.index], s)
-                checks.append({"image": img.name, "index": img.index, **(c or {})})
+                too_small = {"use_prior": True, "note": f"under {4 * s} texels a side"}
+                checks.append({"image": img.name, "index": img.index, **(c or too_small)})
                 if c is not None and not c["use_prior"]:
                     by_prior.discard(img.index)
         if not by_prior:

@@ -131,3 +131,18 @@ def test_each_colour_map_is_checked_on_its_own(tmp_path, monkeypatch):
     report = upscale_asset(asset, tmp_path / "b", UpscaleOptions(preset="fast", prior="selective"))
     assert [c["image"] for c in report["prior_check"]] == ["base_color.png"]
     assert report["prior_init"] == ["base_color.png"]
+
+
+def test_a_map_too_small_to_check_is_initialised_by_the_prior(tmp_path, monkeypatch):
+    import pbrsr_core.pipeline as pipeline
+
+    real = pipeline.load_prior
+    monkeypatch.setattr(
+        pipeline, "load_prior", lambda n, d: BlurringPrior() if n == "blurring" else real(n, d)
+    )
+    monkeypatch.setitem(presets.PRESETS, "fast", presets.FAST.with_(iterations=1))
+    asset = make_quad_asset(tmp_path / "q.gltf", {"base_color": _texture(8)})
+    report = upscale_asset(asset, tmp_path / "o", UpscaleOptions(preset="fast", prior="blurring"))
+    (check,) = report["prior_check"]
+    assert check["use_prior"] and "prior_db" not in check and "16 texels" in check["note"]
+    assert report["prior_init"] == ["base_color.png"] and report["prior_used"] == "blurring"
