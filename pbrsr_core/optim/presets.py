@@ -54,16 +54,17 @@ class PbrsrConfig:
     pixels); 1.0 = one pixel per HR texel."""
     # --- prior ---------------------------------------------------------------------------
     check_prior: bool = False
-    """Check the prior against bicubic on the asset's own colour maps one scale down
-    (prior/selfcheck.py) and use bicubic for the init and the pseudo-GT when it loses. The
-    paper always uses its prior."""
+    """Check the prior against bicubic on each colour map of ``prior_maps`` one scale down
+    (prior/selfcheck.py): a map where it loses starts from bicubic, and when it loses on
+    every map the pseudo-GT uses bicubic too. The paper always uses its prior."""
     prior_maps: tuple[str, ...] = ("base_color", "emissive")
     """Colour maps the prior initialises (the paper: albedo and emissive); every other map
     starts from bicubic interpolation."""
     deblock_jpeg: bool = False
-    """LR maps stored as JPEG (4:4:4) have their block artefacts reduced with the file's own
-    quantisation tables before they become the init and the consistency target
-    (asset/jpeg.py). The paper takes the LR maps as they are."""
+    """LR maps stored as JPEG have their block artefacts reduced with the file's own
+    quantisation tables (every component of 4:4:4 files, the luma of chroma-subsampled ones)
+    before they become the init and the consistency target (asset/jpeg.py). The paper takes
+    the LR maps as they are."""
     # --- pseudo-GT -------------------------------------------------------------------------
     lr_render: Literal["supersample", "raster"] = "supersample"
     """How the LR render handed to the prior is made: area-averaged from the HR render
