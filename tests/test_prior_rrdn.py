@@ -11,7 +11,7 @@ import torch.nn.functional as F
 
 from pbrsr_core.errors import InvalidOptions, PriorUnavailable, UnprocessableAsset
 from pbrsr_core.prior import rrdn, tfjs
-from pbrsr_core.prior.base import PRECISION_ENV, native_bf16
+from pbrsr_core.prior.base import PRECISION_ENV, cpu_has_bf16_units, native_bf16
 from pbrsr_core.prior.registry import clear_cache, load_prior
 
 PKG = rrdn.package_dir()
@@ -180,3 +180,17 @@ def test_bfloat16_stays_close_to_float32(cache, monkeypatch):
     monkeypatch.setenv(PRECISION_ENV, "half")
     with pytest.raises(InvalidOptions, match="PBRSR_PRIOR_PRECISION"):
         prior.upscale(x, 4)
+
+
+def test_auto_precision_follows_the_cpus_bf16_units_not_onednns_emulation(cache, monkeypatch):
+    assert not cpu_has_bf16_units({})
+    assert not cpu_has_bf16_units({"avx512_f": True, "avx512_bw": True, "avx512_vnni": True})
+    assert cpu_has_bf16_units({"avx512_f": True, "avx512_bf16": True})
+    assert cpu_has_bf16_units({"amx_tile": True, "amx_bf16": True})
+    prior = load_prior("rrdn-thick", "cpu")
+    monkeypatch.setenv(PRECISION_ENV, "auto")
+    # an AVX512 CPU without BF16 (oneDNN emulates bfloat16 there, 3.7x slower): float32
+    monkeypatch.setattr(torch.cpu, "get_capabilities", lambda: {"avx512_f": True})
+    assert not prior.uses_bf16() and prior.describe()["precision"] == "fp32"
+    monkeypatch.setattr(torch.cpu, "get_capabilities", lambda: {"avx512_bf16": True})
+    assert prior.uses_bf16() and prior.describe()["precision"] == "bf16"
