@@ -148,7 +148,11 @@ def read_weights(model_dir: Path, model_json: dict) -> dict[str, np.ndarray]:
 class TfjsGraphNet(nn.Module):
     """A torch module that runs a parsed TF.js graph on NCHW tensors. ``forward`` takes
     (N, 3, H, W) and returns the output layer's tensor; intermediate tensors are freed after
-    their last use, so peak memory stays near the widest concatenation."""
+    their last use, so peak memory stays near the widest concatenation.
+
+    Activations run channels-last (NHWC, oneDNN's and cuDNN's native layout): rrdn-thick at x4
+    on a 256² input took 4.17 s instead of 5.28 s in NCHW on a 2-core AVX512 CPU, with the
+    same output to 1e-6. The result is returned in the ordinary (contiguous) layout."""
 
     def __init__(self, ops: list[dict], conv_shapes: dict[str, tuple[int, int, int]]):
         super().__init__()
@@ -165,6 +169,7 @@ class TfjsGraphNet(nn.Module):
         ]
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = x.contiguous(memory_format=torch.channels_last)
         vals: dict[str, torch.Tensor] = {}
         for i, op in enumerate(self.ops):
             kind, ins = op["op"], [vals[s] for s in op["inputs"]]
@@ -194,7 +199,7 @@ class TfjsGraphNet(nn.Module):
             for src in self._free_after[i]:
                 del vals[src]
             vals[op["name"]] = y
-        return vals[self.ops[-1]["name"]]
+        return vals[self.ops[-1]["name"]].contiguous()
 
 
 def convert(model_dir: Path, out_file: Path, *, source: str) -> None:
@@ -248,4 +253,5 @@ def load_converted(path: Path, device: torch.device | str = "cpu") -> TfjsGraphN
     }
     net = TfjsGraphNet(ops, {k: (v[0], v[1], v[2]) for k, v in shapes.items()})
     net.convs.load_state_dict({k: v for k, v in state.items()}, strict=True)
-    return net.eval().requires_grad_(False).to(device)
+    net = net.eval().requires_grad_(False).to(device)
+    return net.to(memory_format=torch.channels_last)
