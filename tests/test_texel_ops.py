@@ -215,3 +215,29 @@ def test_accumulate_map_grad_equals_autograd_of_tv_and_consistency():
         tv = accumulate_map_grad_(t, grad, groups, 0.5, pooled.grad, s, texels, channels)
         assert abs(tv - float(ref_tv.detach())) < 1e-12
         assert torch.allclose(grad, want, atol=1e-12)
+
+
+@pytest.mark.parametrize("shape", [(1, 5, 3), (5, 1, 1), (1, 1, 2), (7, 9, 4), (16, 12, 3)])
+def test_accumulate_map_grad_kernel_matches_torch_path_on_edges_float32(shape):
+    """The fused kernel (contiguous CPU gradient) against the plain torch path (the same call
+    with a non-contiguous gradient) on maps one texel wide or high and several channel counts,
+    scale 1 for odd sizes."""
+    h, w, c = shape
+    s = 2 if h % 2 == 0 and w % 2 == 0 else 1
+    g = torch.Generator().manual_seed(h * 100 + w * 10 + c)
+    t = torch.rand(h, w, c, generator=g)
+    t[0, 0, 0] = t[0, -1, 0]  # equal neighbours: sign 0
+    render_grad = torch.randn(h, w, c, generator=g)
+    render_grad.view(-1)[-1] = float("inf")
+    pool_grad = torch.randn(h // s, w // s, c, generator=g)
+    groups = [MapGroup("base_color", tuple(range(c)))]
+    texels = torch.rand(h, w, generator=g) > 0.2
+    channels = torch.ones(c, dtype=torch.bool)
+    channels[-1] = c == 1
+    fused = render_grad.clone()
+    plain = render_grad.clone().permute(1, 0, 2).contiguous().permute(1, 0, 2)
+    tv_f = accumulate_map_grad_(t, fused, groups, 0.5, pool_grad, s, texels, channels)
+    tv_p = accumulate_map_grad_(t, plain, groups, 0.5, pool_grad, s, texels, channels)
+    assert abs(tv_f - tv_p) <= 1e-6 * max(1.0, abs(tv_p))
+    assert torch.isfinite(fused).all()
+    assert torch.allclose(fused, plain, atol=1e-6)
