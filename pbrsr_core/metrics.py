@@ -51,7 +51,8 @@ def ssim(pred: np.ndarray, gt: np.ndarray) -> float:
     return float(ssim_per_channel(p, g).mean())
 
 
-def _images_for(asset: Asset, role: str) -> list[int]:
+def images_for(asset: Asset, role: str) -> list[int]:
+    """Indices of the images any material uses in ``role`` (each once, in material order)."""
     seen: list[int] = []
     for m in asset.materials:
         ref = m.texture(role)  # type: ignore[arg-type]
@@ -67,7 +68,7 @@ def map_metrics(pred: Asset, gt: Asset) -> dict[str, float]:
     masks = coverage_masks(gt)
     out: dict[str, float] = {}
     for name, (role, ch) in MAP_CHANNELS.items():
-        ids = _images_for(gt, role)
+        ids = images_for(gt, role)
         if not ids:
             continue
         ps, ss, ws = [], [], []

@@ -47,6 +47,29 @@ def find_assets(shared: Path, names: list[str] | None) -> list[tuple[str, Path]]
     return out
 
 
+def bench_assets(
+    work: Path,
+    include_procedural: bool,
+    procedural_size: int,
+    shared: Path,
+    names: list[str] | None,
+    say,
+) -> list[tuple[str, Path]]:
+    """(name, ground-truth file) of the assets a benchmark runs on: the procedural demo asset
+    (written under ``work``) and the shared assets (all, or those ``names``), saying so when
+    the shared folder is absent."""
+    todo: list[tuple[str, Path]] = []
+    if include_procedural:
+        todo.append(
+            ("procedural", make_demo_asset(work / "procedural" / "demo.glb", size=procedural_size))
+        )
+    if shared.is_dir():
+        todo.extend(find_assets(shared, names))
+    else:
+        say(f"shared assets folder {shared} not present: procedural asset only")
+    return todo
+
+
 def eval_lights(shared: Path) -> tuple[list[EnvLight], list[str]]:
     env_dir = shared / "envmaps"
     paths = [env_dir / n for n in ENVMAPS if (env_dir / n).is_file()]
@@ -127,19 +150,7 @@ def run(
         "lr_format": lr_format,
     }
     try:
-        todo: list[tuple[str, Path]] = []
-        if include_procedural:
-            todo.append(
-                (
-                    "procedural",
-                    make_demo_asset(work_root / "procedural" / "demo.glb", size=procedural_size),
-                )
-            )
-        found = find_assets(shared, assets)
-        if shared.is_dir():
-            todo.extend(found)
-        else:
-            say(f"shared assets folder {shared} not present: procedural asset only")
+        todo = bench_assets(work_root, include_procedural, procedural_size, shared, assets, say)
         for name, gt_path in todo:
             say(f"== {name}: degrade x{scale}")
             lr_path = degrade_asset(

@@ -233,3 +233,31 @@ def service_cmd(
 
 def register(app: typer.Typer) -> None:
     app.add_typer(bench_app, name="bench")
+
+
+@bench_app.command("headroom")
+def headroom_cmd(
+    out: Path = typer.Option(Path("bench-out/headroom"), "--out", "-o", help="Output directory."),
+    asset: list[str] = typer.Option(  # noqa: B006
+        [], "--asset", "-a", help="Shared asset folder name (repeatable); default: all."
+    ),
+    scale: int = typer.Option(4, help="Upscaling factor (the LR input is degraded by it)."),
+    eval_res: int = typer.Option(256, help="Render size of the evaluation views."),
+    eval_views: int = typer.Option(240, help="Evaluation views (the paper's 240)."),
+    procedural: bool = typer.Option(True, help="Include the procedural demo asset."),
+) -> None:
+    """Where the render error lives: render PSNR of bicubic maps, and with each map replaced
+    by the ground truth's (the most an upscaler of that map alone can add)."""
+    from ..bench.headroom import markdown_table, run
+
+    rows = run(
+        out_dir=out,
+        assets=asset or None,
+        scale=scale,
+        eval_res=eval_res,
+        eval_views=eval_views,
+        include_procedural=procedural,
+        say=lambda m: typer.echo(m, err=True),
+    )
+    typer.echo(markdown_table(rows))
+    typer.echo(f"wrote {out / 'headroom.json'} and {out / 'headroom.png'}")
