@@ -61,10 +61,15 @@ class SsimTarget:
             self.my, self.eyy = self._blur(torch.cat([self.y, self.y * self.y], 1)).split(c, 1)
 
     def _blur(self, stack: torch.Tensor) -> torch.Tensor:
-        """Separable Gaussian of every channel of (N, K, H, W), "valid" region only."""
+        """Separable Gaussian of every channel of (N, K, H, W), "valid" region only.
+
+        The depthwise convolutions run channels-last: on a 9-channel 512² stack they took a
+        third of the NCHW time on a 2-core AVX512 CPU (oneDNN's depthwise kernels vectorise
+        over channels)."""
         k = stack.shape[1]
         kx = self.g.view(1, 1, 1, self.size).expand(k, 1, 1, self.size)
         ky = self.g.view(1, 1, self.size, 1).expand(k, 1, self.size, 1)
+        stack = stack.contiguous(memory_format=torch.channels_last)
         return F.conv2d(F.conv2d(stack, kx, groups=k), ky, groups=k)
 
     def per_channel(self, x: torch.Tensor) -> torch.Tensor:
