@@ -358,3 +358,63 @@ def test_coverage_views_on_a_sphere_and_progress_cancel():
             device=CPU,
             progress=cancel,
         )
+
+
+def test_covered_box_in_lr_pixels_with_context():
+    from pbrsr_core.optim.pbrsr import covered_box
+
+    assert covered_box(torch.zeros(0, dtype=torch.long), (16, 16), 4, context=16) is None
+    pix = torch.tensor([5 * 16 + 7])  # row 5, column 7 of a 16 x 16 image
+    assert covered_box(pix, (16, 16), 4, context=0) == (1, 2, 1, 2)
+    assert covered_box(pix, (16, 16), 4, context=1) == (0, 3, 0, 3)
+    assert covered_box(pix, (16, 16), 4, context=100) == (0, 4, 0, 4)
+    corners = torch.tensor([0, 16 * 16 - 1])
+    assert covered_box(corners, (16, 16), 1, context=0) == (0, 16, 0, 16)
+
+
+class _ShapeRecordingPrior(_CountingPrior):
+    def upscale(self, x, scale):
+        self.shapes = [*getattr(self, "shapes", []), tuple(x.shape[2:])]
+        return super().upscale(x, scale)
+
+
+@pytest.mark.parametrize("lr_render", ["supersample", "raster"])
+def test_prior_sees_only_the_covered_box_and_covered_pixels_keep_their_target(
+    tmp_path, monkeypatch, lr_render
+):
+    """The pseudo-GT made from the box around the covered pixels equals the one made from the
+    whole LR render at every covered pixel (bicubic prior: its support is 2 LR pixels, well
+    inside the context), and the prior is run on fewer pixels."""
+    import numpy as np
+
+    from pbrsr_core.optim import pbrsr, pseudo_gt
+    from pbrsr_core.render.raster import coverage
+
+    s = 2
+    lr = _down(_pattern(32, 32), s)
+    mesh, mats = _quad_scene()
+    camera = cam.look_at((0.0, 0.0, 8.0), fov_deg=30.0, resolution=(128, 128))
+    targets = {}
+    assert pbrsr.PRIOR_CONTEXT == 16
+    for context in (16, 10**6):
+        monkeypatch.setattr(pbrsr, "PRIOR_CONTEXT", context)
+        pseudo_gt.MEMORY_CACHE.clear()
+        prior = _ShapeRecordingPrior()
+        cache = tmp_path / f"c{context}"
+        optimize_pbrsr(
+            mesh, mats, {0: lr}, {0: _bicubic(lr, s)}, {0: {"base_color"}}, prior=prior,
+            scale=s, light=EnvLight.uniform(1.0), device=CPU, cameras=[camera],
+            config=_cfg(iterations=1, lr_render=lr_render, target="detail"), cache_dir=cache,
+        )
+        (f,) = cache.glob("*.npy")
+        targets[context] = np.load(f).reshape(-1, 3)
+        (shape,) = prior.shapes
+        if context == 16:
+            assert shape[0] < 64 and shape[1] < 64  # a crop of the 64 x 64 LR render
+        else:
+            assert shape == (64, 64)
+    tri, _, _ = coverage(mesh, camera)
+    covered = (tri >= 0).numpy()
+    assert 0.02 < covered.mean() < 0.5
+    cropped, full = targets[16], targets[10**6]
+    np.testing.assert_array_equal(cropped[covered], full[covered])

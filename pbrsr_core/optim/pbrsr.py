@@ -190,9 +190,35 @@ class GBufferStore:
 
 # ---------------------------------------------------------------------------------------------
 # Result
+PRIOR_CONTEXT = 16
+"""LR pixels of context the prior gets around a view's covered pixels (the background beyond
+is not run through it). RRDN's output changes < 1e-6 beyond 14 LR pixels from a cut edge
+(prior/rrdn.py)."""
+
+
+def covered_box(pix: torch.Tensor, resolution, step: int, context: int):
+    """The box (y0, y1, x0, x1) of LR pixels (``step`` x ``step`` blocks of a ``resolution``
+    (H, W) image) that hold a covered pixel of ``pix`` (flat indices), widened by ``context``
+    and clipped to the LR image; None when no pixel is covered."""
+    if pix.numel() == 0:
+        return None
+    h, w = int(resolution[0]), int(resolution[1])
+    rows, cols = pix // w, pix % w
+    lh, lw = h // step, w // step
+    y0 = max(int(rows.min()) // step - context, 0)
+    x0 = max(int(cols.min()) // step - context, 0)
+    y1 = min(int(rows.max()) // step + 1 + context, lh)
+    x1 = min(int(cols.max()) // step + 1 + context, lw)
+    if y0 >= y1 or x0 >= x1:
+        return None
+    return y0, y1, x0, x1
+
+
 def pseudo_gt_view(k, c, gbs, tex0, materials, light, prior, scale, config, rasterize, shade):
     """The pseudo-GT of training view ``k`` (camera ``c``): an LR render of the init maps,
-    upscaled by the prior -> (sH, sW, 3) sRGB.
+    upscaled by the prior -> (sH, sW, 3) sRGB. The prior sees only the box around the view's
+    covered pixels (:func:`covered_box`); the background beyond, which no loss reads, is
+    bicubic.
 
     ``config.lr_render``: "supersample" renders the init maps at the HR resolution and
     area-averages s x s pixels (an antialiased LR render: the HR G-buffer is cached anyway);
@@ -211,15 +237,21 @@ def pseudo_gt_view(k, c, gbs, tex0, materials, light, prior, scale, config, rast
         hr_img = shade.to_image(gb, render_srgb(gb, materials, tex0, light, shade), bg)
     if config.lr_render == "supersample":
         lr_img = F.avg_pool2d(hr_img.permute(2, 0, 1)[None], scale)
+        box = covered_box(gb.pix, (h, w), scale, PRIOR_CONTEXT)
     else:
         lgb = rasterize(vsel.with_resolution(c, (h // scale, w // scale)))
         lr_img = shade.to_image(lgb, render_srgb(lgb, materials, tex0, light, shade), bg)
         lr_img = lr_img.permute(2, 0, 1)[None]
-    up = prior.upscale(lr_img.contiguous(), scale)
+        box = covered_box(lgb.pix, (h // scale, w // scale), 1, PRIOR_CONTEXT)
+    base = F.interpolate(lr_img, scale_factor=scale, mode="bicubic", align_corners=False)
+    up = base.clone()
+    if box is not None:  # the prior where the object is (with context); no pixel beyond is used
+        y0, y1, x0, x1 = box
+        crop = lr_img[..., y0:y1, x0:x1].contiguous()
+        up[..., y0 * scale : y1 * scale, x0 * scale : x1 * scale] = prior.upscale(crop, scale)
     if config.target == "detail":
-        base = F.interpolate(lr_img, scale_factor=scale, mode="bicubic", align_corners=False)
-        up = (hr_img.permute(2, 0, 1)[None] + up - base).clamp(0.0, 1.0)
-    return up[0].permute(1, 2, 0)
+        up = hr_img.permute(2, 0, 1)[None] + up - base
+    return up.clamp(0.0, 1.0)[0].permute(1, 2, 0)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -502,6 +534,7 @@ def optimize_pbrsr(
                 BACKGROUND,
                 config.lr_render,
                 config.target,
+                PRIOR_CONTEXT,
             )
             tex0 = {**static, **init_dev}
             for k, c in enumerate(hr_cams):
@@ -681,8 +714,7 @@ def optimize_pbrsr(
         consistency_psnr=consistency_metrics(),
         render_res=res,
         optimized={
-            i: [g.name for g in groups[i] if bool(rates[i][list(g.channels)].any())]
-            for i in images
+            i: [g.name for g in groups[i] if bool(rates[i][list(g.channels)].any())] for i in images
         },
         seen_masks={i: torch.from_numpy(seen[i] & islands[i]) for i in images},
         config={**config.to_dict(), "views": view_info, "seed": seed, "scale": scale},
