@@ -121,7 +121,7 @@ def _upscale_maps(
     from .asset.jpeg import deblock
     from .optim.pbrsr import optimize_pbrsr
     from .optim.presets import get_preset
-    from .optim.texel_ops import dilate_islands
+    from .optim.texel_ops import pad_update
 
     config = get_preset(options.preset)
     # the LR maps as the method sees them: JPEG block artefacts reduced with the file's own
@@ -157,7 +157,7 @@ def _upscale_maps(
         if not by_prior:
             prior = load_prior("bicubic", device)  # for the pseudo-GT
     with timer("init"):
-        init, lr = {}, {}
+        init, lr, init_encoded = {}, {}, {}
         for n, img in enumerate(images):
             emit(progress, Progress(stage="init", step=n, total=len(images)))
             kind = kind_of(img.roles)
@@ -166,6 +166,7 @@ def _upscale_maps(
                 hr = upscale_map(prior, px, kind, s)
             else:
                 hr = bicubic_map(px, kind, s)
+            init_encoded[img.index] = hr
             init[img.index] = encoded_to_param(torch.from_numpy(hr), kind)
             lr[img.index] = encoded_to_param(torch.from_numpy(px), kind)
     with timer("load_light"):
@@ -193,8 +194,12 @@ def _upscale_maps(
         sizes = {i: tuple(t.shape[:2]) for i, t in result.maps.items()}
         islands = coverage_masks(asset, sizes)
         out = {
-            i: dilate_islands(
-                param_to_encoded(t, kind_of(asset.images[i].roles)), islands[i], 2 * s
+            i: pad_update(
+                param_to_encoded(t, kind_of(asset.images[i].roles)),
+                init_encoded[i],
+                islands[i],
+                2 * s,
+                normal="normal" in asset.images[i].roles,
             )
             for i, t in result.maps.items()
         }

@@ -147,3 +147,38 @@ def test_fibonacci_and_texel_density_rule():
         == 256
     )
     assert math.isfinite(r)
+
+
+def test_pad_update_keeps_the_inputs_padding_and_pads_the_change():
+    from pbrsr_core.optim.texel_ops import pad_update
+
+    rng = np.random.default_rng(3)
+    init = rng.random((12, 12, 3), dtype=np.float32) * 0.5 + 0.25
+    m = np.zeros((12, 12), bool)
+    m[4:8, 4:8] = True  # one island
+    # nothing optimised: the padding the asset had (here: random texels) is kept exactly
+    np.testing.assert_array_equal(pad_update(init.copy(), init, m, 2), init)
+    result = init.copy()
+    result[m] += 0.1  # the optimiser raised every island texel by 0.1
+    out = pad_update(result, init, m, 2)
+    np.testing.assert_array_equal(out[m], result[m])
+    ring = np.zeros_like(m)
+    ring[2:10, 2:10] = True
+    ring &= ~m
+    np.testing.assert_allclose(out[ring], init[ring] + 0.1, atol=1e-6)  # the change, padded
+    beyond = ~(m | ring)
+    np.testing.assert_array_equal(out[beyond], init[beyond])
+    # clipped to [0, 1]; normal maps renormalised where padded
+    assert pad_update(np.ones_like(init), init * 0 + 0.99, m, 2).max() <= 1.0
+    n = np.zeros((12, 12, 3), np.float32)
+    n[..., 2] = 1.0
+    n_init = n * 0.5 + 0.5  # flat encoded normals
+    n_res = n_init.copy()
+    n_res[m, 0] = 0.8  # tilted inside the island
+    n_res[m] = (n_res[m] * 2 - 1) / np.linalg.norm(
+        n_res[m] * 2 - 1, axis=-1, keepdims=True
+    ) / 2 + 0.5
+    padded = pad_update(n_res, n_init, m, 2, normal=True)
+    dec = padded[ring] * 2 - 1
+    np.testing.assert_allclose(np.linalg.norm(dec, axis=-1), 1.0, atol=1e-5)
+    assert (dec[:, 2] > 0).all() and (dec[:, 0] > 0.1).all()  # tilted like the island

@@ -410,4 +410,37 @@ def dilate_islands(map_: torch.Tensor | np.ndarray, covered_mask, pixels: int):
     return out.numpy() if is_np else out.to(t.device)
 
 
-__all__ = ["accumulate_map_grad_", "dilate_islands", "mask_grad_", "project_", "tv_loss"]
+def pad_update(
+    result: np.ndarray, init: np.ndarray, covered_mask, pixels: int, *, normal: bool = False
+) -> np.ndarray:
+    """The optimised map with its *change* padded across UV-island borders: covered texels
+    are ``result``; texels within ``pixels`` rings outside the islands are ``init`` plus the
+    ring-by-ring mean of the neighbouring change (:func:`dilate_islands` on ``result -
+    init``); texels beyond keep ``init``. The padding the asset already had (carried into
+    ``init`` by the upscaling) stays, and mipmaps see no seam between optimised texels and
+    it. Overwriting it with dilated island values instead cost up to 0.23 dB of render PSNR
+    (bilinear taps at island borders read it): ph_tea_set_01, fast, x4.
+
+    ``result``, ``init``: (H, W, C) float32 in [0, 1] (stored encoding); ``normal``: the
+    padded texels are renormalised as encoded normals (z > 0). Returns float32 in [0, 1]."""
+    if result.shape != init.shape:
+        raise ValueError(f"result {result.shape} and init {init.shape} differ in shape")
+    m = np.asarray(covered_mask, dtype=bool)
+    delta = dilate_islands(result.astype(np.float64) - init, m, pixels)
+    out = np.clip(init + delta, 0.0, 1.0).astype(np.float32)
+    if normal and out.shape[-1] >= 3:
+        t = torch.from_numpy(out)
+        project_(t, True)
+        out = t.numpy()
+    out[m] = result[m]
+    return out
+
+
+__all__ = [
+    "accumulate_map_grad_",
+    "dilate_islands",
+    "mask_grad_",
+    "pad_update",
+    "project_",
+    "tv_loss",
+]
