@@ -189,7 +189,7 @@ class GBufferStore:
 
 
 # ---------------------------------------------------------------------------------------------
-# Result
+# Pseudo-GT
 PRIOR_CONTEXT = 16
 """LR pixels of context the prior gets around a view's covered pixels (the background beyond
 is not run through it). RRDN's output changes < 1e-6 beyond 14 LR pixels from a cut edge
@@ -255,6 +255,7 @@ def pseudo_gt_view(k, c, gbs, tex0, materials, light, prior, scale, config, rast
 
 
 # ---------------------------------------------------------------------------------------------
+# Result
 
 
 @dataclass
