@@ -25,10 +25,10 @@ import numpy as np
 from ..asset import load_asset
 from ..asset.model import Asset
 from ..degrade import degrade_asset
-from ..metrics import MAP_CHANNELS, RenderEvaluator, eval_cameras, images_for
+from ..metrics import MAP_CHANNELS, RenderEvaluator, images_for
 from ..options import UpscaleOptions
 from ..pipeline import upscale_asset
-from .upscale import SHARED_ASSETS, bench_assets, eval_lights
+from .upscale import SHARED_ASSETS, bench_assets, cpu_evaluator, eval_lights
 
 
 def with_gt_maps(pred: Asset, gt: Asset, names: list[str]) -> Asset:
@@ -77,7 +77,6 @@ def run(
     say=print,
 ) -> list[dict]:
     """Run the benchmark; write ``headroom.json`` and ``headroom.png``; return the rows."""
-    import torch
 
     out_dir.mkdir(parents=True, exist_ok=True)
     lights, light_names = eval_lights(shared)
@@ -95,12 +94,7 @@ def run(
                 work_dir=work / name / "work",
             )
             gt = load_asset(gt_path)
-            evaluator = RenderEvaluator(
-                gt,
-                cameras=eval_cameras(eval_res, eval_views),
-                lights=lights,
-                device=torch.device("cpu"),
-            )
+            evaluator = cpu_evaluator(gt, eval_res, eval_views, lights)
             row = {
                 "asset": name,
                 **asset_headroom(gt, load_asset(work / name / "out" / lr.name), evaluator),

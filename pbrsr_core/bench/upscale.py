@@ -70,6 +70,16 @@ def bench_assets(
     return todo
 
 
+def cpu_evaluator(gt: Asset, eval_res: int, eval_views: int, lights: list) -> RenderEvaluator:
+    """The benchmarks' render-PSNR evaluator of ``gt``: the paper's view sphere
+    (``eval_views`` views of ``eval_res``²) under ``lights``, on the CPU."""
+    import torch
+
+    return RenderEvaluator(
+        gt, cameras=eval_cameras(eval_res, eval_views), lights=lights, device=torch.device("cpu")
+    )
+
+
 def eval_lights(shared: Path) -> tuple[list[EnvLight], list[str]]:
     env_dir = shared / "envmaps"
     paths = [env_dir / n for n in ENVMAPS if (env_dir / n).is_file()]
@@ -135,7 +145,6 @@ def run(
     say=print,
 ) -> list[dict]:
     """Run the benchmark; write ``results.json``, ``results.md`` and ``speed_vs_error.png``."""
-    import torch
 
     out_dir.mkdir(parents=True, exist_ok=True)
     lights, light_names = eval_lights(shared)
@@ -157,12 +166,7 @@ def run(
                 gt_path, work_root / name / "lr" / gt_path.name, scale, image_format=lr_format
             )[0]
             gt = load_asset(gt_path)
-            evaluator = RenderEvaluator(
-                gt,
-                cameras=eval_cameras(eval_res, eval_views),
-                lights=lights,
-                device=torch.device("cpu"),
-            )
+            evaluator = cpu_evaluator(gt, eval_res, eval_views, lights)
             for method in methods:
                 work = work_root / name / method
                 work.mkdir(parents=True)
