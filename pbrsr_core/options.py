@@ -6,6 +6,9 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+DEFAULT_PRIOR = "waifu2x-photo"
+"""The image SR prior a run uses unless told otherwise (see pbrsr_core/prior/waifu2x.py)."""
+
 Method = Literal["pbrsr", "direct", "bicubic"]
 ImageFormat = Literal["same", "png", "png16", "exr", "jpeg"]
 
@@ -23,8 +26,8 @@ class UpscaleOptions(BaseModel):
     )
     preset: str = Field("balanced", description="fast, balanced, quality or paper (pbrsr only).")
     prior: str = Field(
-        "rrdn-thick",
-        description="Image SR prior: bicubic, rrdn-thick, spandrel:<weights path>, "
+        DEFAULT_PRIOR,
+        description="Image SR prior: waifu2x-photo, rrdn-thick, bicubic, spandrel:<weights path>, "
         "diffusion:<model dir>.",
     )
     envmap: str | None = Field(

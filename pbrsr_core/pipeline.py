@@ -47,7 +47,7 @@ from .options import UpscaleOptions
 from .preview import write_previews
 from .prior import load_prior
 from .prior.direct import bicubic_map, upscale_map
-from .prior.selfcheck import prior_self_check
+from .prior.selfcheck import merge_channels, prior_self_check
 from .progress import Progress, ProgressFn, emit
 from .render.light import EnvLight
 from .scene import make_scene, procedural_light
@@ -117,7 +117,8 @@ def _upscale_maps(
                 out[img.index] = upscale_map(prior, img.pixels, kind_of(img.roles), s)
         return out, {}
 
-    # pbrsr: init = prior on the colour maps, bicubic on the rest (paper 3.1)
+    # pbrsr: init = prior on the maps the preset names (paper 3.1: the colour maps), bicubic
+    # on the rest
     from .asset.jpeg import deblock
     from .optim.pbrsr import optimize_pbrsr
     from .optim.presets import get_preset
@@ -134,13 +135,11 @@ def _upscale_maps(
                 if img.jpeg is not None:
                     lr_pixels[img.index] = deblock(img.pixels, img.jpeg)
                     deblocked.append(img.name)
-    # the maps the prior initialises: the colour maps the preset names (prior_maps), and of
-    # those, with check_prior, only the ones where it beats bicubic one scale down
-    by_prior = {
-        img.index
-        for img in images
-        if kind_of(img.roles) == "colour" and img.roles & set(config.prior_maps)
-    }
+    # the maps the prior initialises: the ones the preset names (prior_maps), and of those,
+    # with check_prior, only the ones (the channels, for data maps) where it beats bicubic
+    # one scale down
+    by_prior = {img.index for img in images if img.roles & set(config.prior_maps)}
+    channels: dict[int, list[bool]] = {}
     checks: list[dict] | None = None
     if config.check_prior and prior.name != "bicubic" and by_prior:
         checks = []
@@ -149,11 +148,13 @@ def _upscale_maps(
             for img in images:
                 if img.index not in by_prior:
                     continue
-                c = prior_self_check(prior, lr_pixels[img.index], s)
+                c = prior_self_check(prior, lr_pixels[img.index], s, kind_of(img.roles))
                 too_small = {"use_prior": True, "note": f"under {4 * s} texels a side"}
                 checks.append({"image": img.name, "index": img.index, **(c or too_small)})
-                if c is not None and not c["use_prior"]:
-                    by_prior.discard(img.index)
+                if c is not None:
+                    channels[img.index] = c["channels"]
+                    if not c["use_prior"]:
+                        by_prior.discard(img.index)
         if not by_prior:
             prior = load_prior("bicubic", device)  # for the pseudo-GT
     with timer("init"):
@@ -162,10 +163,10 @@ def _upscale_maps(
             emit(progress, Progress(stage="init", step=n, total=len(images)))
             kind = kind_of(img.roles)
             px = lr_pixels[img.index]
+            hr = bicubic_map(px, kind, s)
             if img.index in by_prior:
-                hr = upscale_map(prior, px, kind, s)
-            else:
-                hr = bicubic_map(px, kind, s)
+                use = channels.get(img.index, [True])
+                hr = merge_channels(upscale_map(prior, px, kind, s), hr, use)
             init_encoded[img.index] = hr
             init[img.index] = encoded_to_param(torch.from_numpy(hr), kind)
             lr[img.index] = encoded_to_param(torch.from_numpy(px), kind)

@@ -19,6 +19,7 @@ from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from .limits import Limits
+from .options import DEFAULT_PRIOR
 
 _MB = 1024 * 1024
 _DEVICE_RE = re.compile(r"^(auto|cpu|cuda|cuda:\d+)$")
@@ -106,7 +107,7 @@ class Settings(BaseSettings):
         1.0, gt=0, description="Least seconds between two progress writes to job.meta."
     )
     preload_priors: Annotated[list[str], NoDecode] = Field(
-        default_factory=lambda: ["rrdn-thick"],
+        default_factory=lambda: [DEFAULT_PRIOR],
         description="Priors a worker loads at start (comma-separated; empty = none).",
     )
     log_level: str = Field("INFO", description="Logging level of API and workers.")

@@ -39,7 +39,7 @@ def test_channel_lr_per_map():
     assert get_preset("paper").prior_maps == ("base_color", "emissive")  # paper 3.1
     assert get_preset("balanced").prior_maps == ("base_color",)
     with pytest.raises(InvalidOptions, match="prior_maps"):
-        cfg.with_(prior_maps=("normal",))
+        cfg.with_(prior_maps=("roughness",))  # a channel, not a material role
     with pytest.raises(InvalidOptions, match="map_lr keys"):
         cfg.with_(map_lr={"albedo": 1.0})
     with pytest.raises(InvalidOptions, match="map_lr factors"):

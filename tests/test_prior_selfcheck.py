@@ -93,7 +93,8 @@ def test_pipeline_reports_the_check_and_uses_bicubic_when_the_prior_loses(tmp_pa
     out = tmp_path / "out"
     report = upscale_asset(asset, out, UpscaleOptions(preset="fast", prior="blurring"))
     (check,) = report["prior_check"]
-    assert set(check) == {"image", "index", "prior_db", "bicubic_db", "texels", "use_prior"}
+    keys = {"image", "index", "prior_db", "bicubic_db", "texels", "use_prior", "channels"}
+    assert set(check) == keys and check["channels"] == [False]
     assert check["image"] == "bricks_albedo" and not check["use_prior"]
     assert report["prior_used"] == "bicubic" and report["prior_init"] == []
     assert "prior_check" in report["timings"]
@@ -146,3 +147,35 @@ def test_a_map_too_small_to_check_is_initialised_by_the_prior(tmp_path, monkeypa
     (check,) = report["prior_check"]
     assert check["use_prior"] and "prior_db" not in check and "16 texels" in check["note"]
     assert report["prior_init"] == ["base_color.png"] and report["prior_used"] == "blurring"
+
+
+class FirstChannelOracle(BlurringPrior):
+    """Perfect on the first channel of the one image it was given, the blurring prior on the
+    others."""
+
+    name = "first-channel"
+
+    def __init__(self, hr: np.ndarray):
+        super().__init__()
+        self.hr = torch.from_numpy(np.ascontiguousarray(hr[..., :3])).permute(2, 0, 1)[None]
+
+    def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
+        out = super()._forward(x, scale)
+        h, w = out.shape[-2:]
+        out[:, 0] = self.hr[:, 0, :h, :w]
+        return out
+
+
+def test_data_map_channels_are_decided_one_by_one():
+    from pbrsr_core.prior.selfcheck import merge_channels
+
+    orm = _texture(96, seed=3)
+    check = prior_self_check(FirstChannelOracle(orm), orm, 4, "data")
+    assert check["channels"] == [True, False, False] and check["use_prior"]
+    # a colour map is decided as a whole (here the blurred channels outweigh the exact one)
+    colour = prior_self_check(FirstChannelOracle(orm), orm, 4, "colour")
+    assert len(colour["channels"]) == 1
+    a, b = np.zeros((4, 4, 3), np.float32), np.ones((4, 4, 3), np.float32)
+    merged = merge_channels(a, b, [True, False, True])
+    assert merged[..., 0].max() == 0 and merged[..., 1].min() == 1 and merged[..., 2].max() == 0
+    assert merge_channels(a, b, [False]) is b

@@ -174,9 +174,10 @@ def _timed(prior: Prior, side: int, scale: int, device: torch.device) -> tuple[f
 
 
 def default_priors() -> list[str]:
-    from ..prior import rrdn
+    from ..prior import rrdn, waifu2x
 
-    return ["bicubic"] + (["rrdn-thick"] if rrdn.is_installed() else [])
+    installed = [(rrdn.NAME, rrdn.is_installed()), (waifu2x.NAME, waifu2x.is_installed())]
+    return ["bicubic"] + [name for name, ok in installed if ok]
 
 
 def run(

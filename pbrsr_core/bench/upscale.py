@@ -26,6 +26,7 @@ from ..asset import load_asset, make_demo_asset
 from ..asset.model import Asset
 from ..degrade import degrade_asset
 from ..metrics import RenderEvaluator, eval_cameras, map_metrics
+from ..options import DEFAULT_PRIOR
 from ..render.light import EnvLight
 from ..scene import procedural_light, rotated_procedural_light
 
@@ -135,7 +136,7 @@ def run(
     assets: list[str] | None = None,
     methods: tuple[str, ...] = DEFAULT_METHODS,
     scale: int = 4,
-    prior: str = "rrdn-thick",
+    prior: str = DEFAULT_PRIOR,
     eval_res: int = 256,
     eval_views: int = 240,
     procedural_size: int = 512,

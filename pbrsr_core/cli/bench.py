@@ -6,6 +6,8 @@ from pathlib import Path
 
 import typer
 
+from ..options import DEFAULT_PRIOR
+
 bench_app = typer.Typer(help="Benchmarks: print a table, write JSON and plots to bench-out/.")
 
 
@@ -128,7 +130,7 @@ def upscale_cmd(
         "bicubic,direct,fast,balanced", help="bicubic, direct and preset names, comma-separated."
     ),
     scale: int = typer.Option(4, help="Upscaling factor (the LR input is degraded by it)."),
-    prior: str = typer.Option("rrdn-thick", help="Image prior for direct and PBR-SR."),
+    prior: str = typer.Option(DEFAULT_PRIOR, help="Image prior for direct and PBR-SR."),
     eval_res: int = typer.Option(256, help="Render size of the evaluation views."),
     eval_views: int = typer.Option(240, help="Evaluation views (the paper's 240)."),
     procedural: bool = typer.Option(True, help="Include the procedural demo asset."),

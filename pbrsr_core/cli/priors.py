@@ -42,14 +42,17 @@ def list_cmd() -> None:
 
 @priors_app.command("install")
 def install_cmd(
-    name: str = typer.Argument("rrdn-thick", help="The prior to install (rrdn-thick)."),
+    name: str = typer.Argument(
+        "rrdn-thick", help="The prior to install (rrdn-thick, waifu2x-photo)."
+    ),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Print nothing when done."),
     force: bool = typer.Option(False, "--force", help="Convert again even if present."),
 ) -> None:
     """Prepare a prior for use. rrdn-thick: convert the npm package's TF.js weights to
-    safetensors in the cache directory, once (a second run does nothing)."""
-    from ..errors import InvalidOptions
-    from ..prior import rrdn
+    safetensors in the cache directory, once (a second run does nothing); waifu2x-photo:
+    check that its pip package is installed (its model files are read from there)."""
+    from ..errors import InvalidOptions, PriorUnavailable
+    from ..prior import rrdn, waifu2x
     from ..prior.registry import check_name
 
     check_name(name)
@@ -65,6 +68,12 @@ def install_cmd(
     if name == "bicubic":
         if not quiet:
             typer.echo("bicubic needs nothing installed")
+        return
+    if name == waifu2x.NAME:
+        if not waifu2x.is_installed():
+            raise PriorUnavailable(f"the prior '{name}' is not installed: {waifu2x.INSTALL_HINT}")
+        if not quiet:
+            typer.echo(f"{name}: read from the installed {waifu2x.DISTRIBUTION} package")
         return
     raise InvalidOptions(
         f"nothing to install for {name!r}: spandrel:<file> and diffusion:<dir> use local "

@@ -11,7 +11,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from ..options import UpscaleOptions
+from ..options import DEFAULT_PRIOR, UpscaleOptions
 from .progressbar import progress_bar
 
 console = Console()
@@ -38,9 +38,9 @@ def register(app: typer.Typer) -> None:
         scale: Annotated[int, typer.Option(help="2, 4 or 8")] = 4,
         method: Annotated[str, typer.Option(help="pbrsr, direct or bicubic")] = "pbrsr",
         preset: Annotated[str, typer.Option(help="fast, balanced, quality, paper")] = "balanced",
-        prior: Annotated[str, typer.Option(help="bicubic, rrdn-thick, spandrel:<path>")] = (
-            "rrdn-thick"
-        ),
+        prior: Annotated[
+            str, typer.Option(help="waifu2x-photo, rrdn-thick, bicubic, spandrel:<path>")
+        ] = DEFAULT_PRIOR,
         envmap: Annotated[str | None, typer.Option(help=".hdr/.exr environment")] = None,
         seed: Annotated[int, typer.Option()] = 0,
         image_format: Annotated[

