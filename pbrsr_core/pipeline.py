@@ -135,11 +135,11 @@ def _upscale_maps(
                 if img.jpeg is not None:
                     lr_pixels[img.index] = deblock(img.pixels, img.jpeg)
                     deblocked.append(img.name)
-    # the maps the prior initialises: the ones the preset names (prior_maps), and of those,
-    # with check_prior, only the ones (the channels, for data maps) where it beats bicubic
-    # one scale down
-    by_prior = {img.index for img in images if img.roles & set(config.prior_maps)}
-    channels: dict[int, list[bool]] = {}
+    # the maps the prior initialises: the ones the preset names (prior_maps; for an ORM image,
+    # its channels one by one), and of those, with check_prior, only the ones where it beats
+    # bicubic one scale down
+    channels = {img.index: prior_channels(img, config) for img in images}
+    by_prior = {i for i, use in channels.items() if any(use)}
     checks: list[dict] | None = None
     if config.check_prior and prior.name != "bicubic" and by_prior:
         checks = []
@@ -150,11 +150,13 @@ def _upscale_maps(
                     continue
                 c = prior_self_check(prior, lr_pixels[img.index], s, kind_of(img.roles))
                 too_small = {"use_prior": True, "note": f"under {4 * s} texels a side"}
-                checks.append({"image": img.name, "index": img.index, **(c or too_small)})
                 if c is not None:
-                    channels[img.index] = c["channels"]
+                    use = [a and b for a, b in zip(channels[img.index], c["channels"], strict=True)]
+                    c = {**c, "channels": use, "use_prior": any(use)}
+                    channels[img.index] = use
                     if not c["use_prior"]:
                         by_prior.discard(img.index)
+                checks.append({"image": img.name, "index": img.index, **(c or too_small)})
         if not by_prior:
             prior = load_prior("bicubic", device)  # for the pseudo-GT
     with timer("init"):
@@ -165,8 +167,7 @@ def _upscale_maps(
             px = lr_pixels[img.index]
             hr = bicubic_map(px, kind, s)
             if img.index in by_prior:
-                use = channels.get(img.index, [True])
-                hr = merge_channels(upscale_map(prior, px, kind, s), hr, use)
+                hr = merge_channels(upscale_map(prior, px, kind, s), hr, channels[img.index])
             init_encoded[img.index] = hr
             init[img.index] = encoded_to_param(torch.from_numpy(hr), kind)
             lr[img.index] = encoded_to_param(torch.from_numpy(px), kind)
@@ -211,6 +212,24 @@ def _upscale_maps(
         "prior_init": sorted(img.name for img in images if img.index in by_prior),
         "jpeg_deblocked": deblocked,
     }
+
+
+def prior_channels(img, config) -> list[bool]:
+    """Which of an image's colour channels the preset lets the prior initialise: one entry
+    for colour and normal maps (the image as a whole), one per channel for data maps (an ORM
+    image's occlusion, roughness and metallic are separate maps, named in ``prior_maps``)."""
+    from .optim.pbrsr import map_groups
+
+    n_colour = 3 if img.pixels.shape[2] >= 3 else 1
+    named = {
+        c
+        for g in map_groups(set(img.roles), n_colour, config)
+        if g.name in config.prior_maps
+        for c in g.channels
+    }
+    if kind_of(img.roles) != "data":
+        return [bool(named)]
+    return [c in named for c in range(n_colour)]
 
 
 Snapshots = tuple[Collection[int], Callable[[int, dict, dict[int, str]], None]]

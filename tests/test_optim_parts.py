@@ -37,9 +37,9 @@ def test_channel_lr_per_map():
     assert get_preset("paper").map_lr == {}  # the paper: one learning rate
     assert get_preset("balanced").map_lr == {"normal": 0.3, "emissive": 0.0}
     assert get_preset("paper").prior_maps == ("base_color", "emissive")  # paper 3.1
-    assert get_preset("balanced").prior_maps == ("base_color",)
+    assert get_preset("balanced").prior_maps == ("base_color", "normal", "occlusion", "roughness")
     with pytest.raises(InvalidOptions, match="prior_maps"):
-        cfg.with_(prior_maps=("roughness",))  # a channel, not a material role
+        cfg.with_(prior_maps=("albedo",))  # glTF's name is base_color
     with pytest.raises(InvalidOptions, match="map_lr keys"):
         cfg.with_(map_lr={"albedo": 1.0})
     with pytest.raises(InvalidOptions, match="map_lr factors"):

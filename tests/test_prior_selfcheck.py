@@ -92,13 +92,13 @@ def test_pipeline_reports_the_check_and_uses_bicubic_when_the_prior_loses(tmp_pa
     asset = make_demo_asset(tmp_path / "demo.glb", size=64)
     out = tmp_path / "out"
     report = upscale_asset(asset, out, UpscaleOptions(preset="fast", prior="blurring"))
-    (check,) = report["prior_check"]
     keys = {"image", "index", "prior_db", "bicubic_db", "texels", "use_prior", "channels"}
-    assert set(check) == keys and check["channels"] == [False]
-    assert check["image"] == "bricks_albedo" and not check["use_prior"]
+    assert all(set(c) == keys and not c["use_prior"] for c in report["prior_check"])
+    check = next(c for c in report["prior_check"] if c["image"] == "bricks_albedo")
+    assert check["channels"] == [False]
     assert report["prior_used"] == "bicubic" and report["prior_init"] == []
     assert "prior_check" in report["timings"]
-    assert json.loads((out / "report.json").read_text())["prior_check"] == [check]
+    assert json.loads((out / "report.json").read_text())["prior_check"] == report["prior_check"]
     # the paper preset never checks: it always uses its prior
     out2 = tmp_path / "out2"
     tiny_paper = presets.PAPER.with_(iterations=1, n_elev=1, n_azim=2, render_res=32)
@@ -179,3 +179,24 @@ def test_data_map_channels_are_decided_one_by_one():
     merged = merge_channels(a, b, [True, False, True])
     assert merged[..., 0].max() == 0 and merged[..., 1].min() == 1 and merged[..., 2].max() == 0
     assert merge_channels(a, b, [False]) is b
+
+
+def test_presets_name_the_maps_and_orm_channels_the_prior_may_initialise():
+    from types import SimpleNamespace
+
+    from pbrsr_core.pipeline import prior_channels
+
+    def img(roles, channels=3):
+        return SimpleNamespace(roles=set(roles), pixels=np.zeros((4, 4, channels), np.float32))
+
+    cpu, paper = presets.BALANCED, presets.PAPER
+    # occlusion R and roughness G from the prior, metallic B from bicubic
+    assert prior_channels(img({"occlusion", "metallic_roughness"}), cpu) == [True, True, False]
+    assert prior_channels(img({"metallic_roughness"}), cpu) == [False, True, False]
+    assert prior_channels(img({"occlusion"}, 1), cpu) == [True]
+    assert prior_channels(img({"normal"}), cpu) == [True]
+    assert prior_channels(img({"emissive"}), cpu) == [False]
+    # the paper: albedo and emissive only
+    assert prior_channels(img({"normal"}), paper) == [False]
+    assert prior_channels(img({"emissive"}), paper) == [True]
+    assert prior_channels(img({"occlusion", "metallic_roughness"}), paper) == [False] * 3

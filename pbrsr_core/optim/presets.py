@@ -18,7 +18,6 @@ from typing import Literal
 from ..errors import InvalidOptions
 
 MAP_NAMES = ("base_color", "emissive", "normal", "occlusion", "roughness", "metallic")
-PRIOR_ROLES = ("base_color", "emissive", "metallic_roughness", "occlusion", "normal")
 
 
 @dataclass(frozen=True)
@@ -59,9 +58,9 @@ class PbrsrConfig:
     (prior/selfcheck.py): a map where it loses starts from bicubic, and when it loses on
     every map the pseudo-GT uses bicubic too. The paper always uses its prior."""
     prior_maps: tuple[str, ...] = ("base_color", "emissive")
-    """Material roles whose images the prior initialises (the paper: albedo and emissive);
-    every other map starts from bicubic interpolation. An image with several roles (an ORM
-    map is occlusion and metallic_roughness) is initialised by the prior if any is named."""
+    """Maps the prior initialises (names as in ``map_lr``; the paper: albedo and emissive);
+    every other map, and every other channel of a packed ORM image, starts from bicubic
+    interpolation."""
     deblock_jpeg: bool = False
     """LR maps stored as JPEG have their block artefacts reduced with the file's own
     quantisation tables (every component of 4:4:4 files, the luma of chroma-subsampled ones)
@@ -124,7 +123,7 @@ class PbrsrConfig:
             (self.log_every >= 1, "log_every must be >= 1"),
             (set(self.map_lr) <= set(MAP_NAMES), f"map_lr keys must be among {MAP_NAMES}"),
             (all(v >= 0 for v in self.map_lr.values()), "map_lr factors must be >= 0"),
-            (set(self.prior_maps) <= set(PRIOR_ROLES), f"prior_maps must be among {PRIOR_ROLES}"),
+            (set(self.prior_maps) <= set(MAP_NAMES), f"prior_maps must be among {MAP_NAMES}"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -173,7 +172,8 @@ PAPER = PbrsrConfig(
 #   showed render PSNR peaking early and then overfitting the pseudo-GT: balanced at 0 / 10 /
 #   25 / 50 / 100 / 150 iterations gave 29.08 / 29.14 / 29.16 / 29.12 / 29.01 / 28.81 dB
 #   (bicubic 28.66); on the procedural asset 60 and 150 iterations gave 25.29 and 25.33 dB
-#   (bicubic 24.90). Hence 25 / 60 / 150 for fast / balanced / quality.
+#   (bicubic 24.90). Hence 25 / 60 / 150 for fast / balanced / quality with rrdn-thick
+#   (sessions 2-6; see below for waifu2x-photo).
 # * lambda_pix 10 (the paper: 100) and lr 1e-3: with rrdn-thick the pseudo-GT carries little
 #   true detail, and the pixel loss pulled the albedo away from the prior's init while the
 #   PBR-consistency and TV terms improve every map. Measured with balanced at x4 (240 views,
@@ -195,6 +195,19 @@ PAPER = PbrsrConfig(
 #   dB; the prior's init 41.65 / 51.09; optimised from the prior's init 41.60 / 50.72, from
 #   bicubic 41.83 / 48.52. Render PSNR moved by at most 0.05 dB across all of these (ToyCar
 #   33.62 in every case), and the prior call on the emissive map cost 12 s on the WaterBottle.
+# * prior_maps (session 7, prior waifu2x-photo, fast at x4, 60 evaluation views, two HDRs):
+#   the prior on the normal and data maps as well as the albedo, each channel self-checked:
+#   cabinet render PSNR 29.46 (albedo only) -> 30.37 dB (bicubic 28.65; normal map 35.95 ->
+#   37.20), tea set 31.94 -> 32.93 (metallic 27.03 -> 31.40), but ToyCar 34.05 -> 32.19:
+#   its metallic channel from the prior halved the map's MSE and cost 1.57 dB of render PSNR
+#   (the occlusion channel alone: +0.07 dB). Metallic stays bicubic; the render is far more
+#   sensitive to it than its map PSNR says.
+# * iterations with waifu2x-photo: render PSNR peaks by 10-25 steps and then falls (ToyCar
+#   balanced, prior on the albedo only, 0 / 10 / 25 / 50 / 60: 34.00 / 34.09 / 34.04 /
+#   33.88 / 33.77; cabinet 30.39 / 30.48 / 30.47 / 30.44 (40) / 30.39), so fast / balanced /
+#   quality run 10 / 25 / 40.
+PRIOR_MAPS_CPU = ("base_color", "normal", "occlusion", "roughness")
+
 FAST = PbrsrConfig(
     name="fast",
     view_mode="coverage",
@@ -207,10 +220,10 @@ FAST = PbrsrConfig(
     target="detail",
     check_prior=True,
     deblock_jpeg=True,
-    iterations=25,
+    iterations=10,
     batch_views=2,
     lr=1e-3,
-    prior_maps=("base_color",),
+    prior_maps=PRIOR_MAPS_CPU,
     map_lr={"normal": 0.3, "emissive": 0.0},
     lambda_pix=10.0,
     mask_unseen=True,
@@ -229,10 +242,10 @@ BALANCED = PbrsrConfig(
     target="detail",
     check_prior=True,
     deblock_jpeg=True,
-    iterations=60,
+    iterations=25,
     batch_views=2,
     lr=1e-3,
-    prior_maps=("base_color",),
+    prior_maps=PRIOR_MAPS_CPU,
     map_lr={"normal": 0.3, "emissive": 0.0},
     lambda_pix=10.0,
     mask_unseen=True,
@@ -251,10 +264,10 @@ QUALITY = PbrsrConfig(
     target="detail",
     check_prior=True,
     deblock_jpeg=True,
-    iterations=150,
+    iterations=40,
     batch_views=3,
     lr=1e-3,
-    prior_maps=("base_color",),
+    prior_maps=PRIOR_MAPS_CPU,
     map_lr={"normal": 0.3, "emissive": 0.0},
     lambda_pix=10.0,
     mask_unseen=True,
