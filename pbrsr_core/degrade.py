@@ -34,18 +34,11 @@ def _gaussian_kernel(sigma: float) -> torch.Tensor:
     return (k / k.sum()).to(torch.float32)
 
 
-def degrade_image(image: np.ndarray, scale: int, *, normal_map: bool = False) -> np.ndarray:
-    """(H, W, C) float32 [0, 1] -> (max(1, round(H/s)), max(1, round(W/s)), C) float32."""
-    if not isinstance(scale, int) or scale < 1:
-        raise InvalidOptions(f"the degradation scale must be a positive integer, not {scale!r}")
-    arr = np.asarray(image, dtype=np.float32)
-    if arr.ndim != 3:
-        raise ValueError(f"image must be (H, W, C), got shape {arr.shape}")
-    if scale == 1:
-        return arr.copy()
-    h, w, c = arr.shape
-    x = torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1)[None]  # (1, C, H, W)
-    k = _gaussian_kernel(degrade_sigma(scale))
+def degrade_tensor(x: torch.Tensor, scale: int) -> torch.Tensor:
+    """The blur and bicubic downsampling on (N, C, H, W) -> (N, C, max(1, round(H/s)),
+    max(1, round(W/s))), unclamped, on ``x``'s device and dtype."""
+    c, h, w = x.shape[1:]
+    k = _gaussian_kernel(degrade_sigma(scale)).to(device=x.device, dtype=x.dtype)
     r = k.numel() // 2
     for dim in (2, 3):
         size = x.shape[dim]
@@ -56,9 +49,22 @@ def degrade_image(image: np.ndarray, scale: int, *, normal_map: bool = False) ->
             kk = k.view(1, 1, 1, -1) if dim == 3 else k.view(1, 1, -1, 1)
             x = F.conv2d(xp, kk.expand(c, 1, *kk.shape[2:]).contiguous(), groups=c)
     out_h, out_w = max(1, round(h / scale)), max(1, round(w / scale))
-    y = F.interpolate(x, size=(out_h, out_w), mode="bicubic", align_corners=False)
+    return F.interpolate(x, size=(out_h, out_w), mode="bicubic", align_corners=False)
+
+
+def degrade_image(image: np.ndarray, scale: int, *, normal_map: bool = False) -> np.ndarray:
+    """(H, W, C) float32 [0, 1] -> (max(1, round(H/s)), max(1, round(W/s)), C) float32."""
+    if not isinstance(scale, int) or scale < 1:
+        raise InvalidOptions(f"the degradation scale must be a positive integer, not {scale!r}")
+    arr = np.asarray(image, dtype=np.float32)
+    if arr.ndim != 3:
+        raise ValueError(f"image must be (H, W, C), got shape {arr.shape}")
+    if scale == 1:
+        return arr.copy()
+    x = torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1)[None]  # (1, C, H, W)
+    y = degrade_tensor(x, scale)
     y = y[0].permute(1, 2, 0).clamp(0.0, 1.0).numpy()
-    if normal_map and c >= 3:
+    if normal_map and arr.shape[2] >= 3:
         n = y[..., :3] * 2.0 - 1.0
         n[..., 2] = np.maximum(n[..., 2], 0.0)
         ln = np.linalg.norm(n, axis=-1, keepdims=True)

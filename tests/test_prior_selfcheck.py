@@ -25,6 +25,7 @@ class BlurringPrior(Prior):
 
     name = "blurring"
     scales = (2, 4)
+    back_project = False  # its output as it is: back-projection would sharpen it
 
     def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
         up = F.interpolate(x, scale_factor=scale, mode="nearest")
@@ -37,6 +38,7 @@ class OraclePrior(Prior):
 
     name = "oracle"
     scales = (4,)
+    back_project = False
 
     def __init__(self, hr: np.ndarray):
         super().__init__()

@@ -5,7 +5,9 @@ A :class:`Prior` maps a batch of sRGB-encoded LDR images in [0, 1], shape (N, 3,
 inside to what the network needs, and large images run through overlapping tiles with blended
 seams (:mod:`pbrsr_core.prior.tiling`). The output is clamped to [0, 1] and never NaN, lives on
 the input's device, and is an ordinary tensor (computed under ``torch.inference_mode`` but
-returned as a normal tensor, so it can serve as a loss target).
+returned as a normal tensor, so it can serve as a loss target). A network prior's output is
+back-projected onto its input (one step, :mod:`pbrsr_core.prior.backproject`): degraded by the
+LR model it gives the input back, whatever offsets the network has.
 
 Precision: a network prior whose bfloat16 output was measured against its float32 output
 (``bf16_validated``) runs under bfloat16 autocast where the hardware computes bfloat16
@@ -25,6 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import InvalidOptions, UnprocessableAsset
+from .backproject import back_project
 from .tiling import count_tiles, default_tile_size, run_tiled
 
 PRECISION_ENV = "PBRSR_PRIOR_PRECISION"
@@ -49,6 +52,9 @@ class Prior(ABC):
     default_overlap: int = 16
     is_network: bool = True
     """False for classical interpolation (never run in reduced precision)."""
+    back_project: bool = True
+    """Whether :meth:`upscale` back-projects the output onto the input (prior/backproject.py);
+    False for interpolation, whose output already is what it is meant to be."""
     bf16_validated: bool = False
     """True when bfloat16 output was measured close to float32's (then ``auto`` uses it)."""
 
@@ -147,6 +153,8 @@ class Prior(ABC):
             ]
             out = torch.cat(outs, 0)
             out = torch.nan_to_num(out, nan=0.0, posinf=1.0, neginf=0.0).clamp_(0.0, 1.0)
+            if self.back_project:
+                out = back_project(out, x, scale)
         return out.clone()  # outside inference mode: an ordinary tensor
 
     def _run_padded(self, x: torch.Tensor, scale: int, bf16: bool = False) -> torch.Tensor:

@@ -14,6 +14,7 @@ class BicubicPrior(Prior):
 
     name = "bicubic"
     is_network = False
+    back_project = False
     scales = (2, 3, 4, 8)
     bytes_per_pixel = 4.0 * 3 * 2 * 64  # input + output at x8, float32
     default_overlap = 8  # dead zone 2 px >= the 2-px bicubic footprint: seams are exact
