@@ -191,7 +191,8 @@ def test_presets_name_the_maps_and_orm_channels_the_prior_may_initialise():
     def img(roles, channels=3):
         return SimpleNamespace(roles=set(roles), pixels=np.zeros((4, 4, channels), np.float32))
 
-    cpu, paper = presets.BALANCED, presets.PAPER
+    paper = presets.PAPER
+    cpu = presets.BALANCED.with_(prior_maps=("base_color", "normal", "occlusion", "roughness"))
     # occlusion R and roughness G from the prior, metallic B from bicubic
     assert prior_channels(img({"occlusion", "metallic_roughness"}), cpu) == [True, True, False]
     assert prior_channels(img({"metallic_roughness"}), cpu) == [False, True, False]
@@ -202,3 +203,7 @@ def test_presets_name_the_maps_and_orm_channels_the_prior_may_initialise():
     assert prior_channels(img({"normal"}), paper) == [False]
     assert prior_channels(img({"emissive"}), paper) == [True]
     assert prior_channels(img({"occlusion", "metallic_roughness"}), paper) == [False] * 3
+    # the CPU presets: every map (each then self-checked)
+    orm = img({"occlusion", "metallic_roughness"})
+    assert prior_channels(orm, presets.BALANCED) == [True] * 3
+    assert prior_channels(img({"emissive"}), presets.FAST) == [True]

@@ -189,7 +189,7 @@ PAPER = PbrsrConfig(
 #   evaluation views, two HDRs), normal lr x1 -> x0.3: render PSNR cabinet 28.98 -> 29.08,
 #   tea set 31.75 -> 31.75, table 31.30 -> 31.29, ToyCar 33.55 -> 33.62; cabinet normal 35.53
 #   -> 35.78. Metallic x0.3 lost 0.2-0.5 dB of metallic PSNR on the tea set and ToyCar.
-# * emissive maps start from bicubic and stay there (prior_maps, map_lr emissive 0). Emission
+# * emissive maps started from bicubic and stayed there (sessions 5-7; map_lr emissive 0). Emission
 #   adds light, so the render loss can explain any brightness residual with it: balanced at
 #   x4 (120 evaluation views, two HDRs), bicubic emissive ToyCar / WaterBottle 41.87 / 50.99
 #   dB; the prior's init 41.65 / 51.09; optimised from the prior's init 41.60 / 50.72, from
@@ -213,7 +213,13 @@ PAPER = PbrsrConfig(
 #   41.56 (albedo 46.34 / 44.47 / 45.69, bicubic 45.81), ToyCar 34.58 / 34.37 / 34.56,
 #   cabinet 30.61 / 30.45 / 30.51. lambda_pix 0 kept the Avocado at 41.59 (albedo 46.07);
 #   lambda_pbr 0 fell to 39.94: the consistency term holds the maps, the pseudo-GT moves them.
-PRIOR_MAPS_CPU = ("base_color", "normal", "occlusion", "roughness")
+# * prior_maps: every map, each self-checked (session 8). With the back-projected prior the
+#   direct prior beat balanced by 1.6 dB render PSNR on the BoomBox (25.18 against 23.54 for
+#   fast; metallic 23.05 against 20.13, emissive 48.70 against 41.43) and by 1.6 dB on the
+#   procedural asset (metallic 30.50 against 27.65): `pbrsr bench upscale -o
+#   bench-out/upscale-s8`, 120 views, with metallic and emissive from bicubic. Emissive maps
+#   keep map_lr 0: the prior's init, not moved by the render loss.
+PRIOR_MAPS_CPU = MAP_NAMES
 
 FAST = PbrsrConfig(
     name="fast",
