@@ -46,7 +46,7 @@ from .maps import (
 from .options import UpscaleOptions
 from .preview import write_previews
 from .prior import load_prior
-from .prior.direct import bicubic_map, upscale_map
+from .prior.direct import bicubic_map, project_map, upscale_map
 from .prior.selfcheck import merge_channels, prior_self_check
 from .progress import Progress, ProgressFn, emit
 from .render.light import EnvLight
@@ -174,6 +174,7 @@ def _upscale_maps(
     with timer("load_light"):
         light = load_light(options.envmap).to(device)
     scene = make_scene(asset, device)
+    kinds = {img.index: kind_of(img.roles) for img in images}
     result = optimize_pbrsr(
         scene.mesh,
         asset.materials,
@@ -188,22 +189,18 @@ def _upscale_maps(
         progress=progress,
         cache_dir=work_dir / "pseudo_gt",
         seed=options.seed,
-        **_snapshot_kwargs(snapshots, {img.index: kind_of(img.roles) for img in images}),
+        **_snapshot_kwargs(snapshots, lambda maps: _exported(maps, kinds, lr_pixels, s, config)),
     )
     for k, v in result.timings.items():
         timer.seconds[k] = timer.seconds.get(k, 0.0) + v
+    with timer("project"):
+        final = _exported(result.maps, kinds, lr_pixels, s, config)
     with timer("dilate"):
-        sizes = {i: tuple(t.shape[:2]) for i, t in result.maps.items()}
+        sizes = {i: tuple(t.shape[:2]) for i, t in final.items()}
         islands = coverage_masks(asset, sizes)
         out = {
-            i: pad_update(
-                param_to_encoded(t, kind_of(asset.images[i].roles)),
-                init_encoded[i],
-                islands[i],
-                2 * s,
-                normal="normal" in asset.images[i].roles,
-            )
-            for i, t in result.maps.items()
+            i: pad_update(t, init_encoded[i], islands[i], 2 * s, normal=kinds[i] == "normal")
+            for i, t in final.items()
         }
     return out, {
         **result.report(),
@@ -212,6 +209,23 @@ def _upscale_maps(
         "prior_init": sorted(img.name for img in images if img.index in by_prior),
         "jpeg_deblocked": deblocked,
     }
+
+
+def _exported(
+    maps: dict[int, torch.Tensor],
+    kinds: dict[int, str],
+    lr_pixels: dict[int, np.ndarray],
+    scale: int,
+    config,
+) -> dict[int, np.ndarray]:
+    """Optimised maps (optimisation space) -> stored encoding, each back-projected onto its LR
+    map when the preset names its kind in ``project_lr``."""
+    out = {}
+    for i, t in maps.items():
+        kind = kinds[i]
+        hr = param_to_encoded(t, kind)
+        out[i] = project_map(hr, lr_pixels[i], scale, kind) if kind in config.project_lr else hr
+    return out
 
 
 def prior_channels(img, config) -> list[bool]:
@@ -232,16 +246,18 @@ def prior_channels(img, config) -> list[bool]:
     return [c in named for c in range(n_colour)]
 
 
-Snapshots = tuple[Collection[int], Callable[[int, dict, dict[int, str]], None]]
-"""(iterations, callback(it, maps in optimisation space, image kinds)): a benchmark hook that
-sees the PBR-SR maps at intermediate iterations."""
+Snapshots = tuple[Collection[int], Callable[[int, Callable[[], dict[int, np.ndarray]]], None]]
+"""(iterations, callback(it, maps)): a benchmark hook that sees the PBR-SR maps at
+intermediate iterations; ``maps()`` gives them as they would be exported then (stored
+encoding, ``project_lr`` applied; before the island padding), so the hook can leave the
+export's time out of its own."""
 
 
-def _snapshot_kwargs(snapshots: Snapshots | None, kinds: dict[int, str]) -> dict:
+def _snapshot_kwargs(snapshots: Snapshots | None, export: Callable) -> dict:
     if snapshots is None:
         return {}
     at, fn = snapshots
-    return {"snapshot_at": set(at), "on_snapshot": lambda it, maps: fn(it, maps, kinds)}
+    return {"snapshot_at": set(at), "on_snapshot": lambda it, maps: fn(it, lambda: export(maps))}
 
 
 def upscale_asset(

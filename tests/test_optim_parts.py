@@ -95,8 +95,9 @@ def test_presets_paper_numbers_exact():
     assert set(PRESETS) == {"fast", "balanced", "quality", "paper"}
     for name in ("fast", "balanced", "quality"):  # CPU presets: the paper's losses, a weaker
         q = get_preset(name)  # pixel term (the pseudo-GT of a small prior, presets.py)
-        assert (q.lambda_pix, q.lambda_pbr, q.lambda_tv, q.lambda_ssim) == (10, 10, 0.5, 10)
-        assert q.lambda_reg == 0.5
+        assert (q.lambda_pix, q.lambda_pbr, q.lambda_tv, q.lambda_ssim) == (1, 10, 0.5, 10)
+        assert q.lambda_reg == 0.5 and q.project_lr == ("colour", "data")
+    assert p.project_lr == ()  # the paper exports the optimised maps as they are
     with pytest.raises(InvalidOptions):
         get_preset("nope")
     with pytest.raises(InvalidOptions):

@@ -17,7 +17,7 @@ from pbrsr_core.asset import (
     read_image,
     validate_gltf,
 )
-from pbrsr_core.errors import LimitExceeded, StorageError, UnprocessableAsset
+from pbrsr_core.errors import InvalidOptions, LimitExceeded, StorageError, UnprocessableAsset
 from pbrsr_core.limits import Limits
 from pbrsr_core.options import UpscaleOptions
 from pbrsr_core.pipeline import upscale_asset
@@ -117,3 +117,26 @@ def test_output_limit_and_non_empty_out(demo: Path, tmp_path: Path):
     with pytest.raises(StorageError, match="not empty"):
         upscale_asset(demo, tmp_path / "full", UpscaleOptions(method="bicubic"))
     assert (tmp_path / "full" / "x").read_text() == "keep me"
+
+
+def test_project_lr_back_projects_the_exported_maps_of_the_kinds_named(tmp_path, monkeypatch):
+    from pbrsr_core.optim import presets
+    from pbrsr_core.prior.direct import project_map
+
+    rng = np.random.default_rng(4)
+    tex = np.clip(rng.random((32, 32, 3)) * 0.6 + 0.2, 0, 1).astype(np.float32)
+    asset = make_quad_asset(tmp_path / "q.gltf", {"base_color": tex})
+    lr = load_asset(asset).images[0].pixels  # as stored: 8-bit rounded
+    frozen = presets.FAST.with_(iterations=0)
+    bicubic = bicubic_map(lr, "base_color", 4)
+    expected = {(): bicubic, ("colour",): project_map(bicubic, lr, 4, "base_color")}
+    assert np.abs(expected[("colour",)] - bicubic).max() > 0.02  # the step does something
+    for kinds, want in expected.items():
+        monkeypatch.setitem(presets.PRESETS, "fast", frozen.with_(project_lr=kinds))
+        out = tmp_path / f"out{len(kinds)}"
+        report = upscale_asset(asset, out, UpscaleOptions(preset="fast", prior="bicubic"))
+        assert "project" in report["timings"]
+        got = load_asset(out / "q.gltf").images[0].pixels
+        assert np.abs(got - want).max() <= 0.6 / 255, kinds
+    with pytest.raises(InvalidOptions, match="project_lr"):
+        frozen.with_(project_lr=("albedo",))

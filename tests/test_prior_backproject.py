@@ -77,3 +77,43 @@ def test_waifu2x_keeps_flat_grey_flat(level):
     # what is left is the network's own texel-periodic ripple (measured max 7e-4 at 0.82)
     assert float((out - level).mean((0, 2, 3)).abs().max()) < 5e-4  # 1.0: clamped, 2.7e-4
     assert float((out - level).abs().max()) < 1.5e-3
+
+
+def _hwc(t: torch.Tensor):
+    return t[0].permute(1, 2, 0).numpy().copy()
+
+
+@pytest.mark.parametrize("kind", ["colour", "data"])
+def test_project_map_moves_colour_channels_onto_the_lr_map_and_keeps_alpha(kind):
+    import numpy as np
+
+    from pbrsr_core.prior.direct import project_map
+
+    hr = _smooth(1, 64, 48, seed=5) * 0.8 + 0.1
+    lr = degrade_tensor(hr, 4)
+    drift = torch.tensor([0.02, -0.015, 0.01]).view(1, 3, 1, 1)
+    alpha = np.linspace(0, 1, 64 * 48, dtype=np.float32).reshape(64, 48, 1)
+    moved = np.concatenate([_hwc(hr + drift), alpha], -1)
+    lr4 = np.concatenate([_hwc(lr), np.zeros((16, 12, 1), np.float32)], -1)
+    out = project_map(moved, lr4, 4, kind)
+    assert out.shape == moved.shape and out.dtype == np.float32
+    np.testing.assert_array_equal(out[..., 3], alpha[..., 0])  # alpha untouched
+    before = np.abs(moved[..., :3] - _hwc(hr)).mean()
+    after = np.abs(out[..., :3] - _hwc(hr)).mean()
+    assert after < 0.1 * before, (before, after)
+
+
+def test_project_map_keeps_normal_maps_unit_and_facing_out():
+    import numpy as np
+
+    from pbrsr_core.prior.direct import project_map
+
+    g = torch.Generator().manual_seed(2)
+    n = torch.randn(1, 3, 64, 64, generator=g) * 0.3
+    n[:, 2] = 1.0
+    enc = (F.normalize(n, dim=1) + 1) / 2
+    lr = _hwc(degrade_tensor(enc, 4).clamp(0, 1))
+    out = project_map(_hwc(enc), lr, 4, "normal")
+    dec = out * 2 - 1
+    assert np.allclose(np.linalg.norm(dec, axis=-1), 1.0, atol=1e-4)
+    assert (dec[..., 2] > 0).all() and np.isfinite(out).all()

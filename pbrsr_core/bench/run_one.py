@@ -1,8 +1,9 @@
 """One benchmark run in its own process: ``python -m pbrsr_core.bench.run_one spec.json``.
 
 Runs :func:`pbrsr_core.pipeline.upscale_asset` and, for PBR-SR, saves the maps at
-intermediate iterations (``snap_<it>.npz``, stored encoding) with the wall time at which they
-existed (time spent saving snapshots is not counted). Writes ``result.json`` beside the spec.
+intermediate iterations (``snap_<it>.npz``, as they would be exported) with the wall time at
+which they existed (time spent making and saving snapshots is not counted). Writes
+``result.json`` beside the spec.
 """
 
 from __future__ import annotations
@@ -15,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..maps import param_to_encoded
 from ..options import UpscaleOptions
 from ..pipeline import upscale_asset
 
@@ -40,11 +40,11 @@ def main(spec_path: str) -> None:
     overhead = 0.0
     t0 = time.perf_counter()
 
-    def on_snapshot(it: int, maps: dict, kinds: dict[int, str]) -> None:
+    def on_snapshot(it: int, maps) -> None:
         nonlocal overhead
         s0 = time.perf_counter()
         name = f"snap_{it:05d}.npz"
-        np.savez(work / name, **{str(i): param_to_encoded(t, kinds[i]) for i, t in maps.items()})
+        np.savez(work / name, **{str(i): m for i, m in maps().items()})
         snaps.append({"it": it, "seconds": round(s0 - t0 - overhead, 3), "file": name})
         overhead += time.perf_counter() - s0
 

@@ -115,3 +115,18 @@ def bicubic_map(pixels: np.ndarray, role: str, scale: int) -> np.ndarray:
         rgb = bicubic_upscale(colour, scale).clamp(0.0, 1.0)
         up_alpha = None if alpha is None else bicubic_upscale(alpha, scale)
         return _merge(rgb, up_alpha, n_colour, kind)
+
+
+def project_map(hr: np.ndarray, lr: np.ndarray, scale: int, role: str) -> np.ndarray:
+    """One back-projection step (prior/backproject.py) of a stored HR map (sH, sW, C) onto
+    its LR map (H, W, C), with the conventions of :func:`upscale_map`: the colour channels
+    are projected (normal maps then renormalised), alpha is kept as it is."""
+    from .backproject import back_project
+
+    kind = map_kind(role)
+    h = _as_hwc(hr)
+    colour, alpha, n_colour = _split(h)
+    lr_colour = _split(_as_hwc(lr))[0]
+    with torch.inference_mode():
+        rgb = back_project(colour, lr_colour, scale)
+        return _merge(rgb, alpha, n_colour, kind)
