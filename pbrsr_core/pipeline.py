@@ -148,7 +148,12 @@ def _upscale_maps(
             for img in images:
                 if img.index not in by_prior:
                     continue
-                c = prior_self_check(prior, lr_pixels[img.index], s, kind_of(img.roles))
+                kind = kind_of(img.roles)
+                if kind not in config.check_prior:
+                    note = {"use_prior": True, "note": f"{kind} maps are not checked"}
+                    checks.append({"image": img.name, "index": img.index, **note})
+                    continue
+                c = prior_self_check(prior, lr_pixels[img.index], s, kind)
                 too_small = {"use_prior": True, "note": f"under {4 * s} texels a side"}
                 if c is not None:
                     use = [a and b for a, b in zip(channels[img.index], c["channels"], strict=True)]
@@ -175,6 +180,13 @@ def _upscale_maps(
         light = load_light(options.envmap).to(device)
     scene = make_scene(asset, device)
     kinds = {img.index: kind_of(img.roles) for img in images}
+    # project_lr: only what the (back-projected) prior initialised goes back onto its LR map
+    projected = {
+        i: channels[i]
+        if i in by_prior and prior.back_project and kinds[i] in config.project_lr
+        else [False] * len(channels[i])
+        for i in kinds
+    }
     result = optimize_pbrsr(
         scene.mesh,
         asset.materials,
@@ -189,12 +201,12 @@ def _upscale_maps(
         progress=progress,
         cache_dir=work_dir / "pseudo_gt",
         seed=options.seed,
-        **_snapshot_kwargs(snapshots, lambda maps: _exported(maps, kinds, lr_pixels, s, config)),
+        **_snapshot_kwargs(snapshots, lambda maps: _exported(maps, kinds, lr_pixels, s, projected)),
     )
     for k, v in result.timings.items():
         timer.seconds[k] = timer.seconds.get(k, 0.0) + v
     with timer("project"):
-        final = _exported(result.maps, kinds, lr_pixels, s, config)
+        final = _exported(result.maps, kinds, lr_pixels, s, projected)
     with timer("dilate"):
         sizes = {i: tuple(t.shape[:2]) for i, t in final.items()}
         islands = coverage_masks(asset, sizes)
@@ -216,15 +228,17 @@ def _exported(
     kinds: dict[int, str],
     lr_pixels: dict[int, np.ndarray],
     scale: int,
-    config,
+    projected: dict[int, list[bool]],
 ) -> dict[int, np.ndarray]:
-    """Optimised maps (optimisation space) -> stored encoding, each back-projected onto its LR
-    map when the preset names its kind in ``project_lr``."""
+    """Optimised maps (optimisation space) -> stored encoding, the channels ``projected``
+    names (one entry for colour and normal maps, one per channel for data maps) back-projected
+    onto the LR map."""
     out = {}
     for i, t in maps.items():
-        kind = kinds[i]
-        hr = param_to_encoded(t, kind)
-        out[i] = project_map(hr, lr_pixels[i], scale, kind) if kind in config.project_lr else hr
+        hr = param_to_encoded(t, kinds[i])
+        if any(projected[i]):
+            hr = merge_channels(project_map(hr, lr_pixels[i], scale, kinds[i]), hr, projected[i])
+        out[i] = hr
     return out
 
 

@@ -119,24 +119,43 @@ def test_output_limit_and_non_empty_out(demo: Path, tmp_path: Path):
     assert (tmp_path / "full" / "x").read_text() == "keep me"
 
 
-def test_project_lr_back_projects_the_exported_maps_of_the_kinds_named(tmp_path, monkeypatch):
-    from pbrsr_core.optim import presets
-    from pbrsr_core.prior.direct import project_map
+def test_project_lr_back_projects_what_the_prior_initialised(tmp_path, monkeypatch):
+    import torch.nn.functional as F
 
+    import pbrsr_core.pipeline as pipeline
+    from pbrsr_core.optim import presets
+    from pbrsr_core.prior.base import Prior
+    from pbrsr_core.prior.direct import project_map, upscale_map
+
+    class Nearest(Prior):  # a back-projecting "network": nearest upsampling
+        name = "nearest"
+        scales = (4,)
+
+        def _forward(self, x, scale):
+            return F.interpolate(x, scale_factor=scale, mode="nearest")
+
+    prior = Nearest()
+    real = pipeline.load_prior
+    monkeypatch.setattr(pipeline, "load_prior", lambda n, d: prior if n == "n" else real(n, d))
     rng = np.random.default_rng(4)
     tex = np.clip(rng.random((32, 32, 3)) * 0.6 + 0.2, 0, 1).astype(np.float32)
     asset = make_quad_asset(tmp_path / "q.gltf", {"base_color": tex})
     lr = load_asset(asset).images[0].pixels  # as stored: 8-bit rounded
-    frozen = presets.FAST.with_(iterations=0)
-    bicubic = bicubic_map(lr, "base_color", 4)
-    expected = {(): bicubic, ("colour",): project_map(bicubic, lr, 4, "base_color")}
-    assert np.abs(expected[("colour",)] - bicubic).max() > 0.02  # the step does something
+    frozen = presets.FAST.with_(iterations=0, check_prior=())
+    init = upscale_map(prior, lr, "base_color", 4)
+    expected = {(): init, ("colour",): project_map(init, lr, 4, "base_color")}
+    assert np.abs(expected[("colour",)] - init).max() > 0.01  # the step does something
     for kinds, want in expected.items():
         monkeypatch.setitem(presets.PRESETS, "fast", frozen.with_(project_lr=kinds))
         out = tmp_path / f"out{len(kinds)}"
-        report = upscale_asset(asset, out, UpscaleOptions(preset="fast", prior="bicubic"))
+        report = upscale_asset(asset, out, UpscaleOptions(preset="fast", prior="n"))
         assert "project" in report["timings"]
         got = load_asset(out / "q.gltf").images[0].pixels
         assert np.abs(got - want).max() <= 0.6 / 255, kinds
+    # a map bicubic initialised is not projected (bicubic is not an LR-consistent init)
+    monkeypatch.setitem(presets.PRESETS, "fast", frozen.with_(project_lr=("colour",)))
+    upscale_asset(asset, tmp_path / "bic", UpscaleOptions(preset="fast", prior="bicubic"))
+    got = load_asset(tmp_path / "bic" / "q.gltf").images[0].pixels
+    assert np.abs(got - bicubic_map(lr, "base_color", 4)).max() <= 0.6 / 255
     with pytest.raises(InvalidOptions, match="project_lr"):
         frozen.with_(project_lr=("albedo",))
