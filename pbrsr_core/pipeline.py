@@ -205,8 +205,11 @@ def _upscale_maps(
     )
     for k, v in result.timings.items():
         timer.seconds[k] = timer.seconds.get(k, 0.0) + v
+    init.clear()  # the HR maps live on in result.maps, init_encoded and final only
     with timer("project"):
-        final = _exported(result.maps, kinds, lr_pixels, s, projected)
+        final = {}
+        for i in list(result.maps):  # one HR map at a time, each released once exported
+            final[i] = _exported({i: result.maps.pop(i)}, kinds, lr_pixels, s, projected)[i]
     with timer("dilate"):
         sizes = {i: tuple(t.shape[:2]) for i, t in final.items()}
         islands = coverage_masks(asset, sizes)

@@ -705,7 +705,7 @@ def optimize_pbrsr(
     snapshot(config.iterations)
     timings["optimize"] = time.perf_counter() - t0
 
-    maps = {i: t.clone() for i, t in current().items()}
+    maps = current()  # the parameters' own storage (detached): no copy of every HR map
     return PbrsrResult(
         maps=maps,
         history=history,
