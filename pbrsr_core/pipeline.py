@@ -187,6 +187,10 @@ def _upscale_maps(
         else [False] * len(channels[i])
         for i in kinds
     }
+
+    def export(i: int, t: torch.Tensor) -> np.ndarray:
+        return _export_map(t, kinds[i], lr_pixels[i], s, projected[i])
+
     result = optimize_pbrsr(
         scene.mesh,
         asset.materials,
@@ -201,7 +205,7 @@ def _upscale_maps(
         progress=progress,
         cache_dir=work_dir / "pseudo_gt",
         seed=options.seed,
-        **_snapshot_kwargs(snapshots, lambda maps: _exported(maps, kinds, lr_pixels, s, projected)),
+        **_snapshot_kwargs(snapshots, lambda maps: {i: export(i, t) for i, t in maps.items()}),
     )
     for k, v in result.timings.items():
         timer.seconds[k] = timer.seconds.get(k, 0.0) + v
@@ -209,7 +213,7 @@ def _upscale_maps(
     with timer("project"):
         final = {}
         for i in list(result.maps):  # one HR map at a time, each released once exported
-            final[i] = _exported({i: result.maps.pop(i)}, kinds, lr_pixels, s, projected)[i]
+            final[i] = export(i, result.maps.pop(i))
     with timer("dilate"):
         sizes = {i: tuple(t.shape[:2]) for i, t in final.items()}
         islands = coverage_masks(asset, sizes)
@@ -226,23 +230,16 @@ def _upscale_maps(
     }
 
 
-def _exported(
-    maps: dict[int, torch.Tensor],
-    kinds: dict[int, str],
-    lr_pixels: dict[int, np.ndarray],
-    scale: int,
-    projected: dict[int, list[bool]],
-) -> dict[int, np.ndarray]:
-    """Optimised maps (optimisation space) -> stored encoding, the channels ``projected``
-    names (one entry for colour and normal maps, one per channel for data maps) back-projected
-    onto the LR map."""
-    out = {}
-    for i, t in maps.items():
-        hr = param_to_encoded(t, kinds[i])
-        if any(projected[i]):
-            hr = merge_channels(project_map(hr, lr_pixels[i], scale, kinds[i]), hr, projected[i])
-        out[i] = hr
-    return out
+def _export_map(
+    t: torch.Tensor, kind: str, lr: np.ndarray, scale: int, projected: list[bool]
+) -> np.ndarray:
+    """One optimised map (optimisation space) -> stored encoding, with the channels
+    ``projected`` names (one entry for colour and normal maps, one per channel for data maps)
+    back-projected onto its LR map."""
+    hr = param_to_encoded(t, kind)
+    if any(projected):
+        hr = merge_channels(project_map(hr, lr, scale, kind), hr, projected)
+    return hr
 
 
 def prior_channels(img, config) -> list[bool]:
