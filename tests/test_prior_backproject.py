@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
@@ -10,6 +11,7 @@ from pbrsr_core.degrade import degrade_tensor
 from pbrsr_core.prior import load_prior
 from pbrsr_core.prior.backproject import back_project
 from pbrsr_core.prior.base import Prior
+from pbrsr_core.prior.direct import project_map
 from pbrsr_core.prior.waifu2x import is_installed
 
 
@@ -85,10 +87,6 @@ def _hwc(t: torch.Tensor):
 
 @pytest.mark.parametrize("kind", ["colour", "data"])
 def test_project_map_moves_colour_channels_onto_the_lr_map_and_keeps_alpha(kind):
-    import numpy as np
-
-    from pbrsr_core.prior.direct import project_map
-
     hr = _smooth(1, 64, 48, seed=5) * 0.8 + 0.1
     lr = degrade_tensor(hr, 4)
     drift = torch.tensor([0.02, -0.015, 0.01]).view(1, 3, 1, 1)
@@ -104,10 +102,6 @@ def test_project_map_moves_colour_channels_onto_the_lr_map_and_keeps_alpha(kind)
 
 
 def test_project_map_keeps_normal_maps_unit_and_facing_out():
-    import numpy as np
-
-    from pbrsr_core.prior.direct import project_map
-
     g = torch.Generator().manual_seed(2)
     n = torch.randn(1, 3, 64, 64, generator=g) * 0.3
     n[:, 2] = 1.0

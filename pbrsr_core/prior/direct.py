@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from .backproject import back_project
 from .base import Prior, TileProgress
 from .bicubic import bicubic_upscale
 
@@ -121,8 +122,6 @@ def project_map(hr: np.ndarray, lr: np.ndarray, scale: int, role: str) -> np.nda
     """One back-projection step (prior/backproject.py) of a stored HR map (sH, sW, C) onto
     its LR map (H, W, C), with the conventions of :func:`upscale_map`: the colour channels
     are projected (normal maps then renormalised), alpha is kept as it is."""
-    from .backproject import back_project
-
     kind = map_kind(role)
     h = _as_hwc(hr)
     colour, alpha, n_colour = _split(h)
