@@ -22,7 +22,7 @@ import json
 import os
 import struct
 import tempfile
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from pathlib import Path, PurePosixPath
 
 import numpy as np
@@ -246,8 +246,15 @@ def encode_images(
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     workers = min(len(todo), cores or 1)
     if workers > 1:
-        with ThreadPoolExecutor(workers, thread_name_prefix="pbrsr-encode") as pool:
-            out.update(zip(todo, pool.map(encode, todo), strict=True))
+        pool = ThreadPoolExecutor(workers, thread_name_prefix="pbrsr-encode")
+        try:
+            futures = {i: pool.submit(encode, i) for i in todo}
+            pending = set(futures.values())
+            while pending:  # short waits: a cancelled job's exception gets in between them
+                _, pending = wait(pending, timeout=0.1)
+            out.update((i, f.result()) for i, f in futures.items())
+        finally:  # on an exception the queued images are dropped, running ones end alone
+            pool.shutdown(wait=False, cancel_futures=True)
     else:
         out.update((i, encode(i)) for i in todo)
     return {i: out[i] for i in new_images}  # in the caller's order
