@@ -145,6 +145,7 @@ def _upscale_maps(
         checks = []
         with timer("prior_check"):
             emit(progress, Progress(stage="prior_check"))
+            covered = coverage_masks(asset)  # at the LR size: the texels the check compares
             for img in images:
                 if img.index not in by_prior:
                     continue
@@ -153,7 +154,14 @@ def _upscale_maps(
                     note = {"use_prior": True, "note": f"{kind} maps are not checked"}
                     checks.append({"image": img.name, "index": img.index, **note})
                     continue
-                c = prior_self_check(prior, lr_pixels[img.index], s, kind)
+                c = prior_self_check(
+                    prior,
+                    lr_pixels[img.index],
+                    s,
+                    kind,
+                    max_prior_scale=config.max_prior_scale,
+                    covered=covered.get(img.index),
+                )
                 too_small = {"use_prior": True, "note": f"under {4 * s} texels a side"}
                 if c is not None:
                     use = [a and b for a, b in zip(channels[img.index], c["channels"], strict=True)]
@@ -172,7 +180,8 @@ def _upscale_maps(
             px = lr_pixels[img.index]
             hr = bicubic_map(px, kind, s)
             if img.index in by_prior:
-                hr = merge_channels(upscale_map(prior, px, kind, s), hr, channels[img.index])
+                up = upscale_map(prior, px, kind, s, max_prior_scale=config.max_prior_scale)
+                hr = merge_channels(up, hr, channels[img.index])
             init_encoded[img.index] = hr
             init[img.index] = encoded_to_param(torch.from_numpy(hr), kind)
             lr[img.index] = encoded_to_param(torch.from_numpy(px), kind)

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch.nn.functional as F
 
 from pbrsr_core.asset import (
     load_asset,
@@ -21,7 +22,24 @@ from pbrsr_core.errors import InvalidOptions, LimitExceeded, StorageError, Unpro
 from pbrsr_core.limits import Limits
 from pbrsr_core.options import UpscaleOptions
 from pbrsr_core.pipeline import upscale_asset
-from pbrsr_core.prior.direct import bicubic_map
+from pbrsr_core.prior.base import Prior
+from pbrsr_core.prior.direct import bicubic_map, project_map, upscale_map
+
+
+class Nearest(Prior):
+    """A back-projecting "network" (nearest upsampling, x2 and x4) that records the input
+    side and the factor of every call."""
+
+    name = "nearest"
+    scales = (2, 4)
+
+    def __init__(self):
+        super().__init__()
+        self.calls: list[tuple[int, int]] = []
+
+    def _forward(self, x, scale):
+        self.calls.append((x.shape[-1], scale))
+        return F.interpolate(x, scale_factor=scale, mode="nearest")
 
 
 @pytest.fixture(scope="module")
@@ -119,29 +137,25 @@ def test_output_limit_and_non_empty_out(demo: Path, tmp_path: Path):
     assert (tmp_path / "full" / "x").read_text() == "keep me"
 
 
-def test_project_lr_back_projects_what_the_prior_initialised(tmp_path, monkeypatch):
-    import torch.nn.functional as F
-
+def _quad_with_prior(tmp_path: Path, monkeypatch, seed: int) -> tuple[Nearest, Path, np.ndarray]:
+    """A quad asset with a 32² albedo, a :class:`Nearest` prior the pipeline loads by the name
+    "n", and the albedo as stored (8-bit rounded)."""
     import pbrsr_core.pipeline as pipeline
-    from pbrsr_core.optim import presets
-    from pbrsr_core.prior.base import Prior
-    from pbrsr_core.prior.direct import project_map, upscale_map
-
-    class Nearest(Prior):  # a back-projecting "network": nearest upsampling
-        name = "nearest"
-        scales = (4,)
-
-        def _forward(self, x, scale):
-            return F.interpolate(x, scale_factor=scale, mode="nearest")
 
     prior = Nearest()
     real = pipeline.load_prior
     monkeypatch.setattr(pipeline, "load_prior", lambda n, d: prior if n == "n" else real(n, d))
-    rng = np.random.default_rng(4)
+    rng = np.random.default_rng(seed)
     tex = np.clip(rng.random((32, 32, 3)) * 0.6 + 0.2, 0, 1).astype(np.float32)
     asset = make_quad_asset(tmp_path / "q.gltf", {"base_color": tex})
-    lr = load_asset(asset).images[0].pixels  # as stored: 8-bit rounded
-    frozen = presets.FAST.with_(iterations=0, check_prior=())
+    return prior, asset, load_asset(asset).images[0].pixels
+
+
+def test_project_lr_back_projects_what_the_prior_initialised(tmp_path, monkeypatch):
+    from pbrsr_core.optim import presets
+
+    prior, asset, lr = _quad_with_prior(tmp_path, monkeypatch, seed=4)
+    frozen = presets.FAST.with_(iterations=0, check_prior=(), max_prior_scale=None)
     init = upscale_map(prior, lr, "base_color", 4)
     expected = {(): init, ("colour",): project_map(init, lr, 4, "base_color")}
     assert np.abs(expected[("colour",)] - init).max() > 0.01  # the step does something
@@ -159,3 +173,30 @@ def test_project_lr_back_projects_what_the_prior_initialised(tmp_path, monkeypat
     assert np.abs(got - bicubic_map(lr, "base_color", 4)).max() <= 0.6 / 255
     with pytest.raises(InvalidOptions, match="project_lr"):
         frozen.with_(project_lr=("albedo",))
+
+
+def test_max_prior_scale_reaches_the_init_and_the_self_check(tmp_path, monkeypatch):
+    """fast's prior runs x2 of the x4 (bicubic the rest, then projected onto the LR map), in
+    the self-check as in the init; the pseudo-GT keeps the whole scale."""
+    from pbrsr_core.optim import presets
+
+    prior, asset, lr = _quad_with_prior(tmp_path, monkeypatch, seed=5)
+    assert presets.FAST.max_prior_scale == 2 and presets.BALANCED.max_prior_scale is None
+    frozen = presets.FAST.with_(iterations=0, project_lr=(), check_prior=())
+    monkeypatch.setitem(presets.PRESETS, "fast", frozen)
+    upscale_asset(asset, tmp_path / "a", UpscaleOptions(preset="fast", prior="n"))
+    assert prior.calls == [(32, 2)]  # the init: x2
+    got = load_asset(tmp_path / "a" / "q.gltf").images[0].pixels
+    want = upscale_map(Nearest(), lr, "base_color", 4, max_prior_scale=2)
+    assert np.abs(got - want).max() <= 0.6 / 255
+    prior.calls.clear()
+    checked = frozen.with_(check_prior=("colour",), iterations=1)
+    monkeypatch.setitem(presets.PRESETS, "fast", checked)
+    report = upscale_asset(asset, tmp_path / "b", UpscaleOptions(preset="fast", prior="n"))
+    assert report["prior_check"][0]["texels"] == 32 * 32
+    assert report["prior_check"][0]["use_prior"]
+    # the check one scale down and the init: x2; the pseudo-GT of the rendered views: x4
+    assert prior.calls[:2] == [(8, 2), (32, 2)]
+    assert len(prior.calls) > 2 and {f for _, f in prior.calls[2:]} == {4}
+    with pytest.raises(InvalidOptions, match="max_prior_scale"):
+        frozen.with_(max_prior_scale=1)

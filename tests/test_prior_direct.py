@@ -7,9 +7,15 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from pbrsr_core.degrade import degrade_tensor
 from pbrsr_core.prior import load_prior
 from pbrsr_core.prior.base import Prior
-from pbrsr_core.prior.direct import bicubic_map, renormalize_encoded_normals, upscale_map
+from pbrsr_core.prior.direct import (
+    bicubic_map,
+    prior_factor,
+    renormalize_encoded_normals,
+    upscale_map,
+)
 
 
 class Nearest(Prior):
@@ -82,3 +88,64 @@ def test_direct_stays_in_range():
     px[3, 3, 1] = 7.0
     out = upscale_map(load_prior("bicubic"), px, "colour", 2)
     assert np.isfinite(out).all() and out.min() >= 0 and out.max() <= 1
+
+
+class RecordingNearest(Prior):
+    """Nearest-neighbour x2 / x4 / x8 that records the factors it was asked for; it
+    back-projects like a network prior."""
+
+    name = "recording-nearest"
+    scales = (2, 4, 8)
+
+    def __init__(self):
+        super().__init__()
+        self.calls: list[int] = []
+
+    def _forward(self, x, scale):
+        self.calls.append(scale)
+        return F.interpolate(x, scale_factor=scale, mode="nearest")
+
+
+@pytest.mark.parametrize(
+    ("scales", "scale", "max_scale", "factor"),
+    [
+        ((2, 4, 8), 4, None, 4),
+        ((2, 4, 8), 4, 2, 2),
+        ((2, 4, 8), 4, 8, 4),
+        ((2, 4, 8), 8, 2, 2),
+        ((2, 4, 8), 8, 4, 4),
+        ((2, 4, 8), 8, 3, 2),
+        ((2, 3, 4, 8), 3, 2, 3),  # nothing at most 2 divides 3: the whole scale
+        ((4,), 4, 2, 4),  # a x4-only network does the whole scale
+    ],
+)
+def test_prior_factor(scales, scale, max_scale, factor):
+    prior = RecordingNearest()
+    prior.scales = scales
+    assert prior_factor(prior, scale, max_scale) == factor
+    assert prior_factor(load_prior("bicubic"), scale, max_scale) == scale  # not a network
+
+
+def test_max_prior_scale_runs_the_prior_at_part_of_the_scale():
+    """x4 with the prior at most x2: one x2 call, bicubic the rest, then the result is
+    projected onto the LR map at x4 (one step: the LR model gives the LR map back closer than
+    the unprojected bicubic of the prior's x2 does)."""
+    rng = np.random.default_rng(3)
+    smooth = F.avg_pool2d(torch.from_numpy(rng.random((1, 3, 64, 64), dtype=np.float32)), 4)
+    px = smooth[0].permute(1, 2, 0).numpy().copy()  # (16, 16, 3), in [0, 1]
+    prior = RecordingNearest()
+    out = upscale_map(prior, px, "base_color", 4, max_prior_scale=2)
+    assert prior.calls == [2] and out.shape == (64, 64, 3)
+    assert np.isfinite(out).all() and out.min() >= 0 and out.max() <= 1
+
+    def lr_error(hr: np.ndarray) -> float:
+        t = torch.from_numpy(np.ascontiguousarray(hr)).permute(2, 0, 1)[None]
+        back = degrade_tensor(t, 4)[0].permute(1, 2, 0).numpy()
+        return float(np.abs(back - px).mean())
+
+    plain = prior.upscale(torch.from_numpy(px).permute(2, 0, 1)[None], 2)
+    plain = F.interpolate(plain, scale_factor=2, mode="bicubic").clamp(0, 1)
+    assert lr_error(out) < 0.7 * lr_error(plain[0].permute(1, 2, 0).numpy())
+    prior.calls.clear()
+    assert upscale_map(prior, px, "base_color", 4).shape == (64, 64, 3)
+    assert prior.calls == [4]  # no limit: the whole scale

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import torch
 import torch.nn.functional as F
 
@@ -84,6 +85,36 @@ def test_blurring_prior_is_rejected_and_a_perfect_one_accepted():
     assert prior_self_check(BlurringPrior(), tex[:8, :8], 4) is None  # too small to check
 
 
+class HalfOraclePrior(OraclePrior):
+    """Perfect on the left half of the check's crop, far off (inverted) on the right half."""
+
+    name = "half-oracle"
+
+    def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
+        out = super()._forward(x, scale)
+        half = out.shape[-1] // 2
+        out[..., half:] = 1.0 - out[..., half:]
+        return out
+
+
+def test_the_check_compares_only_covered_texels():
+    """An atlas's uncovered texels are never seen: they do not decide the check."""
+    tex = _texture()
+    left = np.zeros((96, 96), dtype=bool)
+    left[:, :48] = True
+    prior = HalfOraclePrior(tex)
+    whole = prior_self_check(prior, tex, 4)
+    assert not whole["use_prior"] and whole["texels"] == 96 * 96
+    on_left = prior_self_check(prior, tex, 4, covered=left)
+    assert on_left["use_prior"] and on_left["prior_db"] == 100.0 and on_left["texels"] == 96 * 48
+    assert not prior_self_check(prior, tex, 4, covered=~left)["use_prior"]
+    few = np.zeros((96, 96), dtype=bool)
+    few[:4, :4] = True  # fewer than (4 * scale)^2 covered texels: the whole crop decides
+    assert prior_self_check(prior, tex, 4, covered=few)["texels"] == 96 * 96
+    with pytest.raises(ValueError, match="coverage mask"):
+        prior_self_check(prior, tex, 4, covered=left[:48])
+
+
 def test_pipeline_reports_the_check_and_uses_bicubic_when_the_prior_loses(tmp_path, monkeypatch):
     import pbrsr_core.pipeline as pipeline
 
@@ -130,7 +161,9 @@ def test_each_colour_map_is_checked_on_its_own(tmp_path, monkeypatch):
     monkeypatch.setattr(
         pipeline, "load_prior", lambda n, d: prior if n == "selective" else real(n, d)
     )
-    both = presets.FAST.with_(iterations=2, prior_maps=("base_color", "emissive"))
+    both = presets.FAST.with_(
+        iterations=2, prior_maps=("base_color", "emissive"), max_prior_scale=None
+    )
     monkeypatch.setitem(presets.PRESETS, "fast", both)
     report = upscale_asset(asset, tmp_path / "a", UpscaleOptions(preset="fast", prior="selective"))
     decided = {c["image"]: c["use_prior"] for c in report["prior_check"]}

@@ -19,7 +19,7 @@ import numpy as np
 from ..options import UpscaleOptions
 from ..pipeline import upscale_asset
 
-SNAPSHOT_AT = (0, 10, 25, 50, 100, 200, 400, 800, 1600)
+SNAPSHOT_AT = (0, 5, 10, 25, 50, 100, 200, 400, 800, 1600)
 
 
 def peak_rss_mib() -> float:

@@ -64,6 +64,12 @@ class PbrsrConfig:
     """Maps the prior initialises (names as in ``map_lr``; the paper: albedo and emissive);
     every other map, and every other channel of a packed ORM image, starts from bicubic
     interpolation."""
+    max_prior_scale: int | None = None
+    """The prior's init upscales by at most this factor (e.g. 2 of x4) and bicubic
+    interpolation does the rest, then one back-projection step onto the LR map
+    (prior/direct.py ``upscale_map``); the self-check scores the same. None: the prior does
+    the whole scale (the paper). The pseudo-GT always uses the whole scale (its inputs are
+    small renders)."""
     deblock_jpeg: bool = False
     """LR maps stored as JPEG have their block artefacts reduced with the file's own
     quantisation tables (every component of 4:4:4 files, the luma of chroma-subsampled ones)
@@ -134,6 +140,10 @@ class PbrsrConfig:
             (set(self.prior_maps) <= set(MAP_NAMES), f"prior_maps must be among {MAP_NAMES}"),
             (set(self.project_lr) <= set(MAP_KINDS), f"project_lr must be among {MAP_KINDS}"),
             (set(self.check_prior) <= set(MAP_KINDS), f"check_prior must be among {MAP_KINDS}"),
+            (
+                self.max_prior_scale is None or self.max_prior_scale >= 2,
+                "max_prior_scale must be None or >= 2",
+            ),
         ]
         for ok, msg in checks:
             if not ok:
@@ -255,20 +265,33 @@ PROJECT_LR_CPU = ("colour", "data")
 #   checked: unchecked, the prior would have cost the Avocado's roughness 0.67 dB (-0.04 one
 #   scale down) and the BoomBox's constant occlusion channel 72 dB (-47 one scale down).
 CHECK_PRIOR_CPU = ("colour", "data")
+# * fast: the prior does x2 of the x4 (max_prior_scale 2; bicubic the rest, then the
+#   back-projection step), 5 steps, 6 views (session 10). Its init was the same work as
+#   balanced's (62-73 % of either preset's time on the 2048² assets): fast kept 100 % of the
+#   gain in 81 % of the time. waifu2x-photo's x2 pass on a 512² map costs 2.1 s against 13.0 s
+#   for its x4 (two passes), and on the shared assets' maps (whole maps, x4 by the protocol's
+#   LR) it keeps most of the x4's gain over bicubic: albedo Avocado +1.47 of +1.75 dB, ToyCar
+#   +3.31 of +4.73, WaterBottle +1.84 of +2.22, BoomBox +4.00 of +4.67; data maps +0.76 of
+#   +0.60 (Avocado) .. +2.54 of +3.06 (ToyCar); normal maps +0.39 of +0.40 (Avocado) .. +1.99 of
+#   +2.25 (BoomBox). The optimiser's steps moved render PSNR by -0.03..+0.03 dB between 0 and
+#   10 steps in every fast run of `pbrsr bench upscale` (60 views), so fast runs 5 and shades
+#   6 views. bfloat16 (2.1x faster on this AVX512-BF16 CPU) was not taken: it cost the
+#   Avocado's roughness 0.67 dB of the prior's gain (x4, whole map).
 
 FAST = PbrsrConfig(
     name="fast",
     view_mode="coverage",
     n_candidates=48,  # candidate views rasterised at low resolution for selection
-    max_views=8,  # few views: pseudo-GT costs one prior call per view
+    max_views=6,  # few views: pseudo-GT costs one prior call per view
     fov_deg=30.0,
     render_res=None,
     max_render_res=384,
     views_per_texel=2,
     target="detail",
     check_prior=CHECK_PRIOR_CPU,
+    max_prior_scale=2,
     deblock_jpeg=True,
-    iterations=10,
+    iterations=5,
     batch_views=2,
     lr=2.5e-4,
     prior_maps=PRIOR_MAPS_CPU,

@@ -84,21 +84,44 @@ def renormalize_encoded_normals(t: torch.Tensor) -> torch.Tensor:
     return (n + 1.0) * 0.5
 
 
+def prior_factor(prior: Prior, scale: int, max_scale: int | None) -> int:
+    """The factor the prior upscales by when it may do at most ``max_scale`` of ``scale``:
+    the largest of its scales that is at most ``max_scale`` and divides ``scale`` (the full
+    scale when ``max_scale`` is None, no such scale exists, or the prior is not a network:
+    bicubic costs the same either way)."""
+    if max_scale is None or max_scale >= scale or not prior.is_network:
+        return scale
+    fits = [f for f in prior.scales if 2 <= f <= max_scale and scale % f == 0]
+    return max(fits, default=scale)
+
+
 def upscale_map(
     prior: Prior,
     pixels: np.ndarray,
     role: str,
     scale: int,
     *,
+    max_prior_scale: int | None = None,
     progress: TileProgress | None = None,
 ) -> np.ndarray:
     """Apply ``prior`` to one stored map. pixels (H, W, C) float32 in [0, 1], C in 1..4;
     ``role`` a material role or kind (see :func:`map_kind`). Returns (s*H, s*W, C) float32
-    in [0, 1]."""
+    in [0, 1].
+
+    ``max_prior_scale``: the prior upscales by at most this factor (:func:`prior_factor`),
+    bicubic interpolation does the rest, and a back-projecting prior's result is projected
+    once more onto the map at the full scale. A network's cost grows with its output's
+    pixels: waifu2x-photo's x2 pass on a 512² map costs a sixth of its x4 (two passes)."""
     kind = map_kind(role)
     a = _as_hwc(pixels)
     colour, alpha, n_colour = _split(a)
-    rgb = prior.upscale(colour, scale, progress=progress).cpu()
+    factor = prior_factor(prior, scale, max_prior_scale)
+    rgb = prior.upscale(colour, factor, progress=progress).cpu()
+    if factor != scale:
+        with torch.inference_mode():
+            rgb = bicubic_upscale(rgb, scale // factor).clamp_(0.0, 1.0)
+            if prior.back_project:
+                rgb = back_project(rgb, colour, scale)
     up_alpha = None if alpha is None else bicubic_upscale(alpha, scale)
     return _merge(rgb, up_alpha, n_colour, kind)
 
