@@ -13,8 +13,9 @@ The comparison counts only the texels the mesh's UVs cover (when the caller pass
 the pipeline does): the rest of an atlas is never seen, and it can decide the check the wrong
 way. The Avocado's roughness (x4, prior x2 as the fast preset runs it): +0.38 dB for the
 prior over the whole map one scale down, -0.40 over its covered texels, and -0.51 dB at the
-real scale against the ground truth (covered texels); no other decision on the shared assets
-changed except the ToyCar's roughness, +0.34 / -0.04 one scale down, +3.8 at the real scale.
+real scale against the ground truth (covered texels). On the other colour and data maps of
+the shared assets no decision changed with the prior's x4; with its x2 one did, the
+ToyCar's roughness: +0.34 / -0.04 one scale down, +3.8 dB at the real scale.
 """
 
 from __future__ import annotations
