@@ -154,3 +154,20 @@ def test_tangents_plane_mirrored_and_degenerate():
     _check_frames(generate_tangents(pos2, nrm, uv, tri), nrm)
     nx = np.tile([1.0, 0.0, 0.0], (4, 1))
     _check_frames(generate_tangents(pos, nx, uv, tri), nx)
+
+
+def test_write_checks_and_clamps_strip_by_strip(tmp_path):
+    """A 1200 x 600 map is written in several strips: a NaN in the last strip is refused
+    before anything is written, and values outside [0, 1] in any strip are clamped."""
+    rng = np.random.default_rng(7)
+    px = rng.random((1200, 600, 3), dtype=np.float32)
+    px[0, 0] = [2.0, -1.0, 0.5]
+    px[-1, -1] = [1.5, 0.25, -0.5]
+    out = write_image(tmp_path / "a.png", px, 16, "png")
+    back = read_image(out, "a.png")[0]
+    np.testing.assert_allclose(back, np.clip(px, 0, 1), atol=1 / 65535)
+    bad = px.copy()
+    bad[-1, 3, 1] = np.nan
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        write_image(tmp_path / "b.png", bad, 8, "png")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png"]

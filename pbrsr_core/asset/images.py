@@ -245,10 +245,15 @@ def write_image(path: Path, pixels: np.ndarray, bit_depth: int, fmt: ImageFormat
         raise ValueError(f"pixels must be (H, W, C) with C in 1..4, got {arr.shape}")
     if fmt == "jpeg" and arr.shape[2] in (2, 4):
         raise InvalidOptions("JPEG has no alpha channel; write PNG for images with alpha")
-    if not np.isfinite(arr).all():
-        raise ValueError("pixels contain NaN or infinite values")
-    arr = np.ascontiguousarray(np.clip(arr, 0.0, 1.0))
     h, w, c = arr.shape
+    # in strips of ~0.5 Mpixel: a 2048^2 PNG takes ~1 s to encode, and between strips the
+    # interpreter runs (a job's cancel watchdog can interrupt; other threads get the GIL);
+    # the checks and the clamped copy are per strip too (a whole 4096^2 RGB float copy is
+    # 200 MB, per image being encoded)
+    rows = max(1, (1 << 19) // w)
+    strips = range(0, h, rows)
+    if not all(np.isfinite(arr[y : y + rows]).all() for y in strips):
+        raise ValueError("pixels contain NaN or infinite values")
     spec = oiio.ImageSpec(w, h, c, _oiio_type(fmt, bit_depth))
     spec.attribute("oiio:UnassociatedAlpha", 1)
     if fmt == "jpeg":
@@ -262,12 +267,10 @@ def write_image(path: Path, pixels: np.ndarray, bit_depth: int, fmt: ImageFormat
         out = oiio.ImageOutput.create(tmp)
         if out is None or not out.open(tmp, spec):
             raise OSError(f"cannot write image: {oiio.geterror()}")
-        # in strips of ~0.5 Mpixel: a 2048^2 PNG takes ~1 s to encode, and between strips the
-        # interpreter runs (a job's cancel watchdog can interrupt; other threads get the GIL)
-        rows = max(1, (1 << 19) // w)
         ok = True
-        for y in range(0, h, rows):
-            ok = ok and out.write_scanlines(y, min(h, y + rows), 0, arr[y : y + rows])
+        for y in strips:
+            strip = np.ascontiguousarray(np.clip(arr[y : y + rows], 0.0, 1.0))
+            ok = ok and out.write_scanlines(y, min(h, y + rows), 0, strip)
         out.close()
         if not ok:
             raise OSError(f"cannot write image: {oiio.geterror()}")
