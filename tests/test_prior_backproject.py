@@ -111,3 +111,23 @@ def test_project_map_keeps_normal_maps_unit_and_facing_out():
     dec = out * 2 - 1
     assert np.allclose(np.linalg.norm(dec, axis=-1), 1.0, atol=1e-4)
     assert (dec[..., 2] > 0).all() and np.isfinite(out).all()
+
+
+@pytest.mark.parametrize("kind", ["colour", "data", "normal"])
+def test_project_map_in_strips_equals_the_whole_map(kind):
+    """The strips (with their halo) give the whole-map projection, row for row, also where
+    a strip is shorter than the others and with alpha."""
+    hr = _smooth(1, 4 * 70, 4 * 23, seed=9) * 0.8 + 0.1
+    if kind == "normal":
+        hr = (F.normalize(hr * 2 - 1 + torch.tensor([0, 0, 1.0]).view(1, 3, 1, 1), dim=1) + 1) / 2
+    lr = _hwc(degrade_tensor(hr, 4).clamp(0, 1))
+    g = np.random.default_rng(3)
+    moved = np.clip(_hwc(hr) + g.normal(0, 0.02, _hwc(hr).shape).astype(np.float32), 0, 1)
+    alpha = g.random((4 * 70, 4 * 23, 1), dtype=np.float32)
+    moved = np.concatenate([moved, alpha], -1)
+    lr = np.concatenate([lr, np.zeros((70, 23, 1), np.float32)], -1)
+    whole = project_map(moved, lr, 4, kind, strip_rows=1000)
+    strips = project_map(moved, lr, 4, kind, strip_rows=16)  # 16, 16, 16, 16, 6 LR rows
+    assert strips.shape == whole.shape and strips.dtype == np.float32
+    np.testing.assert_allclose(strips, whole, atol=2e-6)
+    assert np.abs(whole[..., :3] - moved[..., :3]).max() > 0.01  # the step does something

@@ -141,10 +141,35 @@ def bicubic_map(pixels: np.ndarray, role: str, scale: int) -> np.ndarray:
         return _merge(rgb, up_alpha, n_colour, kind)
 
 
-def project_map(hr: np.ndarray, lr: np.ndarray, scale: int, role: str) -> np.ndarray:
+_STRIP_HALO = 8
+"""LR rows each strip of :func:`project_map` reads beyond its own: the LR model's blur
+(radius ceil(3 * 0.375 s) HR texels) and bicubic taps, and the bicubic upsampling of the
+residual (2 LR texels), all fit in it, so a strip's rows come out as the whole map's."""
+
+
+def project_map(
+    hr: np.ndarray, lr: np.ndarray, scale: int, role: str, *, strip_rows: int = 128
+) -> np.ndarray:
     """One back-projection step (prior/backproject.py) of a stored HR map (sH, sW, C) onto
     its LR map (H, W, C), with the conventions of :func:`upscale_map`: the colour channels
-    are projected (normal maps then renormalised), alpha is kept as it is."""
+    are projected (normal maps then renormalised), alpha is kept as it is.
+
+    Done in strips of ``strip_rows`` LR rows (plus a halo), so its temporaries are a strip's,
+    not the map's: several full-size copies of a 4096² map were the peak memory of a
+    1024 -> 4096 run."""
+    h = lr.shape[0]
+    if hr.shape[0] != h * scale or h <= strip_rows + 2 * _STRIP_HALO:
+        return _project_whole(hr, lr, scale, role)
+    out = np.empty((hr.shape[0], hr.shape[1], hr.shape[2]), dtype=np.float32)
+    for y0 in range(0, h, strip_rows):
+        y1 = min(h, y0 + strip_rows)
+        a, b = max(0, y0 - _STRIP_HALO), min(h, y1 + _STRIP_HALO)
+        part = _project_whole(hr[a * scale : b * scale], lr[a:b], scale, role)
+        out[y0 * scale : y1 * scale] = part[(y0 - a) * scale : (y1 - a) * scale]
+    return out
+
+
+def _project_whole(hr: np.ndarray, lr: np.ndarray, scale: int, role: str) -> np.ndarray:
     kind = map_kind(role)
     h = _as_hwc(hr)
     colour, alpha, n_colour = _split(h)
