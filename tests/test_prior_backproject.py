@@ -131,3 +131,12 @@ def test_project_map_in_strips_equals_the_whole_map(kind):
     assert strips.shape == whole.shape and strips.dtype == np.float32
     np.testing.assert_allclose(strips, whole, atol=2e-6)
     assert np.abs(whole[..., :3] - moved[..., :3]).max() > 0.01  # the step does something
+
+
+def test_project_map_in_strips_takes_a_2d_map_like_the_whole_map():
+    g = np.random.default_rng(4)
+    hr, lr = g.random((4 * 50, 40), dtype=np.float32), g.random((50, 10), dtype=np.float32)
+    whole = project_map(hr, lr, 4, "data", strip_rows=1000)
+    strips = project_map(hr, lr, 4, "data", strip_rows=16)
+    assert strips.shape == whole.shape == (200, 40, 1)
+    np.testing.assert_allclose(strips, whole, atol=2e-6)
