@@ -20,6 +20,32 @@ def test_shapes_and_constant(scale, shape):
     np.testing.assert_allclose(out, 0.3125, atol=1e-6)
 
 
+@pytest.mark.parametrize("scale", [2, 4, 8])
+@pytest.mark.parametrize("shape", [(70, 45), (9, 40), (3, 2)])
+def test_blur_against_scipy(scale, shape):
+    """The blur against scipy's correlation with the same taps (reflected borders, or the
+    edge repeated where the image is shorter than the kernel's radius), then the same
+    bicubic decimation."""
+    import torch
+    import torch.nn.functional as F
+    from scipy.ndimage import correlate1d
+
+    from pbrsr_core.degrade import _gaussian_kernel, degrade_tensor
+
+    x = np.random.default_rng(scale).random((2, *shape)).astype(np.float64)
+    k = _gaussian_kernel(degrade_sigma(scale)).double().numpy()
+    r = len(k) // 2
+    ref = x
+    for axis in (1, 2):
+        if x.shape[axis] > 1:
+            mode = "mirror" if x.shape[axis] > r else "nearest"
+            ref = correlate1d(ref, k, axis=axis, mode=mode)
+    size = (max(1, round(shape[0] / scale)), max(1, round(shape[1] / scale)))
+    ref = F.interpolate(torch.from_numpy(ref)[None], size=size, mode="bicubic")
+    got = degrade_tensor(torch.from_numpy(x)[None], scale)
+    torch.testing.assert_close(got, ref, rtol=0, atol=1e-12)
+
+
 def test_sigma_half_response_at_lr_nyquist():
     for s in (2, 4, 8):
         sigma = degrade_sigma(s)
