@@ -116,12 +116,40 @@ def test_brdf_lut_is_cached_on_disk(tmp_path, monkeypatch):
     monkeypatch.setenv("PBRSR_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(light, "_LUT_MEMO", {})
     lut = light.brdf_lut(size=8, samples=64)
-    files = list(tmp_path.glob("brdf_lut_*.npy"))
+    files = list(tmp_path.glob("brdf_lut_*.npz"))
     assert len(files) == 1
     monkeypatch.setattr(light, "_LUT_MEMO", {})
     torch.testing.assert_close(light.brdf_lut(size=8, samples=64), lut)
     # A + B is the directional albedo of a white (F0 = 1) GGX surface: never above 1
     assert light.brdf_lut().sum(-1).max() <= 1.0 + 2e-3
+
+
+def test_prefiltered_environment_is_cached_on_disk(tmp_path, monkeypatch):
+    from pbrsr_core.render.envmaps import procedural_sky
+
+    monkeypatch.setenv("PBRSR_CACHE_DIR", str(tmp_path))
+    sky = procedural_sky()
+    first = light.EnvLight(sky)
+    files = list(tmp_path.glob("envlight_*.npz"))
+    assert len(files) == 1
+    calls = []
+    real = light._convolve
+    monkeypatch.setattr(light, "_convolve", lambda *a: calls.append(1) or real(*a))
+    again = light.EnvLight(sky)  # read back, nothing convolved
+    assert calls == []
+    torch.testing.assert_close(again.spec_levels, first.spec_levels, rtol=0, atol=0)
+    torch.testing.assert_close(again.diffuse_map, first.diffuse_map, rtol=0, atol=0)
+    # a damaged file is computed again (and rewritten), with the same values
+    files[0].write_bytes(files[0].read_bytes()[:100])
+    fixed = light.EnvLight(sky)
+    assert calls and fixed.spec_levels.equal(first.spec_levels)
+    # another environment is another entry
+    light.EnvLight(torch.roll(sky, 7, dims=1))
+    assert len(list(tmp_path.glob("envlight_*.npz"))) == 2
+    # an unwritable cache only costs the computation
+    monkeypatch.setenv("PBRSR_CACHE_DIR", str(tmp_path / "file"))
+    (tmp_path / "file").write_text("not a folder")
+    assert light.EnvLight(sky).diffuse_map.equal(first.diffuse_map)
 
 
 def test_diffuse_of_a_linear_environment_is_analytic():
