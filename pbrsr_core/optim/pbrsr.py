@@ -38,6 +38,7 @@ from ..errors import UnprocessableAsset
 from ..progress import Eta, Progress, ProgressFn, emit
 from ..render import camera as cam
 from . import views as vsel
+from .adam import FusedAdam
 from .losses import (
     MapGroup,
     avg_pool_map,
@@ -577,8 +578,7 @@ def optimize_pbrsr(
         {i: "normal" in roles[i] for i in trained},
         {i: grad_masks[i][1] for i in trained},
     )
-    # fused: one pass over the weight maps and their two moments (CPU and CUDA)
-    wmap_opt = torch.optim.Adam([wmaps], lr=config.weight_map_lr, fused=True)
+    wmap_opt = FusedAdam([(config.weight_map_lr, [wmaps])])
 
     def target(v: int, pix: torch.Tensor) -> torch.Tensor:  # (P, 3) pseudo-GT at pixels
         q = np.asarray(targets[v].reshape(-1, 3)[pix.cpu().numpy()], dtype=np.float32)

@@ -8,7 +8,8 @@ loop (parallel over rows); on other devices the same numbers come from plain tor
 * :func:`tv_loss`: ``sum_T mean|grad_x T| + mean|grad_y T|`` with its gradient computed in the
   same pass (a custom autograd function; the subgradient of ``|0|`` is 0, as torch's).
 * :func:`project_`: values into [0, 1], NaN -> 0, normal maps renormalised with z > 0.
-* :class:`MapAdam`: torch's fused Adam with a learning rate per channel, then the projection.
+* :class:`MapAdam`: torch's fused Adam kernel with a learning rate per channel, then the
+  projection.
 * :func:`mask_grad_`: zero non-finite gradient entries and those outside a texel/channel mask.
 * :func:`accumulate_map_grad_`: the step's whole-map gradient in one pass: TV's gradient and
   the PBR-consistency gradient (computed at LR size on the pooled map) added to the
@@ -22,6 +23,7 @@ import numba
 import numpy as np
 import torch
 
+from .adam import FusedAdam
 from .losses import MapGroup
 
 _JIT = {"cache": True, "parallel": True}
@@ -281,11 +283,12 @@ class MapAdam:
     """Adam over the HR maps with a learning rate per channel, each step followed by
     :func:`project_`.
 
-    Torch's fused Adam (one pass over a map and its two moments) with one parameter group per
-    rate. A map whose optimised channels (``channels[i]``, (C,) bool) have different rates steps
-    at the largest and has its update scaled per channel afterwards (one copy of that map per
-    step); a map whose rates are all 0 is not optimised. ``channel_lr[i]``: (C,) rates;
-    ``normal[i]``: whether map ``i`` is a normal map (projected to unit, z > 0 normals).
+    Torch's fused Adam kernel (one pass over a map and its two moments; :class:`FusedAdam`)
+    with one parameter group per rate. A map whose optimised channels (``channels[i]``, (C,)
+    bool) have different rates steps at the largest and has its update scaled per channel
+    afterwards (one copy of that map per step); a map whose rates are all 0 is not optimised.
+    ``channel_lr[i]``: (C,) rates; ``normal[i]``: whether map ``i`` is a normal map
+    (projected to unit, z > 0 normals).
     Channels outside ``channels[i]`` must get no gradient (the optimiser masks them)."""
 
     def __init__(
@@ -309,8 +312,7 @@ class MapAdam:
             if not bool((rates[own] == top).all()):
                 factor = torch.where(own, rates / top, torch.ones_like(rates))
                 self.scale[i] = factor.to(p.device, p.dtype)
-        groups = [{"params": ps, "lr": lr} for lr, ps in sorted(by_lr.items())]
-        self.opt = torch.optim.Adam(groups, fused=True) if groups else None
+        self.opt = FusedAdam(sorted(by_lr.items())) if by_lr else None
 
     @torch.no_grad()
     def step(self) -> None:
