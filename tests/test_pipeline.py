@@ -176,8 +176,8 @@ def test_project_lr_back_projects_what_the_prior_initialised(tmp_path, monkeypat
 
 
 def test_max_prior_scale_reaches_the_init_and_the_self_check(tmp_path, monkeypatch):
-    """fast's prior runs x2 of the x4 (bicubic the rest, then projected onto the LR map), in
-    the self-check as in the init; the pseudo-GT keeps the whole scale."""
+    """fast's prior runs x2 of the x4 (bicubic the rest, then projected onto its input), in
+    the self-check, the init and the pseudo-GT alike."""
     from pbrsr_core.optim import presets
 
     prior, asset, lr = _quad_with_prior(tmp_path, monkeypatch, seed=5)
@@ -195,8 +195,13 @@ def test_max_prior_scale_reaches_the_init_and_the_self_check(tmp_path, monkeypat
     report = upscale_asset(asset, tmp_path / "b", UpscaleOptions(preset="fast", prior="n"))
     assert report["prior_check"][0]["texels"] == 32 * 32
     assert report["prior_check"][0]["use_prior"]
-    # the check one scale down and the init: x2; the pseudo-GT of the rendered views: x4
+    # the check one scale down, the init and the pseudo-GT of the rendered views: x2
     assert prior.calls[:2] == [(8, 2), (32, 2)]
-    assert len(prior.calls) > 2 and {f for _, f in prior.calls[2:]} == {4}
+    assert len(prior.calls) > 2 and {f for _, f in prior.calls[2:]} == {2}
+    # and the whole scale where the preset does not limit it
+    prior.calls.clear()
+    monkeypatch.setitem(presets.PRESETS, "fast", checked.with_(max_prior_scale=None))
+    upscale_asset(asset, tmp_path / "c", UpscaleOptions(preset="fast", prior="n"))
+    assert {f for _, f in prior.calls} == {4}
     with pytest.raises(InvalidOptions, match="max_prior_scale"):
         frozen.with_(max_prior_scale=1)

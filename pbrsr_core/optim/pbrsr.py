@@ -35,6 +35,7 @@ import torch
 
 from ..asset.model import Material, Mesh
 from ..errors import UnprocessableAsset
+from ..prior.direct import upscale_rgb
 from ..progress import Eta, Progress, ProgressFn, emit
 from ..render import camera as cam
 from . import views as vsel
@@ -249,7 +250,9 @@ def pseudo_gt_view(k, c, gbs, tex0, materials, light, prior, scale, config, rast
     if box is not None:  # the prior where the object is (with context); no pixel beyond is used
         y0, y1, x0, x1 = box
         crop = lr_img[..., y0:y1, x0:x1].contiguous()
-        up[..., y0 * scale : y1 * scale, x0 * scale : x1 * scale] = prior.upscale(crop, scale)
+        up[..., y0 * scale : y1 * scale, x0 * scale : x1 * scale] = upscale_rgb(
+            prior, crop, scale, max_prior_scale=config.max_prior_scale
+        )
     if config.target == "detail":
         up = hr_img.permute(2, 0, 1)[None] + up - base
     return up.clamp(0.0, 1.0)[0].permute(1, 2, 0)
@@ -536,6 +539,7 @@ def optimize_pbrsr(
                 BACKGROUND,
                 config.lr_render,
                 config.target,
+                config.max_prior_scale,
                 PRIOR_CONTEXT,
             )
             tex0 = {**static, **init_dev}

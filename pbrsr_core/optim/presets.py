@@ -65,11 +65,10 @@ class PbrsrConfig:
     every other map, and every other channel of a packed ORM image, starts from bicubic
     interpolation."""
     max_prior_scale: int | None = None
-    """The prior's init upscales by at most this factor (e.g. 2 of x4) and bicubic
-    interpolation does the rest, then one back-projection step onto the LR map
-    (prior/direct.py ``upscale_map``); the self-check scores the same. None: the prior does
-    the whole scale (the paper). The pseudo-GT always uses the whole scale (its inputs are
-    small renders)."""
+    """The prior upscales by at most this factor (e.g. 2 of x4) and bicubic interpolation
+    does the rest, then one back-projection step onto its input (prior/direct.py
+    ``upscale_rgb``): in the init, in the self-check (which scores the same upscaling) and in
+    the pseudo-GT. None: the prior does the whole scale (the paper)."""
     deblock_jpeg: bool = False
     """LR maps stored as JPEG have their block artefacts reduced with the file's own
     quantisation tables (every component of 4:4:4 files, the luma of chroma-subsampled ones)

@@ -115,15 +115,31 @@ def upscale_map(
     kind = map_kind(role)
     a = _as_hwc(pixels)
     colour, alpha, n_colour = _split(a)
+    rgb = upscale_rgb(prior, colour, scale, max_prior_scale=max_prior_scale, progress=progress)
+    up_alpha = None if alpha is None else bicubic_upscale(alpha, scale)
+    return _merge(rgb.cpu(), up_alpha, n_colour, kind)
+
+
+def upscale_rgb(
+    prior: Prior,
+    rgb: torch.Tensor,
+    scale: int,
+    *,
+    max_prior_scale: int | None = None,
+    progress: TileProgress | None = None,
+) -> torch.Tensor:
+    """``prior`` on images (N, 3, H, W) in [0, 1] -> (N, 3, s*H, s*W), on their device: the
+    prior upscales by :func:`prior_factor`, bicubic interpolation does the rest of the scale,
+    and a back-projecting prior's result is then projected onto ``rgb`` at the full scale."""
     factor = prior_factor(prior, scale, max_prior_scale)
-    rgb = prior.upscale(colour, factor, progress=progress).cpu()
+    out = prior.upscale(rgb, factor, progress=progress)
     if factor != scale:
         with torch.inference_mode():
-            rgb = bicubic_upscale(rgb, scale // factor).clamp_(0.0, 1.0)
+            out = bicubic_upscale(out, scale // factor).clamp_(0.0, 1.0)
             if prior.back_project:
-                rgb = back_project(rgb, colour, scale)
-    up_alpha = None if alpha is None else bicubic_upscale(alpha, scale)
-    return _merge(rgb, up_alpha, n_colour, kind)
+                out = back_project(out, rgb, scale)
+        out = out.clone()  # outside inference mode, as Prior.upscale returns
+    return out
 
 
 def bicubic_map(pixels: np.ndarray, role: str, scale: int) -> np.ndarray:
