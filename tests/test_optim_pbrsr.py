@@ -298,11 +298,23 @@ def test_maps_with_rate_zero_keep_their_init_and_cost_no_prior_calls(tmp_path):
     res = optimize_pbrsr(mesh, mats, lrs, init, roles, prior=prior, config=nothing, **kw)
     assert all(torch.equal(res.maps[i], init[i]) for i in (0, 1))
     assert prior.calls == 0 and res.history == []
-    prior = _CountingPrior()  # no iterations: the init as it is, no pseudo-GT
+    # no iterations: the init as it is; no view chosen or rasterised, no pseudo-GT
+    prior, events = _CountingPrior(), []
     res = optimize_pbrsr(
-        mesh, mats, lrs, init, roles, prior=prior, config=frozen.with_(iterations=0), **kw
+        mesh,
+        mats,
+        lrs,
+        init,
+        roles,
+        prior=prior,
+        config=frozen.with_(iterations=0),
+        progress=events.append,
+        **{k: v for k, v in kw.items() if k != "cameras"},
     )
     assert torch.equal(res.maps[0], init[0]) and prior.calls == 0
+    assert res.views == [] and res.timings == {} and events == []
+    assert set(res.consistency_psnr) == {"0:base_color", "1:emissive"}
+    assert res.report()["optimized_maps"] == {"0": [], "1": []}
 
 
 def test_coverage_views_on_a_sphere_and_progress_cancel():

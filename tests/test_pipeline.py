@@ -95,12 +95,20 @@ def test_gltf_keeps_form_and_direct_with_bicubic_prior(tmp_path: Path):
     assert [i["hr_size"] for i in rb["images"]] == [i["hr_size"] for i in rd["images"]]
 
 
-def test_pbrsr_method_runs_and_reports(demo: Path, tmp_path: Path):
+@pytest.mark.parametrize("preset", ["fast", "balanced"])
+def test_pbrsr_method_runs_and_reports(demo: Path, tmp_path: Path, preset: str):
     report = upscale_asset(
-        demo, tmp_path / "out", UpscaleOptions(method="pbrsr", preset="fast", prior="bicubic")
+        demo, tmp_path / "out", UpscaleOptions(method="pbrsr", preset=preset, prior="bicubic")
     )
-    assert report["num_views"] >= 1 and report["history"]
-    assert set(report["timings"]) >= {"load", "init", "gbuffers", "pseudo_gt", "optimize"}
+    assert set(report["timings"]) >= {"load", "init", "project", "dilate", "preview"}
+    assert report["consistency_psnr_db"]
+    stages = {"gbuffers", "pseudo_gt", "optimize"}
+    if preset == "fast":  # PBR-SR's init and export, no optimisation steps
+        assert report["num_views"] == 0 and report["history"] == []
+        assert not stages & set(report["timings"])
+    else:
+        assert report["num_views"] >= 1 and report["history"]
+        assert set(report["timings"]) >= stages
     res = load_asset(tmp_path / "out" / "demo.glb")
     for img in res.images:
         assert np.isfinite(img.pixels).all()

@@ -1,5 +1,5 @@
 """The warm-up compiles every numba specialisation a job uses: after it, upscaling other
-assets (glTF with external images, x4, the PBR-SR fast preset and the baselines) compiles
+assets (glTF with external images, x4, the PBR-SR presets and the baselines) compiles
 nothing new. Run in a fresh interpreter, so kernels other tests compiled do not count."""
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ with tempfile.TemporaryDirectory() as d:
     src = make_test_asset(Path(d) / "in" / "a.gltf", size=24, kind="gltf")
     for i, opts in enumerate([
         UpscaleOptions(method="pbrsr", preset="fast", prior="bicubic", scale=4),
+        UpscaleOptions(method="pbrsr", preset="balanced", prior="bicubic", scale=4),
         UpscaleOptions(method="bicubic", scale=2),
     ]):
         upscale_asset(src, Path(d) / f"out{i}", opts)

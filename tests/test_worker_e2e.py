@@ -143,13 +143,14 @@ def test_failing_job_keeps_a_clear_error(env):
     assert client.get("/v1/jobs?status=failed").json()["total"] == 1
 
 
-def test_pbrsr_fast_job_reports_losses_and_returns_valid_hr_maps(env):
-    """The default method with a preset that takes seconds: losses and consistency PSNR
-    reach the status while it runs, and the bundle holds a valid asset at x2."""
+def test_pbrsr_job_reports_losses_and_returns_valid_hr_maps(env):
+    """The default method and preset (bicubic prior on a small asset: seconds): losses and
+    consistency PSNR reach the status while it runs, and the bundle holds a valid asset at
+    x2."""
     from pbrsr_core.asset import load_asset, validate_gltf
 
     settings, client, proc, tmp = env
-    opts = {"method": "pbrsr", "preset": "fast", "prior": "bicubic", "scale": 2}
+    opts = {"method": "pbrsr", "preset": "balanced", "prior": "bicubic", "scale": 2}
     job_id = post_asset(client, asset_bytes(tmp), options=opts).json()["id"]
     job = _wait_state(client, job_id, ("finished", "failed", "canceled"), 240)
     assert job["status"] == "finished", job

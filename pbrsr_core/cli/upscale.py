@@ -104,7 +104,7 @@ def register(app: typer.Typer) -> None:
     @app.command()
     def demo(
         out: Annotated[Path, typer.Option("-o", "--out", help="output folder")] = Path("out/demo"),
-        preset: Annotated[str, typer.Option(help="fast, balanced, quality")] = "fast",
+        preset: Annotated[str, typer.Option(help="fast, balanced, quality")] = "balanced",
         method: Annotated[str, typer.Option(help="pbrsr, direct or bicubic")] = "pbrsr",
         size: Annotated[int, typer.Option(help="LR texture size of the demo asset")] = 128,
     ) -> None:

@@ -301,6 +301,26 @@ class PbrsrResult:
 # ---------------------------------------------------------------------------------------------
 
 
+def _unoptimised(init_maps, lr_maps, roles, groups, images, scale, config, seed, device):
+    """The result of a run with nothing to optimise (0 iterations, or every rate 0): the init
+    maps in valid ranges, with their consistency against the LR maps."""
+    maps = {}
+    for i in images:
+        maps[i] = init_maps[i].detach().to(device, torch.float32, copy=True)
+        project_(maps[i], "normal" in roles[i])
+    lr_dev = {i: lr_maps[i].detach().to(device, torch.float32) for i in images}
+    return PbrsrResult(
+        maps=maps,
+        consistency_psnr={
+            f"{i}:{g.name}": consistency_psnr(maps[i], lr_dev[i], scale, g)
+            for i in images
+            for g in groups[i]
+        },
+        optimized={i: [] for i in images},
+        config={**config.to_dict(), "views": {"mode": "none"}, "seed": seed, "scale": scale},
+    )
+
+
 def _check_inputs(lr_maps, init_maps, roles, scale):
     if scale < 1:
         raise UnprocessableAsset(f"scale must be >= 1, got {scale}")
@@ -452,11 +472,19 @@ def optimize_pbrsr(
     groups = {i: map_groups(roles[i], int(init_maps[i].shape[2]), config) for i in images}
     rates = {i: channel_lr(groups[i], int(init_maps[i].shape[2]), config) for i in images}
     # maps whose every rate is 0 (map_lr) keep their init: rendered, never differentiated;
-    # with 0 iterations nothing is optimised and no pseudo-GT is made
+    # with 0 iterations nothing is optimised: no views, no G-buffers, no pseudo-GT
     trained = [i for i in images if bool(rates[i].any())] if config.iterations else []
 
     def rasterize(c):
         return raster.rasterize(mesh, c).to(device)
+
+    if not trained:  # nothing to optimise: no views, G-buffers, pseudo-GT or steps
+        result = _unoptimised(
+            init_maps, lr_maps, roles, groups, images, scale, config, seed, device
+        )
+        if on_snapshot is not None and 0 in snapshot_at:
+            on_snapshot(0, result.maps)
+        return result
 
     # ---- 1. views and G-buffers -------------------------------------------------------------
     t0 = time.perf_counter()
@@ -513,9 +541,7 @@ def optimize_pbrsr(
         project_(init_dev[i], "normal" in roles[i])
     targets: list[np.ndarray] = []
     with torch.no_grad():
-        if not trained:
-            pass  # nothing to optimise: no targets, no prior calls
-        elif reference_maps is not None:
+        if reference_maps is not None:
             ref = {**static, **{i: t.to(device, torch.float32) for i, t in reference_maps.items()}}
             for k in range(n_views):
                 gb = gbs.get(k)
@@ -608,7 +634,7 @@ def optimize_pbrsr(
         if on_snapshot is not None and it in snapshot_at:
             on_snapshot(it, current())
 
-    for it in range(config.iterations if trained else 0):
+    for it in range(config.iterations):
         snapshot(it)
         textures = {**static, **fixed, **params}
         if config.sampling == "views":

@@ -277,73 +277,63 @@ CHECK_PRIOR_CPU = ("colour", "data")
 #   6 views. bfloat16 (2.1x faster on this AVX512-BF16 CPU) was not taken: it cost the
 #   Avocado's roughness 0.67 dB of the prior's gain (x4, whole map).
 
-FAST = PbrsrConfig(
-    name="fast",
+# * fast: no optimisation steps (session 11). Its optimiser moved render PSNR by -0.01..+0.02
+#   dB between 0 and 5 steps in every fast run of `pbrsr bench upscale` (session 10, 120
+#   views), and by -0.01 (Avocado), +0.01 (BoomBox), +0.05 dB (WaterBottle) in session 11 (60
+#   views): 5 Adam steps of 2.5e-4 move no texel by more than 1.25e-3, a third of an 8-bit
+#   level. Those steps, with the view selection, G-buffers and pseudo-GT they need, were 20-30
+#   % of fast's time (WaterBottle 25.2 -> 20.7 s, Avocado 18.3 -> 14.5 s). So fast is
+#   PBR-SR's init (the checked, back-projected prior at x2 on every map, JPEG deblocking) and
+#   the export's projection onto the LR maps; its view and step numbers below are the ones it
+#   was measured with, and apply to ``FAST.with_(iterations=...)``.
+
+_CPU = PbrsrConfig(
     view_mode="coverage",
-    n_candidates=48,  # candidate views rasterised at low resolution for selection
-    max_views=6,  # few views: pseudo-GT costs one prior call per view
     fov_deg=30.0,
     render_res=None,
-    max_render_res=384,
-    views_per_texel=2,
     target="detail",
     check_prior=CHECK_PRIOR_CPU,
-    max_prior_scale=2,
     deblock_jpeg=True,
-    iterations=5,
-    batch_views=2,
     lr=2.5e-4,
     prior_maps=PRIOR_MAPS_CPU,
     map_lr={"normal": 0.3, "emissive": 0.0},
     project_lr=PROJECT_LR_CPU,
     lambda_pix=1.0,
     mask_unseen=True,
+)
+"""What the CPU presets share (see the comments above); each names only what differs."""
+
+FAST = _CPU.with_(
+    name="fast",
+    max_prior_scale=2,
+    iterations=0,
+    n_candidates=48,  # candidate views rasterised at low resolution for selection
+    max_views=6,  # few views: pseudo-GT costs one prior call per view
+    max_render_res=384,
+    views_per_texel=2,
+    batch_views=2,
     log_every=5,
 )
 
-BALANCED = PbrsrConfig(
+BALANCED = _CPU.with_(
     name="balanced",
-    view_mode="coverage",
+    iterations=25,
     n_candidates=64,
     max_views=16,
-    fov_deg=30.0,
-    render_res=None,
     max_render_res=512,  # 512: one pixel per texel on a 512 map seen face-on
     views_per_texel=3,
-    target="detail",
-    check_prior=CHECK_PRIOR_CPU,
-    deblock_jpeg=True,
-    iterations=25,
     batch_views=2,
-    lr=2.5e-4,
-    prior_maps=PRIOR_MAPS_CPU,
-    map_lr={"normal": 0.3, "emissive": 0.0},
-    project_lr=PROJECT_LR_CPU,
-    lambda_pix=1.0,
-    mask_unseen=True,
     log_every=10,
 )
 
-QUALITY = PbrsrConfig(
+QUALITY = _CPU.with_(
     name="quality",
-    view_mode="coverage",
+    iterations=40,
     n_candidates=96,
     max_views=32,
-    fov_deg=30.0,
-    render_res=None,
     max_render_res=768,
     views_per_texel=4,
-    target="detail",
-    check_prior=CHECK_PRIOR_CPU,
-    deblock_jpeg=True,
-    iterations=40,
     batch_views=3,
-    lr=2.5e-4,
-    prior_maps=PRIOR_MAPS_CPU,
-    map_lr={"normal": 0.3, "emissive": 0.0},
-    project_lr=PROJECT_LR_CPU,
-    lambda_pix=1.0,
-    mask_unseen=True,
     log_every=10,
 )
 
