@@ -17,6 +17,7 @@ import time
 from collections.abc import Callable, Collection, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -52,6 +53,9 @@ from .progress import Progress, ProgressFn, emit
 from .render.light import EnvLight
 from .scene import make_scene, procedural_light
 from .uvmask import coverage_masks
+
+if TYPE_CHECKING:
+    from .optim.presets import PbrsrConfig
 
 
 class StageTimer:
@@ -98,6 +102,7 @@ def _upscale_maps(
     progress: ProgressFn | None,
     work_dir: Path,
     snapshots: Snapshots | None = None,
+    config: PbrsrConfig | None = None,
 ) -> tuple[dict[int, np.ndarray], dict]:
     """HR maps (stored encoding) for every used image, and method-specific report fields."""
     images = upscalable_images(asset)
@@ -124,7 +129,7 @@ def _upscale_maps(
     from .optim.presets import get_preset
     from .optim.texel_ops import pad_update
 
-    config = get_preset(options.preset)
+    config = config or get_preset(options.preset)
     # the LR maps as the method sees them: JPEG block artefacts reduced with the file's own
     # tables (asset/jpeg.py), so the consistency term does not copy them to the HR maps
     lr_pixels = {img.index: img.pixels for img in images}
@@ -292,11 +297,14 @@ def upscale_asset(
     limits: Limits = Limits(),
     work_dir: Path | None = None,
     snapshots: Snapshots | None = None,
+    config: PbrsrConfig | None = None,
 ) -> dict:
     """Upscale every texture of the asset at ``input_path`` into a bundle at ``out_dir``.
 
     ``out_dir`` must not exist or be empty. ``work_dir`` keeps per-job intermediates (unzipped
     input, cached pseudo-GT) so a retried job reuses them; by default a temporary folder.
+    ``config``: PBR-SR numbers to run instead of the options' preset (``pbrsr bench paper``
+    runs a sample of the paper preset with it).
     Returns the report (also written to ``out_dir/report.json``).
     """
     input_path, out_dir = Path(input_path), Path(out_dir)
@@ -322,7 +330,7 @@ def upscale_asset(
             _check_output_size(images, options.scale, limits)
         with reuse_large_blocks():
             hr, method_report = _upscale_maps(
-                asset, options, device, timer, progress, work, snapshots
+                asset, options, device, timer, progress, work, snapshots, config
             )
         emit(progress, Progress(stage="export"))
         with timer("export"):

@@ -2,8 +2,9 @@
 
 Runs :func:`pbrsr_core.pipeline.upscale_asset` and, for PBR-SR, saves the maps at
 intermediate iterations (``snap_<it>.npz``, as they would be exported) with the wall time at
-which they existed (time spent making and saving snapshots is not counted). Writes
-``result.json`` beside the spec.
+which they existed (time spent making and saving snapshots is not counted; ``"snapshots":
+false`` in the spec saves none). ``"config"`` in the spec changes numbers of the options'
+preset (``PbrsrConfig.with_``). Writes ``result.json`` beside the spec.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..optim.presets import get_preset
 from ..options import UpscaleOptions
 from ..pipeline import upscale_asset
 
@@ -48,12 +50,15 @@ def main(spec_path: str) -> None:
         snaps.append({"it": it, "seconds": round(s0 - t0 - overhead, 3), "file": name})
         overhead += time.perf_counter() - s0
 
+    options = UpscaleOptions(**spec["options"])
+    changes = spec.get("config")
     report = upscale_asset(
         Path(spec["input"]),
         Path(spec["out"]),
-        UpscaleOptions(**spec["options"]),
+        options,
         work_dir=work / "job",
-        snapshots=(SNAPSHOT_AT, on_snapshot),
+        snapshots=(SNAPSHOT_AT, on_snapshot) if spec.get("snapshots", True) else None,
+        config=get_preset(options.preset).with_(**changes) if changes else None,
     )
     run_s = time.perf_counter() - t0 - overhead
     peak = peak_rss_mib()
@@ -63,6 +68,7 @@ def main(spec_path: str) -> None:
                 "run_s": run_s,
                 "peak_rss_mib": peak,
                 "timings": report["timings"],
+                "num_views": report.get("num_views", 0),
                 "snapshots": snaps,
             }
         )
