@@ -287,6 +287,12 @@ CHECK_PRIOR_CPU = ("colour", "data")
 #   the export's projection onto the LR maps; its view and step numbers below are the ones it
 #   was measured with, and apply to ``FAST.with_(iterations=...)``.
 
+# * quality (session 12, `pbrsr bench upscale` with every CPU preset, 240 views): its 32 views,
+#   renders up to 768² and 40 steps gained what balanced gains (mean +1.71 dB over bicubic on
+#   the seven shared assets; per asset -0.019..+0.022 dB against balanced) in 1.36-1.99x its
+#   time. With waifu2x-photo the pseudo-GT adds nothing the init lacks; quality is kept for
+#   stronger priors, whose pseudo-GT can.
+
 _CPU = PbrsrConfig(
     view_mode="coverage",
     fov_deg=30.0,
