@@ -5,7 +5,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from pbrsr_core.bench.upscale import run
+import pytest
+
+from pbrsr_core.asset import make_demo_asset
+from pbrsr_core.bench.upscale import bench_assets, run
 
 
 def test_bench_upscale_small_run(tmp_path: Path):
@@ -76,3 +79,13 @@ def test_summary_gains_worst_map_and_fast_share():
     assert (
         "fast keeps 37 % of balanced's mean render-PSNR gain in 25 % of its mean run time" in text
     )
+
+
+def test_bench_assets_refuses_an_unknown_name(tmp_path: Path):
+    shared = tmp_path / "shared"
+    (shared / "Chair").mkdir(parents=True)
+    make_demo_asset(shared / "Chair" / "chair.glb", size=16)
+    found = bench_assets(tmp_path / "w", False, 16, shared, ["Chair"], print)
+    assert [name for name, _ in found] == ["Chair"]
+    with pytest.raises(ValueError, match="Chiar not found"):
+        bench_assets(tmp_path / "w", False, 16, shared, ["Chair", "Chiar"], print)

@@ -58,14 +58,18 @@ def bench_assets(
 ) -> list[tuple[str, Path]]:
     """(name, ground-truth file) of the assets a benchmark runs on: the procedural demo asset
     (written under ``work``) and the shared assets (all, or those ``names``), saying so when
-    the shared folder is absent."""
+    the shared folder is absent. A name with no folder there is a ValueError."""
     todo: list[tuple[str, Path]] = []
     if include_procedural:
         todo.append(
             ("procedural", make_demo_asset(work / "procedural" / "demo.glb", size=procedural_size))
         )
     if shared.is_dir():
-        todo.extend(find_assets(shared, names))
+        found = find_assets(shared, names)
+        missing = sorted(set(names or ()) - {name for name, _ in found})
+        if missing:
+            raise ValueError(f"asset folder {', '.join(missing)} not found in {shared}")
+        todo.extend(found)
     else:
         say(f"shared assets folder {shared} not present: procedural asset only")
     return todo

@@ -3,12 +3,19 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import NoReturn
 
 import typer
 
 from ..options import DEFAULT_PRIOR
 
 bench_app = typer.Typer(help="Benchmarks: print a table, write JSON and plots to bench-out/.")
+
+
+def _bad_input(exc: ValueError) -> NoReturn:
+    """A benchmark refused its input (an unknown asset, an impossible size): say why, exit 2."""
+    typer.echo(f"error: {exc}", err=True)
+    raise typer.Exit(2) from None
 
 
 def _ints(text: str) -> tuple[int, ...]:
@@ -143,19 +150,22 @@ def upscale_cmd(
     wall time, peak memory, PSNR per map and render PSNR, with curves over iterations."""
     from ..bench.upscale import markdown_table, run, summary_table
 
-    rows = run(
-        out_dir=out,
-        assets=asset or None,
-        methods=tuple(m.strip() for m in methods.split(",") if m.strip()),
-        scale=scale,
-        prior=prior,
-        eval_res=eval_res,
-        eval_views=eval_views,
-        include_procedural=procedural,
-        procedural_size=procedural_size,
-        lr_format=lr_format,
-        say=lambda m: typer.echo(m, err=True),
-    )
+    try:
+        rows = run(
+            out_dir=out,
+            assets=asset or None,
+            methods=tuple(m.strip() for m in methods.split(",") if m.strip()),
+            scale=scale,
+            prior=prior,
+            eval_res=eval_res,
+            eval_views=eval_views,
+            include_procedural=procedural,
+            procedural_size=procedural_size,
+            lr_format=lr_format,
+            say=lambda m: typer.echo(m, err=True),
+        )
+    except ValueError as exc:
+        _bad_input(exc)
     typer.echo(markdown_table(rows))
     typer.echo(summary_table(rows))
     typer.echo(f"wrote {out / 'results.json'}, {out / 'results.md'}, {out / 'speed_vs_error.png'}")
@@ -252,15 +262,18 @@ def headroom_cmd(
     by the ground truth's (the most an upscaler of that map alone can add)."""
     from ..bench.headroom import markdown_table, run
 
-    rows = run(
-        out_dir=out,
-        assets=asset or None,
-        scale=scale,
-        eval_res=eval_res,
-        eval_views=eval_views,
-        include_procedural=procedural,
-        say=lambda m: typer.echo(m, err=True),
-    )
+    try:
+        rows = run(
+            out_dir=out,
+            assets=asset or None,
+            scale=scale,
+            eval_res=eval_res,
+            eval_views=eval_views,
+            include_procedural=procedural,
+            say=lambda m: typer.echo(m, err=True),
+        )
+    except ValueError as exc:
+        _bad_input(exc)
     typer.echo(markdown_table(rows))
     typer.echo(f"wrote {out / 'headroom.json'} and {out / 'headroom.png'}")
 
@@ -293,7 +306,6 @@ def paper_cmd(
             say=lambda m: typer.echo(m, err=True),
         )
     except ValueError as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from None
+        _bad_input(exc)
     print_table(result)
     typer.echo(f"wrote {out / 'paper.json'} and {out / 'paper.png'}")
