@@ -89,3 +89,7 @@ def test_bench_assets_refuses_an_unknown_name(tmp_path: Path):
     assert [name for name, _ in found] == ["Chair"]
     with pytest.raises(ValueError, match="Chiar not found"):
         bench_assets(tmp_path / "w", False, 16, shared, ["Chair", "Chiar"], print)
+    # --no-shared: the procedural asset alone, whatever the shared folder holds
+    said: list[str] = []
+    only = bench_assets(tmp_path / "w2", True, 16, shared, None, said.append, include_shared=False)
+    assert [name for name, _ in only] == ["procedural"] and said == []

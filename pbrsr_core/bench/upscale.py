@@ -55,16 +55,20 @@ def bench_assets(
     shared: Path,
     names: list[str] | None,
     say,
+    include_shared: bool = True,
 ) -> list[tuple[str, Path]]:
     """(name, ground-truth file) of the assets a benchmark runs on: the procedural demo asset
-    (written under ``work``) and the shared assets (all, or those ``names``), saying so when
-    the shared folder is absent. A name with no folder there is a ValueError."""
+    (written under ``work``) and, with ``include_shared``, the shared assets (all, or those
+    ``names``), saying so when the shared folder is absent. A name with no folder there is a
+    ValueError."""
     todo: list[tuple[str, Path]] = []
     if include_procedural:
         todo.append(
             ("procedural", make_demo_asset(work / "procedural" / "demo.glb", size=procedural_size))
         )
-    if shared.is_dir():
+    if not include_shared:
+        pass
+    elif shared.is_dir():
         found = find_assets(shared, names)
         missing = sorted(set(names or ()) - {name for name, _ in found})
         if missing:
@@ -145,6 +149,7 @@ def run(
     eval_views: int = 240,
     procedural_size: int = 512,
     include_procedural: bool = True,
+    include_shared: bool = True,
     lr_format: str = "same",
     shared: Path = SHARED_ASSETS,
     say=print,
@@ -164,7 +169,9 @@ def run(
         "lr_format": lr_format,
     }
     try:
-        todo = bench_assets(work_root, include_procedural, procedural_size, shared, assets, say)
+        todo = bench_assets(
+            work_root, include_procedural, procedural_size, shared, assets, say, include_shared
+        )
         for name, gt_path in todo:
             say(f"== {name}: degrade x{scale}")
             lr_path = degrade_asset(

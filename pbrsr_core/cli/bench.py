@@ -141,6 +141,9 @@ def upscale_cmd(
     eval_res: int = typer.Option(256, help="Render size of the evaluation views."),
     eval_views: int = typer.Option(240, help="Evaluation views (the paper's 240)."),
     procedural: bool = typer.Option(True, help="Include the procedural demo asset."),
+    shared: bool = typer.Option(
+        True, help="Include the shared assets (their HDRs light the evaluation either way)."
+    ),
     procedural_size: int = typer.Option(512, help="HR texture size of the procedural asset."),
     lr_format: str = typer.Option(
         "same", help="LR image format (pbrsr degrade --format): same, png, png16, exr."
@@ -160,6 +163,7 @@ def upscale_cmd(
             eval_res=eval_res,
             eval_views=eval_views,
             include_procedural=procedural,
+            include_shared=shared,
             procedural_size=procedural_size,
             lr_format=lr_format,
             say=lambda m: typer.echo(m, err=True),
