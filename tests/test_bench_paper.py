@@ -50,7 +50,7 @@ def test_bench_paper_sample_runs_the_paper_preset(tmp_path: Path):
     assert f["timings"]["optimize"] == pytest.approx(s["timings"]["optimize"] * 1000)
     assert f["timings"]["load"] == pytest.approx(s["timings"]["load"])
     assert f["run_s"] > s["run_s"] > 0 and s["peak_rss_mib"] > 0
-    # one 1024² RGB pseudo-GT per view, at 8 bits
+    # one 1024² RGB pseudo-GT per view, at least 8 bits per channel
     assert s["pseudo_gt_bytes"] >= 2 * 1024 * 1024 * 3
     assert f["pseudo_gt_bytes"] == round(s["pseudo_gt_bytes"] * 375)
     saved = json.loads((tmp_path / "out" / "paper.json").read_text())

@@ -66,15 +66,13 @@ def bench_assets(
         todo.append(
             ("procedural", make_demo_asset(work / "procedural" / "demo.glb", size=procedural_size))
         )
-    if not include_shared:
-        pass
-    elif shared.is_dir():
+    if include_shared and shared.is_dir():
         found = find_assets(shared, names)
         missing = sorted(set(names or ()) - {name for name, _ in found})
         if missing:
             raise ValueError(f"asset folder {', '.join(missing)} not found in {shared}")
         todo.extend(found)
-    else:
+    elif include_shared:
         say(f"shared assets folder {shared} not present: procedural asset only")
     return todo
 
