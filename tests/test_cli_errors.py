@@ -5,32 +5,17 @@ from __future__ import annotations
 
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from clirun import run_cli
 from hostile import hostile_cases
 
-from pbrsr_core import cli
 from pbrsr_core.asset import make_quad_asset
 from pbrsr_core.errors import InvalidAsset, InvalidOptions
 from pbrsr_core.limits import Limits
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def run_cli(args: list[str], capfd) -> tuple[int, str]:
-    """Run the real entry point (``pbrsr_core.cli.main``) in-process: (exit code, stderr)."""
-    old = sys.argv
-    sys.argv = ["pbrsr", *args]
-    code = 0
-    try:
-        cli.main()
-    except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else 1
-    finally:
-        sys.argv = old
-    return code, capfd.readouterr().err
 
 
 def assert_one_line(err: str, says: str = "", quiet: bool = True) -> None:

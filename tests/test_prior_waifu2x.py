@@ -81,7 +81,7 @@ def test_reader_rejects_a_file_that_is_not_ncnn(tmp_path):
 
 def test_sequential_net_matches_the_graph_written_out_by_hand(tmp_path):
     param, binf, weights = _write_model(tmp_path, [6, 8, 3])
-    net = waifu2x.SequentialX2(ncnn.read_model(param, binf))
+    net = waifu2x.UpConv7.from_ncnn(ncnn.read_model(param, binf))
     # Two unpadded 3x3 convs shrink by 4 and the deconvolution gives 2n - 4, so
     # 2 (n + 2p - 4) - 4 = 2n: prepad 3 (UpConv7's six convs: 7).
     assert net.prepad == 3
@@ -104,7 +104,7 @@ def test_sequential_net_refuses_other_graphs(tmp_path):
     text = param.read_text().replace("Deconvolution", "Convolution").replace(" 3=2 4=3", "")
     param.write_text(text)
     with pytest.raises(PriorUnavailable, match="UpConv7"):
-        waifu2x.SequentialX2(ncnn.read_model(param, binf))
+        waifu2x.UpConv7.from_ncnn(ncnn.read_model(param, binf))
 
 
 def _psnr(a: np.ndarray, b: np.ndarray, shave: int) -> float:

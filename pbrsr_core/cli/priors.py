@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import sys
+from pathlib import Path
+
 import typer
 from rich.console import Console
 from rich.table import Table
@@ -78,6 +82,208 @@ def install_cmd(
     raise InvalidOptions(
         f"nothing to install for {name!r}: spandrel:<file> and diffusion:<dir> use local "
         "files you provide"
+    )
+
+
+def _textures_default() -> Path:
+    """$PBRSR_TEXTURES, else the shared texture set beside the repository."""
+    env = os.environ.get("PBRSR_TEXTURES")
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parents[3] / "shared" / "textures"
+
+
+def _run_training(
+    init: str,
+    out: Path,
+    textures: Path | None,
+    name: str,
+    kinds: str,
+    joint: bool,
+    scale: int,
+    steps: int,
+    batch: int,
+    patch: int,
+    lr: float,
+    seed: int,
+    widths: str,
+    resume: bool,
+    quiet: bool,
+) -> None:
+    from tqdm import tqdm
+
+    from ..errors import InvalidOptions
+    from ..prior.train.data import load_materials, read_manifest, split_materials
+    from ..prior.train.loop import TrainConfig, train
+
+    root = textures or _textures_default()
+    if not root.is_dir():
+        raise InvalidOptions(f"texture folder {root} not found (pass --textures)")
+    manifest = read_manifest(root)
+    train_names, held = split_materials(manifest)
+    try:
+        width_t = tuple(int(w) for w in widths.split(","))
+    except ValueError as exc:
+        raise InvalidOptions(f"--widths must be comma-separated integers, not {widths!r}") from exc
+    kind_t = tuple(k.strip() for k in kinds.split(",") if k.strip())
+    groups = [kind_t] if joint else [(k,) for k in kind_t]
+    configs = [
+        TrainConfig(
+            kinds=g,
+            scale=scale,
+            steps=steps,
+            batch_size=batch,
+            patch=patch,
+            lr=lr,
+            seed=seed,
+            widths=width_t,
+            init=init,
+        )
+        for g in groups
+    ]
+    for c in configs:
+        c.check()
+    if not quiet:
+        typer.echo(f"{root}: {len(train_names)} training materials, {len(held)} held out")
+    mats = load_materials(root, train_names, manifest)
+    val = load_materials(root, held, manifest)
+    command = "pbrsr " + " ".join(sys.argv[1:])
+    meta = {
+        "command": command,
+        "train_materials": ",".join(train_names),
+        "held_out": ",".join(held),
+        "licence": "CC0-1.0 (training data)",
+    }
+    for c in configs:
+        net_name = name if joint else f"{name}-{c.kinds[0]}"
+        bar = None if quiet else tqdm(total=c.steps, desc=net_name, unit="step", smoothing=0.05)
+        last_val: list[float] = []
+
+        def progress(step: int, total: int, info: dict, bar=bar, last_val=last_val) -> None:
+            if bar is None:
+                return
+            if "val" in info:
+                last_val[:] = [info["val"]]
+            post = {"loss": f"{info['loss']:.4f}"}
+            if last_val:
+                post["val"] = f"{last_val[0]:.2f} dB"
+            bar.set_postfix(post, refresh=False)
+            bar.update(step - bar.n)
+
+        try:
+            train(
+                c,
+                mats,
+                val,
+                out / net_name,
+                name=net_name,
+                resume=resume,
+                progress=progress,
+                metadata=meta,
+            )
+        finally:
+            if bar is not None:
+                bar.close()
+    from ..prior.train.report import write_report
+
+    report = write_report(out, val, scale_list=(2, 4, 8))
+    if not quiet:
+        typer.echo(f"report: {report}")
+
+
+_OUT = typer.Option(..., "--out", "-o", help="Output folder (checkpoints, weights, report).")
+_TEXTURES = typer.Option(None, help="Texture folder with manifest.json ($PBRSR_TEXTURES).")
+_NAME = typer.Option("pbr-upconv7", help="Weights name; per kind: NAME-KIND.")
+_KINDS = typer.Option("colour,data,normal", help="Map kinds: colour, data, normal.")
+_JOINT = typer.Option(False, "--joint", help="One network for all kinds.")
+_SCALE = typer.Option(2, help="Training scale (2: one x2 pass; 4: two chained).")
+_BATCH = typer.Option(8, help="Crops per step.")
+_PATCH = typer.Option(96, help="HR crop side (px).")
+_SEED = typer.Option(0, help="Seed of the start weights and the batches.")
+_RESUME = typer.Option(True, help="Continue from the folder's checkpoints.")
+_QUIET = typer.Option(False, "--quiet", "-q")
+
+
+@priors_app.command("train")
+def train_cmd(
+    out: Path = _OUT,
+    textures: Path | None = _TEXTURES,
+    name: str = _NAME,
+    kinds: str = _KINDS,
+    joint: bool = _JOINT,
+    scale: int = _SCALE,
+    steps: int = typer.Option(3000, help="Optimiser steps per network."),
+    batch: int = _BATCH,
+    patch: int = _PATCH,
+    lr: float = typer.Option(5e-4, help="AdamW learning rate (halved at 40 % and 80 %)."),
+    seed: int = _SEED,
+    widths: str = typer.Option("16,32,64,128,128,256", help="UpConv7 convolution widths."),
+    resume: bool = _RESUME,
+    quiet: bool = _QUIET,
+) -> None:
+    """Train a texture prior from random weights on a CC0 texture folder (split by
+    material; the held-out materials validate), then write the report and model card."""
+    _run_training(
+        "random",
+        out,
+        textures,
+        name,
+        kinds,
+        joint,
+        scale,
+        steps,
+        batch,
+        patch,
+        lr,
+        seed,
+        widths,
+        resume,
+        quiet,
+    )
+
+
+@priors_app.command("finetune")
+def finetune_cmd(
+    from_: str = typer.Option(
+        "waifu2x-photo", "--from", help="Start weights: waifu2x-photo or a .safetensors file."
+    ),
+    out: Path = _OUT,
+    textures: Path | None = _TEXTURES,
+    name: str = _NAME,
+    kinds: str = _KINDS,
+    joint: bool = _JOINT,
+    scale: int = _SCALE,
+    steps: int = typer.Option(2000, help="Optimiser steps per network."),
+    batch: int = _BATCH,
+    patch: int = _PATCH,
+    lr: float = typer.Option(1e-4, help="AdamW learning rate (halved at 40 % and 80 %)."),
+    seed: int = _SEED,
+    resume: bool = _RESUME,
+    quiet: bool = _QUIET,
+) -> None:
+    """Fine-tune an existing prior's weights on a CC0 texture folder, then write the report
+    and model card."""
+    widths = "16,32,64,128,128,256"
+    if from_ != "waifu2x-photo":
+        from ..prior.train.weights import load_network
+
+        widths = ",".join(str(w) for w in load_network(Path(from_)).widths)
+    _run_training(
+        from_,
+        out,
+        textures,
+        name,
+        kinds,
+        joint,
+        scale,
+        steps,
+        batch,
+        patch,
+        lr,
+        seed,
+        widths,
+        resume,
+        quiet,
     )
 
 

@@ -73,6 +73,11 @@ class Prior(ABC):
         """Trainable parameter count (0 for classical interpolation)."""
         return 0
 
+    def for_kind(self, kind: str) -> Prior:
+        """The prior to run on maps of ``kind`` (colour, data, normal): itself, unless it
+        holds a network per kind (:class:`~pbrsr_core.prior.texture.TexturePrior`)."""
+        return self
+
     # -- the public call ---------------------------------------------------------------
     def check_scale(self, scale: int) -> None:
         """Raise :class:`UnprocessableAsset` if this prior cannot upscale by ``scale``."""

@@ -115,7 +115,9 @@ def upscale_map(
     kind = map_kind(role)
     a = _as_hwc(pixels)
     colour, alpha, n_colour = _split(a)
-    rgb = upscale_rgb(prior, colour, scale, max_prior_scale=max_prior_scale, progress=progress)
+    rgb = upscale_rgb(
+        prior.for_kind(kind), colour, scale, max_prior_scale=max_prior_scale, progress=progress
+    )
     up_alpha = None if alpha is None else bicubic_upscale(alpha, scale)
     return _merge(rgb.cpu(), up_alpha, n_colour, kind)
 

@@ -1,7 +1,8 @@
 """``load_prior(name, device)``: priors by name, loaded once per process and reused.
 
-Names: ``bicubic``, ``waifu2x-photo`` (the default), ``rrdn-thick``, ``spandrel:<weights path>``,
-``diffusion:<local model dir>``. An unknown name raises
+Names: ``bicubic``, ``pbr-upconv7`` (trained on PBR textures), ``waifu2x-photo``,
+``rrdn-thick``, ``texture:<weights folder or file>`` (``pbrsr priors train``),
+``spandrel:<weights path>``, ``diffusion:<local model dir>``. An unknown name raises
 :class:`pbrsr_core.errors.InvalidOptions`; a prior that is not installed raises
 :class:`pbrsr_core.errors.PriorUnavailable` naming what to run.
 """
@@ -17,8 +18,8 @@ from ..errors import InvalidOptions
 from ..options import DEFAULT_PRIOR
 from .base import Prior
 
-BUILTIN = ("bicubic", "rrdn-thick", "waifu2x-photo")
-PREFIXES = ("spandrel:", "diffusion:")
+BUILTIN = ("bicubic", "rrdn-thick", "waifu2x-photo", "pbr-upconv7")
+PREFIXES = ("spandrel:", "diffusion:", "texture:")
 
 _cache: dict[tuple[str, str], Prior] = {}
 _lock = threading.Lock()
@@ -42,8 +43,9 @@ def check_name(name: str) -> None:
                 raise InvalidOptions(f"prior {name!r} needs a path after '{prefix}'")
             return
     raise InvalidOptions(
-        f"unknown prior {name!r}: use bicubic, waifu2x-photo, rrdn-thick, "
-        "spandrel:<weights file> or diffusion:<model directory>"
+        f"unknown prior {name!r}: use pbr-upconv7, waifu2x-photo, rrdn-thick, bicubic, "
+        "texture:<weights folder or file>, spandrel:<weights file> or "
+        "diffusion:<model directory>"
     )
 
 
@@ -60,6 +62,14 @@ def _build(name: str, device: torch.device) -> Prior:
         from .waifu2x import Waifu2xPrior
 
         return Waifu2xPrior(device)
+    if name == "pbr-upconv7":
+        from .texture import NAME, WEIGHTS_DIR, TexturePrior
+
+        return TexturePrior(WEIGHTS_DIR, device, name=NAME)
+    if name.startswith("texture:"):
+        from .texture import TexturePrior
+
+        return TexturePrior(Path(name[len("texture:") :]).expanduser(), device)
     if name.startswith("spandrel:"):
         from .spandrel_prior import SpandrelPrior
 
@@ -135,6 +145,31 @@ def list_priors() -> list[dict]:
             "size_bytes": files[1].stat().st_size if files else None,
             "devices": "cpu, cuda",
             "note": note(waifu2x.NAME, files is not None, waifu2x.INSTALL_HINT),
+        }
+    )
+    from . import texture
+
+    params, size = texture.installed_stats()
+    rows.append(
+        {
+            "name": texture.NAME,
+            "installed": params is not None,
+            "scales": list(texture.TexturePrior.scales),
+            "parameters": params,
+            "size_bytes": size,
+            "devices": "cpu, cuda",
+            "note": note(texture.NAME, params is not None, "its weights ship with pbrsr"),
+        }
+    )
+    rows.append(
+        {
+            "name": "texture:<weights>",
+            "installed": True,
+            "scales": list(texture.TexturePrior.scales),
+            "parameters": None,
+            "size_bytes": None,
+            "devices": "cpu, cuda",
+            "note": "weights written by pbrsr priors train/finetune",
         }
     )
     rows.append(

@@ -71,43 +71,74 @@ def _activation(layer: Layer) -> float | None:
     raise PriorUnavailable(f"layer {layer.name}: unsupported activation type {kind}")
 
 
-class SequentialX2(nn.Module):
-    """A chain of unpadded 3x3 convolutions (fused leaky ReLUs) ending in a stride-2
-    transposed convolution, as waifu2x's UpConv7 graphs are; the input is padded by
-    replicating its edge (``prepad`` pixels, what the ncnn runner does) so the output is
-    exactly twice the input."""
+class UpConv7(nn.Module):
+    """waifu2x's UpConv7 shape: unpadded 3x3 convolutions of the given ``widths``, each with
+    a leaky ReLU, ending in a stride-2 transposed convolution (kernel ``up_kernel``, padding
+    ``up_pad``) to RGB. The input is padded by replicating its edge (``prepad`` pixels, what
+    the ncnn runner does) so the output is exactly twice the input.
 
-    def __init__(self, layers: list[Layer]) -> None:
+    Built from an ncnn graph (:meth:`from_ncnn`, the waifu2x weights) or from widths alone
+    (a network to train, :mod:`pbrsr_core.prior.train`)."""
+
+    def __init__(
+        self,
+        widths: tuple[int, ...] = (16, 32, 64, 128, 128, 256),
+        slope: float = 0.1,
+        up_kernel: int = 4,
+        up_pad: int = 3,
+    ) -> None:
         super().__init__()
+        if not widths or any(w < 1 for w in widths):
+            raise ValueError(f"widths must be positive, got {widths}")
+        self.widths, self.slope = tuple(int(w) for w in widths), float(slope)
+        self.mods = nn.ModuleList()
+        channels = 3
+        for w in self.widths:
+            self.mods.append(nn.Conv2d(channels, w, 3))
+            channels = w
+        self.mods.append(nn.ConvTranspose2d(channels, 3, up_kernel, stride=2, padding=up_pad))
+        self.slopes: list[float | None] = [self.slope] * len(self.widths) + [None]
+        self.prepad = self._prepad()
+
+    @classmethod
+    def from_ncnn(cls, layers: list[Layer]) -> UpConv7:
+        """The network an ncnn UpConv7 graph describes, with its weights."""
         convs = [layer for layer in layers if layer.weight is not None]
         others = {layer.type for layer in layers} - {"Input", "Convolution", "Deconvolution"}
         if others or not convs or convs[-1].type != "Deconvolution":
             raise PriorUnavailable("the waifu2x model is not an UpConv7 graph")
-        self.mods = nn.ModuleList()
-        self.slopes: list[float | None] = []
+        slopes = {_activation(layer) for layer in convs[:-1]}
+        up = convs[-1]
+        if len(slopes) != 1 or None in slopes or _activation(up) is not None:
+            raise PriorUnavailable("the waifu2x model's activations are not UpConv7's")
         channels = 3
         for layer in convs:
             w = layer.weight
-            stride, pad = layer.int_param(3, 1), layer.int_param(4, 0)
-            if layer.type == "Convolution":
-                if w.shape[1] != channels or stride != 1 or pad != 0 or layer.int_param(2, 1) != 1:
-                    raise PriorUnavailable(f"layer {layer.name}: unexpected convolution")
-                mod = nn.Conv2d(channels, w.shape[0], w.shape[2], bias=True)
-                mod.weight.data.copy_(w)
-                channels = w.shape[0]
-            else:
-                # ncnn stores a deconvolution's kernel as (out, in, k, k); torch as (in, out).
-                if w.shape[1] != channels or stride != 2:
-                    raise PriorUnavailable(f"layer {layer.name}: unexpected deconvolution")
-                mod = nn.ConvTranspose2d(channels, w.shape[0], w.shape[2], stride=2, padding=pad)
-                mod.weight.data.copy_(w.transpose(0, 1))
-                channels = w.shape[0]
-            mod.bias.data.copy_(layer.bias if layer.bias is not None else torch.zeros(channels))
-            self.mods.append(mod)
-            self.slopes.append(_activation(layer))
+            stride = layer.int_param(3, 1)
+            if layer.type == "Convolution" and (
+                w.shape[1] != channels or w.shape[2] != 3 or stride != 1
+                or layer.int_param(4, 0) != 0 or layer.int_param(2, 1) != 1
+            ):
+                raise PriorUnavailable(f"layer {layer.name}: unexpected convolution")
+            if layer.type == "Deconvolution" and (w.shape[1] != channels or stride != 2):
+                raise PriorUnavailable(f"layer {layer.name}: unexpected deconvolution")
+            channels = w.shape[0]
         if channels != 3:
             raise PriorUnavailable("the waifu2x model does not output RGB")
-        self.prepad = self._prepad()
+        net = cls(
+            tuple(int(layer.weight.shape[0]) for layer in convs[:-1]),
+            slope=slopes.pop(),
+            up_kernel=int(up.weight.shape[2]),
+            up_pad=up.int_param(4, 0),
+        )
+        with torch.no_grad():
+            for mod, layer in zip(net.mods, convs, strict=True):
+                # ncnn stores a deconvolution's kernel as (out, in, k, k); torch as (in, out).
+                w = layer.weight if layer.type == "Convolution" else layer.weight.transpose(0, 1)
+                mod.weight.copy_(w)
+                zeros = torch.zeros(mod.weight.shape[0 if layer.type == "Convolution" else 1])
+                mod.bias.copy_(layer.bias if layer.bias is not None else zeros)
+        return net
 
     def _out_size(self, n: int) -> int:
         for mod in self.mods:
@@ -152,7 +183,7 @@ class Waifu2xPrior(Prior):
         files = model_files()
         if files is None:
             raise PriorUnavailable(f"the prior '{NAME}' is not installed: {INSTALL_HINT}")
-        self.net = SequentialX2(read_model(*files)).eval().to(self.device)
+        self.net = UpConv7.from_ncnn(read_model(*files)).eval().to(self.device)
         self.net = self.net.to(memory_format=torch.channels_last)
         self._lock = threading.Lock()
 

@@ -1,0 +1,140 @@
+"""Texture priors: UpConv7 networks trained on PBR texture maps (``pbrsr priors finetune``),
+one set of weights per map kind (colour, data, normal) or one shared by several kinds.
+
+``pbr-upconv7`` is the set shipped in ``pbrsr_core/prior/weights/pbr-upconv7`` (made by the
+command in its MODEL_CARD.md); ``texture:<folder or file>`` loads any set ``pbrsr priors
+train/finetune`` wrote. :meth:`TexturePrior.for_kind` gives the network for one map kind;
+a kind without weights of its own uses the ``fallback`` prior (waifu2x-photo). The prior
+itself, called on images of no stated kind (the optimiser's renders), runs the colour
+network.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import torch
+
+from ..errors import PriorUnavailable
+from .base import Prior
+from .train.weights import load_network, read_metadata
+from .waifu2x import UpConv7
+
+NAME = "pbr-upconv7"
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights" / NAME
+KINDS = ("colour", "data", "normal")
+
+
+def weight_files(source: Path | list[Path]) -> dict[str, Path]:
+    """Kind -> weights file of a folder (every ``*.safetensors`` in it), of one file or of a
+    list of files, from each file's ``kinds`` metadata."""
+    if isinstance(source, list):
+        files = [Path(f) for f in source]
+    else:
+        source = Path(source)
+        files = sorted(source.glob("*.safetensors")) if source.is_dir() else [source]
+    if not files or not all(f.is_file() for f in files):
+        raise PriorUnavailable(f"no texture prior weights at '{source}'")
+    out: dict[str, Path] = {}
+    for f in files:
+        for kind in read_metadata(f).get("kinds", "").split(","):
+            if kind in KINDS:
+                if kind in out:
+                    raise PriorUnavailable(f"'{source}' has two weights files for {kind} maps")
+                out[kind] = f
+    if not out:
+        raise PriorUnavailable(f"'{source}' holds no weights for colour, data or normal maps")
+    return out
+
+
+def installed_stats() -> tuple[int | None, int | None]:
+    """(parameters of one network, bytes on disk of the set) of the shipped weights."""
+    try:
+        files = weight_files(WEIGHTS_DIR)
+    except PriorUnavailable:
+        return None, None
+    first = next(iter(files.values()))
+    params = sum(p.numel() for p in load_network(first).parameters())
+    return params, sum(f.stat().st_size for f in set(files.values()))
+
+
+class TexturePrior(Prior):
+    """UpConv7 networks trained on texture maps, x2 per pass (x4, x8: two, three passes)."""
+
+    scales = (2, 4, 8)
+    bytes_per_pixel = 8192.0  # as waifu2x-photo: the same network shape
+    default_overlap = 32
+
+    def __init__(
+        self,
+        source: Path | list[Path],
+        device: torch.device | str = "cpu",
+        *,
+        name: str | None = None,
+        fallback: str = "waifu2x-photo",
+    ) -> None:
+        super().__init__()
+        self.device = torch.device(device)
+        self.name = name or f"texture:{source}"
+        self.files = weight_files(source)
+        nets: dict[Path, UpConv7] = {}
+        self.nets: dict[str, UpConv7] = {}
+        for kind, f in self.files.items():
+            if f not in nets:
+                net = load_network(f).to(self.device)
+                nets[f] = net.to(memory_format=torch.channels_last)
+            self.nets[kind] = nets[f]
+        self.fallback = fallback
+        self.kind = "colour" if "colour" in self.nets else next(iter(self.nets))
+        self._views: dict[str, Prior] = {self.kind: self}
+        self._lock = threading.Lock()
+
+    def for_kind(self, kind: str) -> Prior:
+        with self._lock:
+            view = self._views.get(kind)
+            if view is None:
+                if kind in self.nets:
+                    view = _KindView(self, kind)
+                else:
+                    from .registry import load_prior
+
+                    view = load_prior(self.fallback, self.device)
+                self._views[kind] = view
+            return view
+
+    def num_parameters(self) -> int:
+        return sum(p.numel() for p in self.nets[self.kind].parameters())
+
+    def _run(self, kind: str, x: torch.Tensor, scale: int) -> torch.Tensor:
+        net = self.nets[kind]
+        with self._lock:
+            for _ in range(scale.bit_length() - 1):
+                x = net(x).clamp_(0.0, 1.0)
+        return x
+
+    def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
+        return self._run(self.kind, x, scale)
+
+    def describe(self) -> dict:
+        info = super().describe()
+        info["kinds"] = {k: self.files[k].name if k in self.files else self.fallback for k in KINDS}
+        return info
+
+
+class _KindView(Prior):
+    """One kind's network of a :class:`TexturePrior`, as a prior of its own."""
+
+    def __init__(self, parent: TexturePrior, kind: str) -> None:
+        super().__init__()
+        self.parent, self.kind = parent, kind
+        self.name = f"{parent.name}[{kind}]"
+        self.scales, self.device = parent.scales, parent.device
+        self.bytes_per_pixel = parent.bytes_per_pixel
+        self.default_overlap = parent.default_overlap
+
+    def num_parameters(self) -> int:
+        return sum(p.numel() for p in self.parent.nets[self.kind].parameters())
+
+    def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
+        return self.parent._run(self.kind, x, scale)

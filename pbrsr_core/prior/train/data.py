@@ -1,0 +1,268 @@
+"""Training data for texture priors: a folder of CC0 materials, split by material, sampled
+as (LR, HR) crop pairs by the evaluation protocol's degradation.
+
+A texture folder holds one directory per material with a ``manifest.json`` beside them
+listing each material's map files (the layout of ``shared/textures``). Map types are three
+signals, each trained as a 3-channel image as the direct prior sees it (prior/direct.py):
+
+- ``colour``: the basecolor map, sRGB as stored;
+- ``data``: three scalar maps of one material (roughness, metallic, ao, height) packed as
+  R, G, B, each channel drawn from the material's scalar maps (a quarter of the samples
+  repeat one map in all three, as a greyscale map is fed);
+- ``normal``: the tangent-space normal map, encoded (OpenGL, +Y up).
+
+Each sample is an HR crop, one of the eight flips/rotations of the square applied so that
+a normal map stays a normal map (:func:`dihedral`), then blurred and bicubic-downsampled by
+:func:`pbrsr_core.degrade.degrade_tensor` (normal LR crops are renormalised, as
+``pbrsr degrade`` writes them). Batches are a pure function of ``(seed, step)``, so a run
+resumed from a checkpoint draws exactly the batches it would have drawn.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ...degrade import degrade_tensor
+from ...errors import InvalidOptions
+
+KINDS = ("colour", "data", "normal")
+SCALAR_MAPS = ("roughness", "metallic", "ao", "height")
+HOLDOUT_QUOTA = {"basecolor": 12, "normal": 4, "roughness": 4, "metallic": 3, "ao": 2, "height": 3}
+"""How many held-out materials must carry each map: at least ten materials in all and
+several of each map type."""
+
+
+@dataclass
+class Material:
+    name: str
+    maps: dict[str, np.ndarray] = field(default_factory=dict)  # map -> (H, W, C) uint8
+
+    def has(self, kind: str) -> bool:
+        if kind == "colour":
+            return "basecolor" in self.maps
+        if kind == "normal":
+            return "normal" in self.maps
+        return any(m in self.maps for m in SCALAR_MAPS)
+
+    def size(self, kind: str) -> tuple[int, int]:
+        key = {"colour": "basecolor", "normal": "normal"}.get(kind)
+        if key is None:
+            key = next(m for m in SCALAR_MAPS if m in self.maps)
+        return self.maps[key].shape[:2]
+
+
+def read_manifest(root: Path) -> dict[str, dict]:
+    """``root/manifest.json`` as a dict of material name -> entry (with ``files``)."""
+    path = Path(root) / "manifest.json"
+    if not path.is_file():
+        raise InvalidOptions(f"no manifest.json in the texture folder {root}")
+    try:
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise InvalidOptions(f"{path} is not readable JSON: {exc}") from exc
+    if not isinstance(manifest, dict) or not all(
+        isinstance(v, dict) and isinstance(v.get("files"), dict) for v in manifest.values()
+    ):
+        raise InvalidOptions(f"{path}: expected {{material: {{'files': {{map: file}}}}}}")
+    return manifest
+
+
+def _rank(name: str) -> str:
+    return hashlib.sha256(name.encode("utf-8")).hexdigest()
+
+
+def split_materials(manifest: dict[str, dict]) -> tuple[list[str], list[str]]:
+    """(train, held out): a deterministic split by material. Materials are taken in the
+    order of their names' SHA-256; one is held out while it brings a map type still short of
+    its quota: :data:`HOLDOUT_QUOTA`, at most a fifth of the materials with that map (so a
+    small folder keeps most of each map type for training). The same manifest always gives
+    the same split."""
+    counts: dict[str, int] = {}
+    for entry in manifest.values():
+        for m in entry["files"]:
+            counts[m] = counts.get(m, 0) + 1
+    need = {m: min(q, counts.get(m, 0) // 5) for m, q in HOLDOUT_QUOTA.items()}
+    held = []
+    for name in sorted(manifest, key=_rank):
+        maps = set(manifest[name]["files"])
+        if any(need.get(m, 0) > 0 for m in maps):
+            held.append(name)
+            for m in maps:
+                if m in need:
+                    need[m] -= 1
+    train = sorted(set(manifest) - set(held))
+    return train, sorted(held)
+
+
+def _read_rgb8(path: Path, channels: int) -> np.ndarray:
+    import OpenImageIO as oiio
+
+    buf = oiio.ImageBuf(str(path))
+    if buf.has_error:
+        raise InvalidOptions(f"cannot read {path}: {buf.geterror()}")
+    px = buf.get_pixels(oiio.UINT8)
+    if px is None or px.ndim != 3:
+        raise InvalidOptions(f"cannot read {path}")
+    if channels == 1:
+        return np.ascontiguousarray(px[..., :1] if px.shape[2] < 3 else px[..., 1:2])
+    if px.shape[2] == 1:
+        px = np.repeat(px, 3, axis=2)
+    return np.ascontiguousarray(px[..., :3])
+
+
+def load_materials(root: Path, names: list[str], manifest: dict[str, dict]) -> list[Material]:
+    """Decode every map of the named materials into memory (uint8)."""
+    out = []
+    for name in names:
+        mat = Material(name)
+        for key, file in manifest[name]["files"].items():
+            if key not in ("basecolor", "normal", *SCALAR_MAPS):
+                continue
+            path = Path(root) / name / file
+            mat.maps[key] = _read_rgb8(path, 3 if key in ("basecolor", "normal") else 1)
+        out.append(mat)
+    return out
+
+
+def dihedral(x: torch.Tensor, op: int, kind: str) -> torch.Tensor:
+    """One of the eight symmetries of the square (``op`` in 0..7) on images (N, 3, H, W).
+
+    Bit 0 mirrors left-right, bit 1 mirrors top-bottom, bit 2 transposes (after the flips).
+    For a normal map (encoded, tangent X right and Y up) the vector moves with the pixels:
+    a left-right mirror negates X, a top-bottom mirror negates Y, and a transpose maps
+    (X, Y) to (-Y, -X) (the image's right becomes its old down, its up the old left)."""
+    if not 0 <= op < 8:
+        raise ValueError(f"op must be 0..7, got {op}")
+    if op & 1:
+        x = x.flip(-1)
+    if op & 2:
+        x = x.flip(-2)
+    if op & 4:
+        x = x.transpose(-1, -2)
+    if kind != "normal":
+        return x
+    n = x * 2.0 - 1.0
+    nx, ny, nz = n[:, 0:1], n[:, 1:2], n[:, 2:3]
+    if op & 1:
+        nx = -nx
+    if op & 2:
+        ny = -ny
+    if op & 4:
+        nx, ny = -ny, -nx
+    return (torch.cat([nx, ny, nz], 1) + 1.0) * 0.5
+
+
+def normalize_encoded(t: torch.Tensor) -> torch.Tensor:
+    """Encoded normals (N, 3, H, W) -> unit length, z >= 0, re-encoded."""
+    n = t * 2.0 - 1.0
+    n = torch.cat([n[:, :2], n[:, 2:3].clamp_min(0.0)], 1)
+    n = n / (n * n).sum(1, keepdim=True).clamp_min(1e-12).sqrt()
+    return (n + 1.0) * 0.5
+
+
+def degrade_pair(hr: torch.Tensor, scale: int, kind: str) -> torch.Tensor:
+    """The LR input for HR crops (N, 3, H, W): blur + bicubic down, clamped (normal maps
+    renormalised)."""
+    lr = degrade_tensor(hr, scale).clamp_(0.0, 1.0)
+    return normalize_encoded(lr) if kind == "normal" else lr
+
+
+class CropSampler:
+    """Draws training batches from materials of one or more map kinds.
+
+    ``batch(step)`` returns ``(lr, hr, kinds)``: lr (B, 3, P/s, P/s), hr (B, 3, P, P) float32
+    in [0, 1], and the kind of each sample. Kinds are drawn in turn from ``kinds`` (one kind
+    per sample, a joint model sees all three), materials uniformly among those that have the
+    kind, crop positions uniformly, and one of the eight symmetries."""
+
+    def __init__(
+        self,
+        materials: list[Material],
+        kinds: tuple[str, ...],
+        scale: int,
+        patch: int,
+        batch_size: int,
+        seed: int,
+    ) -> None:
+        for k in kinds:
+            if k not in KINDS:
+                raise InvalidOptions(f"unknown map kind {k!r}: use {', '.join(KINDS)}")
+        if patch % scale:
+            raise InvalidOptions(f"the patch ({patch}) must be a multiple of the scale ({scale})")
+        self.by_kind = {k: [m for m in materials if m.has(k)] for k in kinds}
+        empty = [k for k, ms in self.by_kind.items() if not ms]
+        if empty:
+            raise InvalidOptions(f"no training material has a {', '.join(empty)} map")
+        for k, ms in self.by_kind.items():
+            small = [m.name for m in ms if min(m.size(k)) < patch]
+            if small:
+                raise InvalidOptions(f"{k} maps smaller than the {patch} px patch: {small}")
+        self.kinds, self.scale, self.patch = kinds, scale, patch
+        self.batch_size, self.seed = batch_size, seed
+
+    def _crop(self, rng: np.random.Generator, kind: str) -> np.ndarray:
+        mats = self.by_kind[kind]
+        mat = mats[rng.integers(len(mats))]
+        h, w = mat.size(kind)
+        y = int(rng.integers(h - self.patch + 1))
+        x = int(rng.integers(w - self.patch + 1))
+        win = (slice(y, y + self.patch), slice(x, x + self.patch))
+        if kind == "colour":
+            return mat.maps["basecolor"][win]
+        if kind == "normal":
+            return mat.maps["normal"][win]
+        have = [m for m in SCALAR_MAPS if m in mat.maps]
+        if rng.random() < 0.25:
+            picks = [have[rng.integers(len(have))]] * 3
+        else:
+            picks = [have[i] for i in rng.integers(len(have), size=3)]
+        return np.concatenate([mat.maps[m][win] for m in picks], axis=2)
+
+    def batch(self, step: int) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
+        rng = np.random.default_rng([self.seed, step])
+        kinds = [
+            self.kinds[(step * self.batch_size + i) % len(self.kinds)]
+            for i in range(self.batch_size)
+        ]
+        hrs, lrs = [], []
+        for kind in kinds:
+            crop = torch.from_numpy(self._crop(rng, kind)).permute(2, 0, 1)[None].float() / 255.0
+            hr = dihedral(crop, int(rng.integers(8)), kind).contiguous()
+            hrs.append(hr)
+            lrs.append(degrade_pair(hr, self.scale, kind))
+        return torch.cat(lrs), torch.cat(hrs), kinds
+
+
+def validation_crops(
+    materials: list[Material], kind: str, patch: int, per_material: int = 2
+) -> list[tuple[str, np.ndarray]]:
+    """Fixed HR crops (name, (patch, patch, 3) uint8) of held-out materials for ``kind``:
+    ``per_material`` crops at positions set by the material's name, so every run and every
+    prior is scored on the same pixels. Data maps are packed as (roughness or the first scalar
+    map, metallic or the second, ao/height or the third), each scalar map at least once."""
+    out = []
+    for mat in materials:
+        if not mat.has(kind) or min(mat.size(kind)) < patch:
+            continue
+        rng = np.random.default_rng(int(_rank(mat.name)[:8], 16))
+        h, w = mat.size(kind)
+        for i in range(per_material):
+            y = int(rng.integers(h - patch + 1))
+            x = int(rng.integers(w - patch + 1))
+            win = (slice(y, y + patch), slice(x, x + patch))
+            if kind == "colour":
+                crop = mat.maps["basecolor"][win]
+            elif kind == "normal":
+                crop = mat.maps["normal"][win]
+            else:
+                have = [m for m in SCALAR_MAPS if m in mat.maps]
+                picks = [have[(i + c) % len(have)] for c in range(3)]
+                crop = np.concatenate([mat.maps[m][win] for m in picks], axis=2)
+            out.append((f"{mat.name}#{i}", np.ascontiguousarray(crop)))
+    return out

@@ -1,0 +1,280 @@
+"""The training loop of a texture prior: AdamW with the learning rate halved at 40 % and 80 %
+of the steps, L1 on the HR crop's interior, EMA weights, validation on held-out crops,
+checkpoints a run resumes from exactly, and the best EMA weights by validation written as
+safetensors (:mod:`pbrsr_core.prior.texture` loads them).
+
+The network is an :class:`~pbrsr_core.prior.waifu2x.UpConv7` (x2 per pass; x4 training
+chains two passes with a clamp between them, as inference does)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+
+from ...errors import InvalidOptions
+from ..backproject import back_project
+from ..waifu2x import UpConv7
+from . import weights
+from .data import KINDS, CropSampler, Material, degrade_pair, validation_crops
+
+CHECKPOINT = "checkpoint.pt"
+HISTORY = "history.json"
+
+
+@dataclass
+class TrainConfig:
+    """Everything a run depends on; stored in its checkpoint and its weights' metadata."""
+
+    kinds: tuple[str, ...] = KINDS
+    """Map kinds this network learns: one (a network per kind) or several (one shared)."""
+    scale: int = 2
+    steps: int = 3000
+    batch_size: int = 8
+    patch: int = 96
+    """HR crop side in pixels."""
+    lr: float = 5e-5
+    weight_decay: float = 1e-5
+    ema: float = 0.999
+    seed: int = 0
+    widths: tuple[int, ...] = (16, 32, 64, 128, 128, 256)
+    init: str = "waifu2x-photo"
+    """Start weights: ``waifu2x-photo``, a weights file, or ``random`` (seeded)."""
+    val_every: int = 250
+    val_patch: int = 128
+    ckpt_every: int = 250
+    threads: int = 0
+    """torch threads (0: torch's default)."""
+
+    def check(self) -> None:
+        for k in self.kinds:
+            if k not in KINDS:
+                raise InvalidOptions(f"unknown map kind {k!r}: use {', '.join(KINDS)}")
+        if self.scale not in (2, 4):
+            raise InvalidOptions(f"training scale must be 2 or 4, not {self.scale}")
+        if self.steps < 1 or self.batch_size < 1:
+            raise InvalidOptions("steps and batch size must be at least 1")
+        if self.patch % self.scale or self.val_patch % self.scale:
+            raise InvalidOptions("patch sizes must be multiples of the scale")
+        if not (0.0 <= self.ema < 1.0):
+            raise InvalidOptions(f"ema must be in [0, 1), not {self.ema}")
+
+
+@dataclass
+class History:
+    steps: list[int] = field(default_factory=list)
+    loss: list[float] = field(default_factory=list)
+    val_steps: list[int] = field(default_factory=list)
+    val_psnr: dict[str, list[float]] = field(default_factory=dict)
+    val_bicubic: dict[str, float] = field(default_factory=dict)
+    best_step: int = -1
+    best_psnr: float = -math.inf
+    seconds: float = 0.0
+
+
+Progress = Callable[[int, int, dict], None]
+"""``progress(step, total, info)`` after each step; ``info`` has ``loss`` and, after a
+validation, ``val`` (mean PSNR)."""
+
+
+def build_network(config: TrainConfig) -> UpConv7:
+    """The network at its start weights."""
+    torch.manual_seed(config.seed)
+    if config.init == "random":
+        return UpConv7(config.widths)
+    if config.init == "waifu2x-photo":
+        from ..ncnn import read_model
+        from ..waifu2x import INSTALL_HINT, model_files
+
+        files = model_files()
+        if files is None:
+            raise InvalidOptions(f"waifu2x-photo is not installed: {INSTALL_HINT}")
+        net = UpConv7.from_ncnn(read_model(*files))
+    else:
+        net = weights.load_network(Path(config.init))
+    if net.widths != tuple(config.widths):
+        raise InvalidOptions(
+            f"the start weights have widths {net.widths}, the config asks for {config.widths}"
+        )
+    return net
+
+
+def upscale_net(net: torch.nn.Module, lr: torch.Tensor, scale: int) -> torch.Tensor:
+    """x2 passes of ``net`` up to ``scale``, clamped between passes as inference does."""
+    x = lr
+    for i in range(scale.bit_length() - 1):
+        x = net(x)
+        if i < scale.bit_length() - 2:
+            x = x.clamp(0.0, 1.0)
+    return x
+
+
+def interior_l1(y: torch.Tensor, hr: torch.Tensor, shave: int) -> torch.Tensor:
+    if shave:
+        y, hr = y[..., shave:-shave, shave:-shave], hr[..., shave:-shave, shave:-shave]
+    return (y - hr).abs().mean()
+
+
+def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    mse = float(((a - b) ** 2).mean())
+    return 10.0 * math.log10(1.0 / max(mse, 1e-12))
+
+
+class Validator:
+    """PSNR of a network (back-projected, as :class:`~pbrsr_core.prior.base.Prior` runs it)
+    on fixed held-out crops, per kind, ``scale`` pixels shaved off each border."""
+
+    def __init__(self, materials: list[Material], kinds, scale: int, patch: int) -> None:
+        self.scale, self.sets = scale, {}
+        for kind in kinds:
+            crops = validation_crops(materials, kind, patch)
+            if not crops:
+                continue
+            hr = torch.stack([torch.from_numpy(c).permute(2, 0, 1).float() / 255 for _, c in crops])
+            self.sets[kind] = (degrade_pair(hr, scale, kind), hr)
+
+    def _score(self, up: torch.Tensor, hr: torch.Tensor) -> float:
+        s = self.scale
+        return psnr(up[..., s:-s, s:-s], hr[..., s:-s, s:-s])
+
+    def bicubic(self) -> dict[str, float]:
+        from ..bicubic import bicubic_upscale
+
+        return {
+            k: self._score(bicubic_upscale(lr, self.scale).clamp(0, 1), hr)
+            for k, (lr, hr) in self.sets.items()
+        }
+
+    @torch.no_grad()
+    def __call__(self, net: torch.nn.Module) -> dict[str, float]:
+        out = {}
+        for kind, (lr, hr) in self.sets.items():
+            ups = [
+                upscale_net(net, lr[i : i + 4], self.scale).clamp(0, 1)
+                for i in range(0, len(lr), 4)
+            ]
+            up = back_project(torch.cat(ups), lr, self.scale)
+            out[kind] = self._score(up, hr)
+        return out
+
+
+def _milestones(steps: int) -> tuple[int, int]:
+    return int(steps * 0.4), int(steps * 0.8)
+
+
+def _lr_at(config: TrainConfig, step: int) -> float:
+    a, b = _milestones(config.steps)
+    return config.lr * (0.5 if step >= a else 1.0) * (0.5 if step >= b else 1.0)
+
+
+def _save_atomic(obj, path: Path) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def train(
+    config: TrainConfig,
+    train_materials: list[Material],
+    val_materials: list[Material],
+    out_dir: Path,
+    *,
+    name: str,
+    resume: bool = True,
+    progress: Progress | None = None,
+    metadata: dict[str, str] | None = None,
+) -> tuple[Path, History]:
+    """Train (or resume) one network; returns the best weights file and the history.
+
+    ``out_dir`` receives ``checkpoint.pt`` (every ``ckpt_every`` steps and at the end),
+    ``history.json`` and ``<name>.safetensors`` (the best EMA weights by mean validation
+    PSNR). A run with ``resume`` picks up its checkpoint and draws the same batches it would
+    have drawn without the interruption."""
+    config.check()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    net = build_network(config).train()
+    ema = build_network(config) if config.init != "random" else UpConv7(config.widths)
+    ema.load_state_dict(net.state_dict())
+    ema.eval().requires_grad_(False)
+    opt = torch.optim.AdamW(
+        net.parameters(), lr=config.lr, betas=(0.9, 0.99), weight_decay=config.weight_decay
+    )
+    sampler = CropSampler(
+        train_materials, config.kinds, config.scale, config.patch, config.batch_size, config.seed
+    )
+    validator = Validator(val_materials, config.kinds, config.scale, config.val_patch)
+    history, start = History(), 0
+    ckpt = out_dir / CHECKPOINT
+    best_file = out_dir / f"{name}.safetensors"
+    if resume and ckpt.is_file():
+        state = torch.load(ckpt, map_location="cpu", weights_only=False)
+        if state["config"] != asdict(config):
+            raise InvalidOptions(
+                f"{ckpt} was written by a run with other settings; use a new output folder "
+                "or --no-resume"
+            )
+        net.load_state_dict(state["net"])
+        ema.load_state_dict(state["ema"])
+        opt.load_state_dict(state["opt"])
+        history = History(**state["history"])
+        start = state["step"]
+    if not history.val_bicubic:
+        history.val_bicubic = validator.bicubic()
+    shave = 4 * config.scale
+    meta = {**(metadata or {}), "name": name}
+    t0 = time.perf_counter() - history.seconds
+    run_loss, run_n = 0.0, 0
+    for step in range(start, config.steps):
+        for group in opt.param_groups:
+            group["lr"] = _lr_at(config, step)
+        lr_img, hr_img, _ = sampler.batch(step)
+        loss = interior_l1(upscale_net(net, lr_img, config.scale), hr_img, shave)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        decay = min(config.ema, (1.0 + step) / (10.0 + step))
+        with torch.no_grad():
+            for pe, p in zip(ema.parameters(), net.parameters(), strict=True):
+                pe.lerp_(p, 1.0 - decay)
+        run_loss, run_n = run_loss + float(loss.detach()), run_n + 1
+        info: dict = {"loss": float(loss.detach())}
+        done = step + 1
+        if done % 25 == 0 or done % config.ckpt_every == 0 or done == config.steps:
+            history.steps.append(done)
+            history.loss.append(run_loss / run_n)
+            run_loss, run_n = 0.0, 0
+        if done % config.val_every == 0 or done == config.steps:
+            val = validator(ema)
+            history.val_steps.append(done)
+            for k, v in val.items():
+                history.val_psnr.setdefault(k, []).append(v)
+            mean = sum(val.values()) / max(1, len(val))
+            info["val"] = mean
+            if mean > history.best_psnr:
+                history.best_psnr, history.best_step = mean, done
+                weights.save_network(ema, best_file, config, {**meta, "step": str(done)})
+        history.seconds = time.perf_counter() - t0
+        if done % config.ckpt_every == 0 or done == config.steps:
+            _save_atomic(
+                {
+                    "step": done,
+                    "config": asdict(config),
+                    "net": net.state_dict(),
+                    "ema": ema.state_dict(),
+                    "opt": opt.state_dict(),
+                    "history": asdict(history),
+                },
+                ckpt,
+            )
+            (out_dir / HISTORY).write_text(json.dumps(asdict(history), indent=1))
+        if progress is not None:
+            progress(done, config.steps, info)
+    return best_file, history

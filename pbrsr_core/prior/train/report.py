@@ -1,0 +1,226 @@
+"""The report of a training run: loss and validation curves (``report.png``), a table per map
+kind of bicubic, waifu2x-photo and each trained set at x2, x4 and x8 on the held-out
+materials (``report.json``, ``report.md``), and a model card (``MODEL_CARD.md``).
+
+Scores: PSNR of the stored values (sRGB for colour, linear for data, encoded for normals)
+with ``s`` pixels shaved off each border, and for normal maps the mean angle between the
+decoded vectors in degrees. Every prior runs as pbrsr runs it (:meth:`Prior.upscale`, with
+back-projection; normal maps renormalised as :func:`~pbrsr_core.prior.direct.upscale_map`
+does), on the same crops.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..base import Prior
+from ..direct import renormalize_encoded_normals
+from .data import KINDS, Material, degrade_pair, validation_crops
+from .loop import HISTORY, psnr
+
+PATCH = 256
+"""HR side of the held-out crops the report scores (two per material and kind)."""
+
+
+def angular_error(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Mean angle in degrees between encoded normal maps (N, 3, H, W)."""
+    na, nb = a * 2 - 1, b * 2 - 1
+    na = na / na.norm(dim=1, keepdim=True).clamp_min(1e-8)
+    nb = nb / nb.norm(dim=1, keepdim=True).clamp_min(1e-8)
+    cos = (na * nb).sum(1).clamp(-1.0, 1.0)
+    return float(torch.rad2deg(torch.acos(cos)).mean())
+
+
+def score_prior(
+    prior: Prior, kind: str, crops: list[tuple[str, np.ndarray]], scale: int
+) -> dict[str, float]:
+    """PSNR (and for normals the angular error) of ``prior`` on HR crops degraded by
+    ``scale``; ``seconds`` is its run time over all crops."""
+    hr = torch.stack([torch.from_numpy(c).permute(2, 0, 1).float() / 255 for _, c in crops])
+    lr = degrade_pair(hr, scale, kind)
+    p = prior.for_kind(kind)
+    t0 = time.perf_counter()
+    up = torch.cat([p.upscale(lr[i : i + 1], scale) for i in range(len(lr))])
+    seconds = time.perf_counter() - t0
+    if kind == "normal":
+        up = renormalize_encoded_normals(up)
+    s = scale
+    out = {"psnr": psnr(up[..., s:-s, s:-s], hr[..., s:-s, s:-s]), "seconds": seconds}
+    if kind == "normal":
+        out["angle"] = angular_error(up[..., s:-s, s:-s], hr[..., s:-s, s:-s])
+    return out
+
+
+def network_files(folder: Path) -> list[Path]:
+    """The trained networks of a training folder (one subfolder per network)."""
+    return sorted(folder.glob("*/*.safetensors"))
+
+
+def evaluate(
+    folders: list[Path],
+    val_materials: list[Material],
+    scales: tuple[int, ...] = (2, 4, 8),
+    baselines: tuple[str, ...] = ("bicubic", "waifu2x-photo"),
+) -> dict:
+    """{kind: {scale: {prior label: scores}}} on the held-out crops, for the kinds the
+    trained sets in ``folders`` have networks for (every kind when there are none)."""
+    from ..registry import load_prior
+    from ..texture import TexturePrior
+
+    priors: dict[str, Prior] = {}
+    for name in baselines:
+        priors[name] = load_prior(name)
+    for folder in folders:
+        files = network_files(folder)
+        if files:
+            priors[folder.name] = TexturePrior(files, name=folder.name)
+    trained = [p for p in priors.values() if isinstance(p, TexturePrior)]
+    kinds = [k for k in KINDS if not trained or any(k in p.nets for p in trained)]
+    results: dict = {}
+    for kind in kinds:
+        crops = validation_crops(val_materials, kind, PATCH)
+        if not crops:
+            continue
+        results[kind] = {"crops": len(crops), "materials": len({n.split("#")[0] for n, _ in crops})}
+        for s in scales:
+            results[kind][str(s)] = {
+                label: score_prior(p, kind, crops, s) for label, p in priors.items()
+            }
+    return results
+
+
+def _plot(folders: list[Path], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_l, ax_v) = plt.subplots(1, 2, figsize=(12, 4.5))
+    for folder in folders:
+        for hist_file in sorted(folder.glob(f"*/{HISTORY}")):
+            h = json.loads(hist_file.read_text())
+            label = hist_file.parent.name
+            ax_l.plot(h["steps"], h["loss"], label=label)
+            for kind, vals in h["val_psnr"].items():
+                gain = [v - h["val_bicubic"][kind] for v in vals]
+                ax_v.plot(h["val_steps"], gain, marker=".", label=f"{label} ({kind})")
+    ax_l.set(xlabel="step", ylabel="L1 (training crops)", title="training loss", yscale="log")
+    ax_v.set(xlabel="step", ylabel="dB over bicubic", title="validation PSNR gain (EMA)")
+    for ax in (ax_l, ax_v):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _table(results: dict) -> str:
+    lines = []
+    for kind, by_scale in results.items():
+        lines.append(
+            f"\n### {kind} maps ({by_scale['crops']} crops of {PATCH}² from "
+            f"{by_scale['materials']} held-out materials)\n"
+        )
+        scales = [s for s in by_scale if s.isdigit()]
+        labels = list(by_scale[scales[0]])
+        head = "| prior | " + " | ".join(f"x{s} PSNR" for s in scales)
+        if kind == "normal":
+            head += " | " + " | ".join(f"x{s} angle °" for s in scales)
+        head += " | x4 s |"
+        lines += [head, "|" + " --- |" * (head.count("|") - 1)]
+        for label in labels:
+            row = [f"{by_scale[s][label]['psnr']:.2f}" for s in scales]
+            if kind == "normal":
+                row += [f"{by_scale[s][label]['angle']:.2f}" for s in scales]
+            t = by_scale.get("4", by_scale[scales[0]])[label]["seconds"]
+            lines.append(f"| {label} | " + " | ".join(row) + f" | {t:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def write_report(
+    out: Path,
+    val_materials: list[Material],
+    scale_list: tuple[int, ...] = (2, 4, 8),
+    folders: list[Path] | None = None,
+) -> Path:
+    """Evaluate the trained sets in ``folders`` (default: ``out``) and write report.png,
+    report.json, report.md and MODEL_CARD.md into ``out``. Returns report.md's path."""
+    out.mkdir(parents=True, exist_ok=True)
+    folders = folders or [out]
+    results = evaluate(folders, val_materials, scale_list)
+    (out / "report.json").write_text(json.dumps(results, indent=1))
+    _plot(folders, out / "report.png")
+    table = _table(results)
+    md = out / "report.md"
+    md.write_text("# Texture prior report\n\n![curves](report.png)\n" + table)
+    (out / "MODEL_CARD.md").write_text(model_card(folders, results, table))
+    return md
+
+
+def model_card(folders: list[Path], results: dict, table: str) -> str:
+    """The model card of the trained sets: data, licence, degradation, scales, parameters,
+    measured numbers and the command that made them."""
+    from .weights import load_network, read_metadata
+
+    nets = []
+    for folder in folders:
+        for f in network_files(folder):
+            meta = read_metadata(f)
+            cfg = json.loads(meta.get("config", "{}"))
+            params = sum(p.numel() for p in load_network(f).parameters())
+            nets.append((f, meta, cfg, params))
+    if not nets:
+        return "# Model card\n\nNo trained networks found.\n"
+    meta0 = nets[0][1]
+    held = meta0.get("held_out", "").split(",")
+    lines = [
+        "# Model card: texture priors (UpConv7 trained on PBR maps)",
+        "",
+        "## Networks",
+        "",
+        "| file | kinds | widths | parameters | train scale | steps | init | best step |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for f, meta, cfg, params in nets:
+        lines.append(
+            f"| {f.name} | {meta.get('kinds')} | {meta.get('widths')} | {params:,} | "
+            f"x{meta.get('scale')} | {cfg.get('steps')} | {cfg.get('init')} | {meta.get('step')} |"
+        )
+    cfg = nets[0][2]
+    lines += [
+        "",
+        "## Data",
+        "",
+        f"- Training: {len(meta0.get('train_materials', '').split(','))} CC0 materials of the "
+        "project's texture set (`shared/textures`, see its SOURCE.md and manifest.json for "
+        "each material's origin and licence evidence). Licence of the data: CC0 1.0.",
+        f"- Held out (validation, never trained on): {len(held)} materials, split by the "
+        f"SHA-256 of their names with a quota per map type: {', '.join(held)}.",
+        "- No glTF benchmark asset (`shared/assets`) was used in training.",
+        "",
+        "## Training",
+        "",
+        "- Degradation: the evaluation protocol (Gaussian blur sigma = 0.375 s, bicubic down; "
+        "`pbrsr_core/degrade.py`); normal LR crops renormalised.",
+        f"- Crops: {cfg.get('patch')}² HR, batch {cfg.get('batch_size')}, the eight "
+        "flips/rotations (normal vectors rotated with the pixels).",
+        f"- Loss: L1 on the crop interior. AdamW lr {cfg.get('lr')}, betas (0.9, 0.99), "
+        f"weight decay {cfg.get('weight_decay')}, halved at 40 % and 80 % of the steps; EMA "
+        f"{cfg.get('ema')}; the best EMA weights by mean validation PSNR are kept. Seed "
+        f"{cfg.get('seed')}.",
+        "- Scales: each network is x2 per pass; x4 and x8 chain two and three passes; every "
+        "output is back-projected onto its input (one step) as pbrsr runs every network prior.",
+        f"- Command: `{meta0.get('command', '?')}`",
+        "",
+        "## Measured (held-out materials)",
+        table,
+        "Licence of the weights: CC0 1.0 training data; the start weights are waifu2x's "
+        "UpConv7 photo model (MIT licence).",
+        "",
+    ]
+    return "\n".join(lines)
