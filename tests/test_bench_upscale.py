@@ -93,3 +93,17 @@ def test_bench_assets_refuses_an_unknown_name(tmp_path: Path):
     said: list[str] = []
     only = bench_assets(tmp_path / "w2", True, 16, shared, None, said.append, include_shared=False)
     assert [name for name, _ in only] == ["procedural"] and said == []
+
+
+def test_methods_may_name_their_prior_and_unknown_ones_are_refused():
+    from pbrsr_core.bench.upscale import check_methods, method_options
+
+    assert method_options("direct@bicubic", 4, "waifu2x-photo")["prior"] == "bicubic"
+    assert method_options("direct", 4, "waifu2x-photo")["prior"] == "waifu2x-photo"
+    opts = method_options("balanced@pbr-upconv7", 2, "bicubic")
+    assert opts == {"method": "pbrsr", "preset": "balanced", "scale": 2, "prior": "pbr-upconv7"}
+    check_methods(("bicubic", "direct@waifu2x-photo", "fast@pbr-upconv7"), "bicubic")
+    with pytest.raises(ValueError, match="unknown method 'fastest'"):
+        check_methods(("fastest",), "bicubic")
+    with pytest.raises(ValueError, match="nosuchprior"):
+        check_methods(("direct@nosuchprior",), "bicubic")

@@ -23,7 +23,7 @@ from pbrsr_core.prior.train.data import (
     read_manifest,
     split_materials,
 )
-from pbrsr_core.prior.train.loop import TrainConfig, train
+from pbrsr_core.prior.train.loop import TrainConfig, build_network, train
 from pbrsr_core.prior.train.weights import load_network, save_network
 from pbrsr_core.prior.waifu2x import UpConv7
 
@@ -280,3 +280,36 @@ def test_cli_refuses_a_missing_texture_folder(tmp_path, capfd):
     )
     assert code == InvalidOptions.exit_code and "not found" in err, err
     assert not out.exists()
+
+
+def test_stride_four_network_runs_x4_in_one_pass_and_mixes_with_x2(tmp_path):
+    from pbrsr_core.prior.texture import passes
+
+    assert passes({2}, 8) == [2, 2, 2] and passes({2, 4}, 8) == [4, 2] and passes({4}, 2) is None
+    net4 = UpConv7(TINY, stride=4)
+    assert net4(torch.rand(1, 3, 10, 12)).shape == (1, 3, 40, 48)
+    cfg = TrainConfig(kinds=("colour",), widths=TINY, init="random", stride=4, scale=4)
+    save_network(net4, tmp_path / "c4.safetensors", cfg, {})
+    only4 = TexturePrior(tmp_path)
+    assert only4.scales == (4,)
+    save_network(UpConv7(TINY), tmp_path / "c2.safetensors", TrainConfig(widths=TINY), {})
+    both = TexturePrior(tmp_path)
+    assert both.scales == (2, 4, 8)
+    x = torch.rand(1, 3, 8, 8)
+    with torch.no_grad():
+        expect = both.nets["colour"][2](both.nets["colour"][4](x).clamp(0, 1)).clamp(0, 1)
+        assert torch.equal(both._forward(x, 8), expect)
+    with pytest.raises(InvalidOptions, match="stride 4"):
+        TrainConfig(stride=4, scale=2).check()
+
+
+def test_start_weights_of_another_stride_give_the_convolutions(tmp_path):
+    x2 = UpConv7(TINY)
+    save_network(x2, tmp_path / "x2.safetensors", TrainConfig(widths=TINY), {})
+    cfg = TrainConfig(widths=TINY, stride=4, scale=4, init=str(tmp_path / "x2.safetensors"))
+    net = build_network(cfg)
+    for a, b in zip(net.mods[:-1], x2.mods[:-1], strict=True):
+        assert torch.equal(a.weight, b.weight) and torch.equal(a.bias, b.bias)
+    assert net.mods[-1].weight.shape != x2.mods[-1].weight.shape
+    with pytest.raises(InvalidOptions, match="widths"):
+        build_network(TrainConfig(widths=(4, 4), init=str(tmp_path / "x2.safetensors")))

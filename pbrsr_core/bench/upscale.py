@@ -99,9 +99,32 @@ def eval_lights(shared: Path) -> tuple[list[EnvLight], list[str]]:
 
 
 def method_options(method: str, scale: int, prior: str) -> dict:
+    """Upscale options of one benchmark method: ``bicubic``, ``direct`` or a PBR-SR preset,
+    optionally with its own prior as ``METHOD@PRIOR`` (``direct@waifu2x-photo``), so one run
+    compares priors."""
+    method, _, own_prior = method.partition("@")
+    prior = own_prior or prior
     if method in ("bicubic", "direct"):
         return {"method": method, "scale": scale, "prior": prior}
     return {"method": "pbrsr", "preset": method, "scale": scale, "prior": prior}
+
+
+def check_methods(methods: tuple[str, ...], prior: str) -> None:
+    """Raise ValueError naming the first method (or its prior) that is unknown."""
+    from ..errors import PbrsrError
+    from ..optim.presets import PRESETS
+    from ..prior.registry import check_name
+
+    for m in methods:
+        name, _, own_prior = m.partition("@")
+        if name not in ("bicubic", "direct") and name not in PRESETS:
+            raise ValueError(
+                f"unknown method {name!r}: use bicubic, direct or {', '.join(PRESETS)}"
+            )
+        try:
+            check_name(own_prior or prior)
+        except PbrsrError as exc:
+            raise ValueError(f"method {m!r}: {exc.message}") from None
 
 
 def run_subprocess(spec: dict, work: Path) -> dict:
@@ -154,6 +177,7 @@ def run(
 ) -> list[dict]:
     """Run the benchmark; write ``results.json``, ``results.md`` and ``speed_vs_error.png``."""
 
+    check_methods(methods, prior)
     out_dir.mkdir(parents=True, exist_ok=True)
     lights, light_names = eval_lights(shared)
     work_root = Path(tempfile.mkdtemp(prefix="pbrsr-bench-"))

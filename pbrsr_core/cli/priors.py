@@ -101,6 +101,7 @@ def _run_training(
     kinds: str,
     joint: bool,
     scale: int,
+    stride: int,
     steps: int,
     batch: int,
     patch: int,
@@ -131,6 +132,7 @@ def _run_training(
         TrainConfig(
             kinds=g,
             scale=scale,
+            stride=stride,
             steps=steps,
             batch_size=batch,
             patch=patch,
@@ -199,6 +201,7 @@ _JOINT = typer.Option(False, "--joint", help="One network for all kinds.")
 _SCALE = typer.Option(2, help="Training scale (2: one x2 pass; 4: two chained).")
 _BATCH = typer.Option(8, help="Crops per step.")
 _PATCH = typer.Option(96, help="HR crop side (px).")
+_STRIDE = typer.Option(2, help="Upscaling of one network pass: 2 or 4 (x4 in one pass).")
 _SEED = typer.Option(0, help="Seed of the start weights and the batches.")
 _RESUME = typer.Option(True, help="Continue from the folder's checkpoints.")
 _QUIET = typer.Option(False, "--quiet", "-q")
@@ -212,6 +215,7 @@ def train_cmd(
     kinds: str = _KINDS,
     joint: bool = _JOINT,
     scale: int = _SCALE,
+    stride: int = _STRIDE,
     steps: int = typer.Option(3000, help="Optimiser steps per network."),
     batch: int = _BATCH,
     patch: int = _PATCH,
@@ -223,23 +227,7 @@ def train_cmd(
 ) -> None:
     """Train a texture prior from random weights on a CC0 texture folder (split by
     material; the held-out materials validate), then write the report and model card."""
-    _run_training(
-        "random",
-        out,
-        textures,
-        name,
-        kinds,
-        joint,
-        scale,
-        steps,
-        batch,
-        patch,
-        lr,
-        seed,
-        widths,
-        resume,
-        quiet,
-    )
+    _run_training(init="random", **locals())
 
 
 @priors_app.command("finetune")
@@ -253,6 +241,7 @@ def finetune_cmd(
     kinds: str = _KINDS,
     joint: bool = _JOINT,
     scale: int = _SCALE,
+    stride: int = _STRIDE,
     steps: int = typer.Option(2000, help="Optimiser steps per network."),
     batch: int = _BATCH,
     patch: int = _PATCH,
@@ -263,28 +252,14 @@ def finetune_cmd(
 ) -> None:
     """Fine-tune an existing prior's weights on a CC0 texture folder, then write the report
     and model card."""
-    widths = "16,32,64,128,128,256"
-    if from_ != "waifu2x-photo":
+    opts = dict(locals())
+    start = opts.pop("from_")
+    opts["widths"] = "16,32,64,128,128,256"
+    if start != "waifu2x-photo":
         from ..prior.train.weights import load_network
 
-        widths = ",".join(str(w) for w in load_network(Path(from_)).widths)
-    _run_training(
-        from_,
-        out,
-        textures,
-        name,
-        kinds,
-        joint,
-        scale,
-        steps,
-        batch,
-        patch,
-        lr,
-        seed,
-        widths,
-        resume,
-        quiet,
-    )
+        opts["widths"] = ",".join(str(w) for w in load_network(Path(start)).widths)
+    _run_training(init=start, **opts)
 
 
 def register(app: typer.Typer) -> None:

@@ -154,7 +154,7 @@ def list_priors() -> list[dict]:
         {
             "name": texture.NAME,
             "installed": params is not None,
-            "scales": list(texture.TexturePrior.scales),
+            "scales": [2, 4, 8],
             "parameters": params,
             "size_bytes": size,
             "devices": "cpu, cuda",
@@ -165,7 +165,7 @@ def list_priors() -> list[dict]:
         {
             "name": "texture:<weights>",
             "installed": True,
-            "scales": list(texture.TexturePrior.scales),
+            "scales": [2, 4, 8],
             "parameters": None,
             "size_bytes": None,
             "devices": "cpu, cuda",

@@ -26,9 +26,9 @@ WEIGHTS_DIR = Path(__file__).resolve().parent / "weights" / NAME
 KINDS = ("colour", "data", "normal")
 
 
-def weight_files(source: Path | list[Path]) -> dict[str, Path]:
-    """Kind -> weights file of a folder (every ``*.safetensors`` in it), of one file or of a
-    list of files, from each file's ``kinds`` metadata."""
+def weight_files(source: Path | list[Path]) -> dict[tuple[str, int], Path]:
+    """(kind, stride) -> weights file of a folder (every ``*.safetensors`` in it), of one
+    file or of a list of files, from each file's ``kinds`` and ``stride`` metadata."""
     if isinstance(source, list):
         files = [Path(f) for f in source]
     else:
@@ -36,33 +36,48 @@ def weight_files(source: Path | list[Path]) -> dict[str, Path]:
         files = sorted(source.glob("*.safetensors")) if source.is_dir() else [source]
     if not files or not all(f.is_file() for f in files):
         raise PriorUnavailable(f"no texture prior weights at '{source}'")
-    out: dict[str, Path] = {}
+    out: dict[tuple[str, int], Path] = {}
     for f in files:
-        for kind in read_metadata(f).get("kinds", "").split(","):
-            if kind in KINDS:
-                if kind in out:
-                    raise PriorUnavailable(f"'{source}' has two weights files for {kind} maps")
-                out[kind] = f
+        meta = read_metadata(f)
+        stride = int(meta.get("stride", "2")) if meta.get("stride", "2").isdigit() else 0
+        for kind in meta.get("kinds", "").split(","):
+            if kind in KINDS and stride in (2, 4):
+                if (kind, stride) in out:
+                    raise PriorUnavailable(
+                        f"'{source}' has two x{stride} weights files for {kind} maps"
+                    )
+                out[kind, stride] = f
     if not out:
         raise PriorUnavailable(f"'{source}' holds no weights for colour, data or normal maps")
     return out
 
 
+def passes(strides: set[int], scale: int) -> list[int] | None:
+    """The network strides whose product is ``scale``, largest first (None if none is)."""
+    plan, left = [], scale
+    for s in sorted(strides, reverse=True):
+        while left % s == 0 and left > 1:
+            plan.append(s)
+            left //= s
+    return plan if left == 1 else None
+
+
 def installed_stats() -> tuple[int | None, int | None]:
-    """(parameters of one network, bytes on disk of the set) of the shipped weights."""
+    """(parameters of the colour x4 network, bytes on disk of the set) of the shipped
+    weights."""
     try:
         files = weight_files(WEIGHTS_DIR)
     except PriorUnavailable:
         return None, None
-    first = next(iter(files.values()))
+    first = files.get(("colour", 4)) or next(iter(files.values()))
     params = sum(p.numel() for p in load_network(first).parameters())
     return params, sum(f.stat().st_size for f in set(files.values()))
 
 
 class TexturePrior(Prior):
-    """UpConv7 networks trained on texture maps, x2 per pass (x4, x8: two, three passes)."""
+    """UpConv7 networks trained on texture maps: per kind an x2 network, an x4 network or
+    both; a scale runs as the fewest passes whose strides multiply to it (x8: x4 then x2)."""
 
-    scales = (2, 4, 8)
     bytes_per_pixel = 8192.0  # as waifu2x-photo: the same network shape
     default_overlap = 32
 
@@ -78,15 +93,16 @@ class TexturePrior(Prior):
         self.device = torch.device(device)
         self.name = name or f"texture:{source}"
         self.files = weight_files(source)
-        nets: dict[Path, UpConv7] = {}
-        self.nets: dict[str, UpConv7] = {}
-        for kind, f in self.files.items():
-            if f not in nets:
+        loaded: dict[Path, UpConv7] = {}
+        self.nets: dict[str, dict[int, UpConv7]] = {}
+        for (kind, stride), f in self.files.items():
+            if f not in loaded:
                 net = load_network(f).to(self.device)
-                nets[f] = net.to(memory_format=torch.channels_last)
-            self.nets[kind] = nets[f]
+                loaded[f] = net.to(memory_format=torch.channels_last)
+            self.nets.setdefault(kind, {})[stride] = loaded[f]
         self.fallback = fallback
         self.kind = "colour" if "colour" in self.nets else next(iter(self.nets))
+        self.scales = _scales(self.nets[self.kind])
         self._views: dict[str, Prior] = {self.kind: self}
         self._lock = threading.Lock()
 
@@ -104,13 +120,13 @@ class TexturePrior(Prior):
             return view
 
     def num_parameters(self) -> int:
-        return sum(p.numel() for p in self.nets[self.kind].parameters())
+        return _parameters(self.nets[self.kind])
 
     def _run(self, kind: str, x: torch.Tensor, scale: int) -> torch.Tensor:
-        net = self.nets[kind]
+        nets = self.nets[kind]
         with self._lock:
-            for _ in range(scale.bit_length() - 1):
-                x = net(x).clamp_(0.0, 1.0)
+            for stride in passes(set(nets), scale) or []:
+                x = nets[stride](x).clamp_(0.0, 1.0)
         return x
 
     def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
@@ -118,7 +134,10 @@ class TexturePrior(Prior):
 
     def describe(self) -> dict:
         info = super().describe()
-        info["kinds"] = {k: self.files[k].name if k in self.files else self.fallback for k in KINDS}
+        info["kinds"] = {
+            k: sorted(f.name for (kind, _), f in self.files.items() if kind == k) or self.fallback
+            for k in KINDS
+        }
         return info
 
 
@@ -129,12 +148,22 @@ class _KindView(Prior):
         super().__init__()
         self.parent, self.kind = parent, kind
         self.name = f"{parent.name}[{kind}]"
-        self.scales, self.device = parent.scales, parent.device
+        self.scales, self.device = _scales(parent.nets[kind]), parent.device
         self.bytes_per_pixel = parent.bytes_per_pixel
         self.default_overlap = parent.default_overlap
 
     def num_parameters(self) -> int:
-        return sum(p.numel() for p in self.parent.nets[self.kind].parameters())
+        return _parameters(self.parent.nets[self.kind])
 
     def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
         return self.parent._run(self.kind, x, scale)
+
+
+def _scales(nets: dict[int, UpConv7]) -> tuple[int, ...]:
+    return tuple(s for s in (2, 4, 8) if passes(set(nets), s))
+
+
+def _parameters(nets: dict[int, UpConv7]) -> int:
+    """Parameters of the network that runs x4 (the one-pass x4 network where there is one)."""
+    net = nets.get(4) or nets[min(nets)]
+    return sum(p.numel() for p in net.parameters())

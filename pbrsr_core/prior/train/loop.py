@@ -44,8 +44,11 @@ class TrainConfig:
     ema: float = 0.999
     seed: int = 0
     widths: tuple[int, ...] = (16, 32, 64, 128, 128, 256)
+    stride: int = 2
+    """Upscaling of one network pass: 2 (``scale`` 4 chains two passes) or 4."""
     init: str = "waifu2x-photo"
-    """Start weights: ``waifu2x-photo``, a weights file, or ``random`` (seeded)."""
+    """Start weights: ``waifu2x-photo``, a weights file, or ``random`` (seeded). Start
+    weights of another stride give the convolutions; the new head starts at random."""
     val_every: int = 250
     val_patch: int = 128
     ckpt_every: int = 250
@@ -58,6 +61,10 @@ class TrainConfig:
                 raise InvalidOptions(f"unknown map kind {k!r}: use {', '.join(KINDS)}")
         if self.scale not in (2, 4):
             raise InvalidOptions(f"training scale must be 2 or 4, not {self.scale}")
+        if self.stride not in (2, 4) or self.scale % self.stride:
+            raise InvalidOptions(
+                f"a network of stride {self.stride} cannot be trained at x{self.scale}"
+            )
         if self.steps < 1 or self.batch_size < 1:
             raise InvalidOptions("steps and batch size must be at least 1")
         if self.patch % self.scale or self.val_patch % self.scale:
@@ -86,8 +93,9 @@ validation, ``val`` (mean PSNR)."""
 def build_network(config: TrainConfig) -> UpConv7:
     """The network at its start weights."""
     torch.manual_seed(config.seed)
+    net = UpConv7(config.widths, stride=config.stride)
     if config.init == "random":
-        return UpConv7(config.widths)
+        return net
     if config.init == "waifu2x-photo":
         from ..ncnn import read_model
         from ..waifu2x import INSTALL_HINT, model_files
@@ -95,23 +103,29 @@ def build_network(config: TrainConfig) -> UpConv7:
         files = model_files()
         if files is None:
             raise InvalidOptions(f"waifu2x-photo is not installed: {INSTALL_HINT}")
-        net = UpConv7.from_ncnn(read_model(*files))
+        start = UpConv7.from_ncnn(read_model(*files))
     else:
-        net = weights.load_network(Path(config.init))
-    if net.widths != tuple(config.widths):
+        start = weights.load_network(Path(config.init))
+    if start.widths != tuple(config.widths):
         raise InvalidOptions(
-            f"the start weights have widths {net.widths}, the config asks for {config.widths}"
+            f"the start weights have widths {start.widths}, the config asks for {config.widths}"
         )
+    state = start.state_dict()
+    if start.stride != config.stride:  # the convolutions only; the head stays as built
+        head = f"mods.{len(config.widths)}."
+        state = {k: v for k, v in state.items() if not k.startswith(head)}
+    net.load_state_dict(state, strict=False)
     return net
 
 
-def upscale_net(net: torch.nn.Module, lr: torch.Tensor, scale: int) -> torch.Tensor:
-    """x2 passes of ``net`` up to ``scale``, clamped between passes as inference does."""
-    x = lr
-    for i in range(scale.bit_length() - 1):
-        x = net(x)
-        if i < scale.bit_length() - 2:
+def upscale_net(net: UpConv7, lr: torch.Tensor, scale: int) -> torch.Tensor:
+    """Passes of ``net`` up to ``scale``, clamped between passes as inference does."""
+    x, done = lr, 1
+    while done < scale:
+        if done > 1:
             x = x.clamp(0.0, 1.0)
+        x = net(x)
+        done *= net.stride
     return x
 
 
@@ -201,7 +215,7 @@ def train(
     if config.threads:
         torch.set_num_threads(config.threads)
     net = build_network(config).train()
-    ema = build_network(config) if config.init != "random" else UpConv7(config.widths)
+    ema = UpConv7(config.widths, stride=config.stride)
     ema.load_state_dict(net.state_dict())
     ema.eval().requires_grad_(False)
     opt = torch.optim.AdamW(

@@ -26,6 +26,7 @@ def save_network(net: UpConv7, path: Path, config: TrainConfig, extra: dict[str,
         "arch": ARCH,
         "widths": ",".join(str(w) for w in net.widths),
         "slope": str(net.slope),
+        "stride": str(net.stride),
         "kinds": ",".join(config.kinds),
         "scale": str(config.scale),
         "config": json.dumps(asdict(config)),
@@ -59,7 +60,9 @@ def load_network(path: Path) -> UpConv7:
         raise PriorUnavailable(f"'{path.name}' is not a pbrsr {ARCH} weights file")
     try:
         widths = tuple(int(w) for w in meta["widths"].split(","))
-        net = UpConv7(widths, slope=float(meta.get("slope", "0.1")))
+        net = UpConv7(
+            widths, slope=float(meta.get("slope", "0.1")), stride=int(meta.get("stride", "2"))
+        )
         net.load_state_dict(load_file(str(path)))
     except (KeyError, ValueError, RuntimeError) as exc:
         raise PriorUnavailable(
