@@ -212,7 +212,9 @@ def _upscale_maps(
         {k: v.to(device) for k, v in init.items()},
         {img.index: set(img.roles) for img in images},
         scale=s,
-        prior=prior,
+        prior=prior
+        if config.pseudo_gt_prior is None
+        else load_prior(config.pseudo_gt_prior, device),
         light=light,
         config=config,
         device=device,

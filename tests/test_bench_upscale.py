@@ -107,3 +107,21 @@ def test_methods_may_name_their_prior_and_unknown_ones_are_refused():
         check_methods(("fastest",), "bicubic")
     with pytest.raises(ValueError, match="nosuchprior"):
         check_methods(("direct@nosuchprior",), "bicubic")
+
+
+def test_methods_take_preset_changes():
+    from pbrsr_core.bench.upscale import check_methods, parse_method
+
+    name, prior, changes = parse_method("balanced@pbr-upconv7+lambda_pix=0+pseudo_gt_prior=bicubic")
+    assert (name, prior) == ("balanced", "pbr-upconv7")
+    assert changes == {"lambda_pix": 0, "pseudo_gt_prior": "bicubic"}
+    assert parse_method("fast") == ("fast", None, {})
+    check_methods(("balanced+iterations=50+pseudo_gt_prior=waifu2x-photo",), "bicubic")
+    with pytest.raises(ValueError, match="not key=value"):
+        check_methods(("balanced+lambda_pix",), "bicubic")
+    with pytest.raises(ValueError, match="only a PBR-SR preset"):
+        check_methods(("direct+lambda_pix=0",), "bicubic")
+    with pytest.raises(ValueError, match="no_such_field"):
+        check_methods(("balanced+no_such_field=1",), "bicubic")
+    with pytest.raises(ValueError, match="unknown prior 'nope'"):
+        check_methods(("balanced+pseudo_gt_prior=nope",), "bicubic")

@@ -213,3 +213,21 @@ def test_max_prior_scale_reaches_the_init_and_the_self_check(tmp_path, monkeypat
     assert {f for _, f in prior.calls} == {4}
     with pytest.raises(InvalidOptions, match="max_prior_scale"):
         frozen.with_(max_prior_scale=1)
+
+
+def test_pseudo_gt_prior_makes_the_render_targets(tmp_path, monkeypatch):
+    """pseudo_gt_prior: the init comes from the run's prior, the pseudo-GT from the one named
+    (bicubic: the HR renders of the init maps)."""
+    from pbrsr_core.optim import presets
+
+    prior, asset, _ = _quad_with_prior(tmp_path, monkeypatch, seed=6)
+    one_step = presets.FAST.with_(iterations=1, check_prior=(), max_prior_scale=None)
+    monkeypatch.setitem(presets.PRESETS, "fast", one_step)
+    upscale_asset(asset, tmp_path / "a", UpscaleOptions(preset="fast", prior="n"))
+    assert prior.calls[0] == (32, 4) and len(prior.calls) > 1  # init, then the renders
+    prior.calls.clear()
+    monkeypatch.setitem(presets.PRESETS, "fast", one_step.with_(pseudo_gt_prior="bicubic"))
+    report = upscale_asset(asset, tmp_path / "b", UpscaleOptions(preset="fast", prior="n"))
+    assert prior.calls == [(32, 4)] and report["config"]["pseudo_gt_prior"] == "bicubic"
+    with pytest.raises(InvalidOptions, match="unknown prior"):
+        one_step.with_(pseudo_gt_prior="photo")

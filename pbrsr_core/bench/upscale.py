@@ -98,33 +98,58 @@ def eval_lights(shared: Path) -> tuple[list[EnvLight], list[str]]:
     ]
 
 
+def parse_method(method: str) -> tuple[str, str | None, dict]:
+    """``NAME[@PRIOR][+key=value...]`` -> (name, prior or None, preset changes). Values are
+    JSON (numbers, true/false, null) or else strings: ``balanced+lambda_pix=0``,
+    ``balanced@pbr-upconv7+pseudo_gt_prior=bicubic``."""
+    head, *changes = method.split("+")
+    name, _, prior = head.partition("@")
+    config = {}
+    for change in changes:
+        key, eq, value = change.partition("=")
+        if not eq or not key:
+            raise ValueError(f"method {method!r}: '+{change}' is not key=value")
+        try:
+            config[key] = json.loads(value)
+        except ValueError:
+            config[key] = value
+    return name, prior or None, config
+
+
 def method_options(method: str, scale: int, prior: str) -> dict:
     """Upscale options of one benchmark method: ``bicubic``, ``direct`` or a PBR-SR preset,
     optionally with its own prior as ``METHOD@PRIOR`` (``direct@waifu2x-photo``), so one run
     compares priors."""
-    method, _, own_prior = method.partition("@")
+    name, own_prior, _ = parse_method(method)
     prior = own_prior or prior
-    if method in ("bicubic", "direct"):
-        return {"method": method, "scale": scale, "prior": prior}
-    return {"method": "pbrsr", "preset": method, "scale": scale, "prior": prior}
+    if name in ("bicubic", "direct"):
+        return {"method": name, "scale": scale, "prior": prior}
+    return {"method": "pbrsr", "preset": name, "scale": scale, "prior": prior}
 
 
 def check_methods(methods: tuple[str, ...], prior: str) -> None:
-    """Raise ValueError naming the first method (or its prior) that is unknown."""
+    """Raise ValueError naming the first method (its prior or a preset change) that is
+    unknown."""
     from ..errors import PbrsrError
     from ..optim.presets import PRESETS
     from ..prior.registry import check_name
 
     for m in methods:
-        name, _, own_prior = m.partition("@")
+        name, own_prior, changes = parse_method(m)
         if name not in ("bicubic", "direct") and name not in PRESETS:
             raise ValueError(
                 f"unknown method {name!r}: use bicubic, direct or {', '.join(PRESETS)}"
             )
+        if changes and name not in PRESETS:
+            raise ValueError(f"method {m!r}: only a PBR-SR preset takes +key=value changes")
         try:
             check_name(own_prior or prior)
+            if changes:
+                PRESETS[name].with_(**changes)
         except PbrsrError as exc:
             raise ValueError(f"method {m!r}: {exc.message}") from None
+        except TypeError as exc:
+            raise ValueError(f"method {m!r}: {exc}") from None
 
 
 def run_subprocess(spec: dict, work: Path) -> dict:
@@ -210,6 +235,7 @@ def run(
                     "out": str(work / "out"),
                     "work": str(work),
                     "options": method_options(method, scale, prior),
+                    "config": parse_method(method)[2],
                 }
                 say(f"   {method} ...")
                 res = run_subprocess(spec, work)

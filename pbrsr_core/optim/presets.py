@@ -80,6 +80,10 @@ class PbrsrConfig:
     (antialiased, like a mip-mapped rasteriser) or rasterised at LR size (one sample per
     pixel). On the 512 demo asset at x4 (one 512x512 view, rrdn-thick), the pseudo-GT's PSNR
     against the render of the GT maps was 26.5 dB supersampled vs 24.7 dB rasterised."""
+    pseudo_gt_prior: str | None = None
+    """The prior that upscales the LR renders into the pseudo-GT; None: the run's prior.
+    ``bicubic`` with ``target`` "detail" makes the target the HR render of the init maps
+    (the direct result's renders)."""
     target: Literal["prior", "detail"] = "prior"
     """prior: the prior's output is the target (the paper); detail: the HR render of the init
     maps plus what the prior adds over bicubic (keeps exact silhouettes and shading)."""
@@ -147,6 +151,10 @@ class PbrsrConfig:
         for ok, msg in checks:
             if not ok:
                 raise InvalidOptions(f"PBR-SR config '{self.name}': {msg}")
+        if self.pseudo_gt_prior is not None:
+            from ..prior.registry import check_name
+
+            check_name(self.pseudo_gt_prior)
 
     @property
     def weight_map_lr(self) -> float:
