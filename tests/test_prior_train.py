@@ -253,6 +253,19 @@ def test_cli_trains_reports_and_the_result_is_a_prior(tmp_path, capfd):
     assert "CC0" in card and "priors train" in card and (out / "report.png").is_file()
     prior = TexturePrior(sorted(out.glob("*/*.safetensors")))
     assert prior.for_kind("normal").upscale(torch.rand(1, 3, 16, 16), 4).shape[-1] == 64
+    cmp = tmp_path / "cmp"
+    args = ["priors", "report", str(out), "-o", str(cmp), "--textures", str(folder)]
+    code, err = run_cli([*args, "--scales", "4"], capfd)
+    assert code == 0, err
+    again = json.loads((cmp / "report.json").read_text())
+    assert set(again["colour"]) == {"crops", "materials", "4"}
+    assert again["colour"]["4"]["out"] == report["colour"]["4"]["out"] | {
+        "seconds": again["colour"]["4"]["out"]["seconds"]
+    }
+    code, err = run_cli([*args, "--scales", "3"], capfd)
+    assert code == InvalidOptions.exit_code and "among 2, 4, 8" in err
+    code, err = run_cli(["priors", "report", str(tmp_path), "-o", str(cmp)], capfd)
+    assert code == InvalidOptions.exit_code and "no trained networks" in err
 
 
 @pytest.mark.parametrize(

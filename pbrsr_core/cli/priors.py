@@ -262,5 +262,36 @@ def finetune_cmd(
     _run_training(init=start, **opts)
 
 
+@priors_app.command("report")
+def report_cmd(
+    folders: list[Path] = typer.Argument(..., help="Training output folders to compare."),
+    out: Path = typer.Option(..., "--out", "-o", help="Where report.md/.json/.png go."),
+    textures: Path | None = _TEXTURES,
+    scales: str = typer.Option("2,4,8", help="Scales, comma-separated."),
+) -> None:
+    """Score trained priors side by side with bicubic and waifu2x-photo on the held-out
+    materials (x2/x4/x8, per map kind), with their training curves and a model card."""
+    from ..errors import InvalidOptions
+    from ..prior.train.data import load_materials, read_manifest, split_materials
+    from ..prior.train.report import network_files, write_report
+
+    missing = [str(f) for f in folders if not network_files(f)]
+    if missing:
+        raise InvalidOptions(f"no trained networks in {', '.join(missing)}")
+    try:
+        scale_t = tuple(int(v) for v in scales.split(","))
+    except ValueError as exc:
+        raise InvalidOptions(f"--scales must be integers, not {scales!r}") from exc
+    if not set(scale_t) <= {2, 4, 8}:
+        raise InvalidOptions(f"--scales must be among 2, 4, 8, not {scales!r}")
+    root = textures or _textures_default()
+    if not root.is_dir():
+        raise InvalidOptions(f"texture folder {root} not found (pass --textures)")
+    manifest = read_manifest(root)
+    held = split_materials(manifest)[1]
+    md = write_report(out, load_materials(root, held, manifest), scale_t, folders=folders)
+    typer.echo(md.read_text())
+
+
 def register(app: typer.Typer) -> None:
     app.add_typer(priors_app, name="priors")
