@@ -326,3 +326,22 @@ def test_start_weights_of_another_stride_give_the_convolutions(tmp_path):
     assert net.mods[-1].weight.shape != x2.mods[-1].weight.shape
     with pytest.raises(InvalidOptions, match="widths"):
         build_network(TrainConfig(widths=(4, 4), init=str(tmp_path / "x2.safetensors")))
+
+
+def test_start_weights_resolve_per_kind(tmp_path):
+    from pbrsr_core.prior.train.weights import resolve_start
+
+    for kind, stride in (("colour", 2), ("colour", 4), ("normal", 2)):
+        cfg = TrainConfig(kinds=(kind,), widths=TINY, stride=stride, scale=4)
+        save_network(
+            UpConv7(TINY, stride=stride), tmp_path / f"{kind}{stride}.safetensors", cfg, {}
+        )
+    src = f"texture:{tmp_path}"
+    assert resolve_start(src, "colour", 4).endswith("colour4.safetensors")
+    assert resolve_start(src, "colour", 2).endswith("colour2.safetensors")
+    assert resolve_start(src, "normal", 4).endswith("normal2.safetensors")  # the other stride
+    assert resolve_start("waifu2x-photo", "data", 2) == "waifu2x-photo"
+    with pytest.raises(PriorUnavailable, match="no weights for data"):
+        resolve_start(src, "data", 2)
+    with pytest.raises(PriorUnavailable, match="cannot start from"):
+        resolve_start("rrdn-thick", "colour", 2)

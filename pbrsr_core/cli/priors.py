@@ -107,42 +107,58 @@ def _run_training(
     patch: int,
     lr: float,
     seed: int,
-    widths: str,
+    widths: str | None,
     resume: bool,
     quiet: bool,
 ) -> None:
+    """Train one network per kind (or one for all with ``joint``) from ``init`` (see
+    :func:`~pbrsr_core.prior.train.weights.resolve_start`); ``widths`` None: the start
+    weights' widths."""
     from tqdm import tqdm
 
     from ..errors import InvalidOptions
     from ..prior.train.data import load_materials, read_manifest, split_materials
     from ..prior.train.loop import TrainConfig, train
+    from ..prior.train.weights import load_network, resolve_start
+    from ..prior.waifu2x import UpConv7
 
     root = textures or _textures_default()
     if not root.is_dir():
         raise InvalidOptions(f"texture folder {root} not found (pass --textures)")
     manifest = read_manifest(root)
     train_names, held = split_materials(manifest)
-    try:
-        width_t = tuple(int(w) for w in widths.split(","))
-    except ValueError as exc:
-        raise InvalidOptions(f"--widths must be comma-separated integers, not {widths!r}") from exc
     kind_t = tuple(k.strip() for k in kinds.split(",") if k.strip())
     groups = [kind_t] if joint else [(k,) for k in kind_t]
-    configs = [
-        TrainConfig(
-            kinds=g,
-            scale=scale,
-            stride=stride,
-            steps=steps,
-            batch_size=batch,
-            patch=patch,
-            lr=lr,
-            seed=seed,
-            widths=width_t,
-            init=init,
+    configs = []
+    for g in groups:
+        start = resolve_start(init, g[0], stride)
+        if widths is None:
+            width_t = (
+                UpConv7().widths
+                if start in ("random", "waifu2x-photo")
+                else (load_network(Path(start)).widths)
+            )
+        else:
+            try:
+                width_t = tuple(int(w) for w in widths.split(","))
+            except ValueError as exc:
+                raise InvalidOptions(
+                    f"--widths must be comma-separated integers, not {widths!r}"
+                ) from exc
+        configs.append(
+            TrainConfig(
+                kinds=g,
+                scale=scale,
+                stride=stride,
+                steps=steps,
+                batch_size=batch,
+                patch=patch,
+                lr=lr,
+                seed=seed,
+                widths=width_t,
+                init=start,
+            )
         )
-        for g in groups
-    ]
     for c in configs:
         c.check()
     if not quiet:
@@ -233,7 +249,10 @@ def train_cmd(
 @priors_app.command("finetune")
 def finetune_cmd(
     from_: str = typer.Option(
-        "waifu2x-photo", "--from", help="Start weights: waifu2x-photo or a .safetensors file."
+        "waifu2x-photo",
+        "--from",
+        help="Start weights: waifu2x-photo, pbr-upconv7, texture:<folder> or a .safetensors "
+        "file (a set's network for each kind).",
     ),
     out: Path = _OUT,
     textures: Path | None = _TEXTURES,
@@ -253,13 +272,7 @@ def finetune_cmd(
     """Fine-tune an existing prior's weights on a CC0 texture folder, then write the report
     and model card."""
     opts = dict(locals())
-    start = opts.pop("from_")
-    opts["widths"] = "16,32,64,128,128,256"
-    if start != "waifu2x-photo":
-        from ..prior.train.weights import load_network
-
-        opts["widths"] = ",".join(str(w) for w in load_network(Path(start)).widths)
-    _run_training(init=start, **opts)
+    _run_training(init=opts.pop("from_"), widths=None, **opts)
 
 
 @priors_app.command("report")

@@ -69,3 +69,27 @@ def load_network(path: Path) -> UpConv7:
             f"'{path.name}': weights do not match their metadata: {exc}"
         ) from exc
     return net.eval()
+
+
+def resolve_start(source: str, kind: str, stride: int) -> str:
+    """The start weights of a network for ``kind`` maps: ``random`` and ``waifu2x-photo`` as
+    they are, a ``.safetensors`` file as it is, and a texture prior (``pbr-upconv7``,
+    ``texture:<folder>``) as its file for ``kind`` (of ``stride`` where it has one)."""
+    if source in ("random", "waifu2x-photo") or source.endswith(".safetensors"):
+        return source
+    from ..texture import NAME, WEIGHTS_DIR, weight_files
+
+    if source == NAME:
+        folder = WEIGHTS_DIR
+    elif source.startswith("texture:"):
+        folder = Path(source[len("texture:") :]).expanduser()
+    else:
+        raise PriorUnavailable(
+            f"cannot start from {source!r}: use random, waifu2x-photo, {NAME}, "
+            "texture:<folder> or a .safetensors file"
+        )
+    files = weight_files(folder)
+    for key in ((kind, stride), *((kind, s) for s in (2, 4) if s != stride)):
+        if key in files:
+            return str(files[key])
+    raise PriorUnavailable(f"{source!r} has no weights for {kind} maps")
