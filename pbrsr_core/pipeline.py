@@ -47,7 +47,7 @@ from .maps import (
 from .options import UpscaleOptions
 from .preview import write_previews
 from .prior import load_prior
-from .prior.direct import bicubic_map, project_map, upscale_map
+from .prior.direct import bicubic_map, keep_normal_length, project_map, upscale_map
 from .prior.selfcheck import merge_channels, prior_self_check
 from .progress import Progress, ProgressFn, emit
 from .render.light import EnvLight
@@ -251,10 +251,13 @@ def _export_map(
 ) -> np.ndarray:
     """One optimised map (optimisation space) -> stored encoding, with the channels
     ``projected`` names (one entry for colour and normal maps, one per channel for data maps)
-    back-projected onto its LR map."""
+    back-projected onto its LR map; a normal map at its LR map's length
+    (:func:`~.prior.direct.keep_normal_length`)."""
     hr = param_to_encoded(t, kind)
     if any(projected):
         hr = merge_channels(project_map(hr, lr, scale, kind), hr, projected)
+    elif kind == "normal":
+        hr = keep_normal_length(hr, lr, scale)
     return hr
 
 

@@ -231,3 +231,24 @@ def test_pseudo_gt_prior_makes_the_render_targets(tmp_path, monkeypatch):
     assert prior.calls == [(32, 4)] and report["config"]["pseudo_gt_prior"] == "bicubic"
     with pytest.raises(InvalidOptions, match="unknown prior"):
         one_step.with_(pseudo_gt_prior="photo")
+
+
+@pytest.mark.parametrize("method", ["bicubic", "direct", "pbrsr"])
+def test_normal_maps_come_out_at_the_inputs_length(tmp_path: Path, method: str):
+    """A normal map stored at |n| = 0.9 comes back at 0.9 from every method (the optimiser
+    steps on unit normals; its export, projection and island padding keep the length)."""
+    y, x = np.mgrid[0:32, 0:32] / 32 * 2 * np.pi
+    n = np.stack([0.3 * np.sin(x), 0.3 * np.cos(y), np.ones_like(x)], -1)
+    n *= 0.9 / np.linalg.norm(n, axis=-1, keepdims=True)
+    base = np.full((32, 32, 3), 0.6, np.float32)
+    asset = make_quad_asset(
+        tmp_path / "q.gltf", {"base_color": base, "normal": ((n + 1) / 2).astype(np.float32)}
+    )
+    opts = {"bicubic": {"method": "bicubic"}, "direct": {"method": "direct", "prior": "bicubic"}}
+    options = UpscaleOptions(**opts.get(method, {"preset": "fast", "prior": "bicubic"}), scale=2)
+    upscale_asset(asset, tmp_path / "out", options)
+    out = load_asset(tmp_path / "out" / "q.gltf")
+    img = next(i for i in out.images if "normal" in i.roles)
+    length = np.linalg.norm(img.pixels[..., :3] * 2 - 1, axis=-1)
+    assert img.pixels.shape[:2] == (64, 64)
+    assert abs(float(length.mean()) - 0.9) < 0.01 and float(np.abs(length - 0.9).max()) < 0.03

@@ -11,7 +11,7 @@ from pbrsr_core.degrade import degrade_tensor
 from pbrsr_core.prior import load_prior
 from pbrsr_core.prior.backproject import back_project
 from pbrsr_core.prior.base import Prior
-from pbrsr_core.prior.direct import project_map
+from pbrsr_core.prior.direct import normal_length, project_map
 from pbrsr_core.prior.waifu2x import is_installed
 
 
@@ -101,7 +101,7 @@ def test_project_map_moves_colour_channels_onto_the_lr_map_and_keeps_alpha(kind)
     assert after < 0.1 * before, (before, after)
 
 
-def test_project_map_keeps_normal_maps_unit_and_facing_out():
+def test_project_map_keeps_normal_maps_at_the_lr_length_and_facing_out():
     g = torch.Generator().manual_seed(2)
     n = torch.randn(1, 3, 64, 64, generator=g) * 0.3
     n[:, 2] = 1.0
@@ -109,7 +109,10 @@ def test_project_map_keeps_normal_maps_unit_and_facing_out():
     lr = _hwc(degrade_tensor(enc, 4).clamp(0, 1))
     out = project_map(_hwc(enc), lr, 4, "normal")
     dec = out * 2 - 1
-    assert np.allclose(np.linalg.norm(dec, axis=-1), 1.0, atol=1e-4)
+    lr_t = torch.from_numpy(lr).permute(2, 0, 1)[None]
+    want = normal_length(lr_t, 4)[0, 0].numpy()
+    assert want.min() < 0.97  # the LR averages the noisy directions into shorter vectors
+    assert np.allclose(np.linalg.norm(dec, axis=-1), want, atol=1e-4)
     assert (dec[..., 2] > 0).all() and np.isfinite(out).all()
 
 

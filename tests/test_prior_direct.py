@@ -1,4 +1,4 @@
-"""The direct-prior map helpers: channel layouts, alpha, normal renormalisation."""
+"""The direct-prior map helpers: channel layouts, alpha, normal directions and lengths."""
 
 from __future__ import annotations
 
@@ -12,7 +12,9 @@ from pbrsr_core.prior import load_prior
 from pbrsr_core.prior.base import Prior
 from pbrsr_core.prior.direct import (
     bicubic_map,
+    keep_normal_length,
     prior_factor,
+    project_map,
     renormalize_encoded_normals,
     upscale_map,
 )
@@ -67,6 +69,49 @@ def test_normal_maps_are_renormalised_with_positive_z():
     # a flat-but-flipped normal becomes z >= 1e-3
     flipped = renormalize_encoded_normals(torch.tensor([[[[0.5]], [[0.5]], [[0.0]]]]))
     assert torch.allclose(flipped.flatten(), torch.tensor([0.5, 0.5, 1.0]))
+
+
+def _normal_field(size: int, length: float) -> np.ndarray:
+    """A smooth encoded normal map (size, size, 3) whose vectors are ``length`` long."""
+    y, x = np.mgrid[0:size, 0:size] / size * 2 * np.pi
+    n = np.stack([0.4 * np.sin(x + 0.5 * y), 0.3 * np.cos(2 * y), np.ones_like(x)], -1)
+    n *= length / np.linalg.norm(n, axis=-1, keepdims=True)
+    return ((n + 1) / 2).astype(np.float32)
+
+
+def _psnr(a: np.ndarray, b: np.ndarray) -> float:
+    return float(-10 * np.log10(np.mean((a.astype(np.float64) - b) ** 2)))
+
+
+@pytest.mark.parametrize("length", [0.9, 0.97])
+def test_normal_maps_keep_the_inputs_length(length):
+    """A normal map stored at |n| < 1 (as JPEG-compressed and mipmapped bakes are) comes out
+    at that length, directions as upscaled: closer to the HR map than unit vectors are."""
+    hr = _normal_field(128, length)
+    lr = degrade_tensor(torch.from_numpy(hr).permute(2, 0, 1)[None], 4)[0].permute(1, 2, 0)
+    lr = lr.clamp(0, 1).numpy()
+    unit = renormalize_encoded_normals(torch.from_numpy(hr).permute(2, 0, 1)[None])
+    unit_ref = unit[0].permute(1, 2, 0).numpy()
+    for out in (
+        bicubic_map(lr, "normal", 4),
+        upscale_map(load_prior("bicubic"), lr, "normal", 4),
+        project_map(bicubic_map(lr, "normal", 4), lr, 4, "normal"),
+        keep_normal_length(unit_ref, lr, 4),
+    ):
+        dec = out * 2 - 1
+        got = np.linalg.norm(dec, axis=-1)
+        assert abs(float(got.mean()) - length) < 0.01 and got.std() < 0.01
+        assert (dec[..., 2] > 0).all()
+        unit_out = dec / got[..., None] / 2 + 0.5
+        # the length is the input's, the PSNR is that of the directions plus nothing
+        assert _psnr(out, hr) > _psnr(unit_out, hr) + 3.0
+    # directions are those of the unit-length result
+    np.testing.assert_allclose(
+        keep_normal_length(unit_ref, lr, 4) * 2 - 1,
+        (unit_ref * 2 - 1)
+        * np.linalg.norm(bicubic_map(lr, "normal", 4) * 2 - 1, axis=-1)[..., None],
+        atol=1e-5,
+    )
 
 
 def test_bicubic_map_matches_torch_for_data_maps():

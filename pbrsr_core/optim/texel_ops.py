@@ -456,7 +456,7 @@ def pad_update(
     (bilinear taps at island borders read it): ph_tea_set_01, fast, x4.
 
     ``result``, ``init``: (H, W, C) float32 in [0, 1] (stored encoding); ``normal``: the
-    padded texels are renormalised as encoded normals (z > 0). Returns float32 in [0, 1]."""
+    padded texels are encoded normals with z > 0 at ``init``'s length. Returns float32 in [0, 1]."""
     if result.shape != init.shape:
         raise ValueError(f"result {result.shape} and init {init.shape} differ in shape")
     m = np.asarray(covered_mask, dtype=bool)
@@ -470,10 +470,13 @@ def pad_update(
     h, w = m.shape
     rows, cols = ring // w, ring % w
     padded = np.clip(init[rows, cols] + delta[rows, cols], 0.0, 1.0)
-    if normal and out.shape[-1] >= 3:
+    if normal and out.shape[-1] >= 3:  # init's direction changed, its length kept
+        n = init[rows, cols, :3] * 2.0 - 1.0
+        length = np.sqrt((n * n).sum(-1, keepdims=True))
         t = torch.from_numpy(np.ascontiguousarray(padded)[:, None])  # (N, 1, C)
         project_(t, True)
         padded = t[:, 0].numpy()
+        padded[:, :3] = np.clip((padded[:, :3] * 2.0 - 1.0) * length * 0.5 + 0.5, 0.0, 1.0)
     out[rows, cols] = padded
     return out
 

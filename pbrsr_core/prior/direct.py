@@ -7,7 +7,10 @@ The prior sees three channels at a time:
 - colour maps (``base_color``, ``emissive``, kind ``colour``) as the sRGB images they are;
 - data maps (``metallic_roughness``/ORM, ``occlusion``, kind ``data``) as an RGB image;
 - normal maps (``normal``): the encoded RGB image is upscaled, then decoded (n = 2t - 1),
-  z clamped positive, renormalised and re-encoded;
+  z clamped positive; the direction is the upscaled one, the length the input's (|n| of the
+  LR map, bicubic-upscaled: :func:`normal_length`), then re-encoded. Shaders normalise after
+  sampling, so the length carries no shading; an input stored at |n| < 1 (JPEG, mipmapped
+  bakes) keeps its encoding, which is what a map metric compares;
 - 1-channel images are replicated to RGB and the mean of the result is taken back; 2-channel
   images are grey + alpha (PNG "LA");
 - alpha (the last channel of 2- and 4-channel images) is upscaled on its own with bicubic
@@ -27,6 +30,7 @@ from .bicubic import bicubic_upscale
 
 _NORMAL = {"normal"}
 _MIN_Z = 1e-3
+_LENGTH_RANGE = (1e-3, 3**0.5)
 
 
 def map_kind(role: str) -> str:
@@ -64,24 +68,52 @@ def _split(a: np.ndarray) -> tuple[torch.Tensor, torch.Tensor | None, int]:
     return colour.contiguous(), alpha, n_colour
 
 
-def _merge(rgb: torch.Tensor, alpha: torch.Tensor | None, n_colour: int, kind: str) -> np.ndarray:
-    """rgb (1, 3, sH, sW) + alpha (1, 1, sH, sW) -> (sH, sW, C) float32 in [0, 1]."""
+def _merge(
+    rgb: torch.Tensor,
+    alpha: torch.Tensor | None,
+    n_colour: int,
+    kind: str,
+    length: torch.Tensor | None = None,
+) -> np.ndarray:
+    """rgb (1, 3, sH, sW) + alpha (1, 1, sH, sW) -> (sH, sW, C) float32 in [0, 1]; normal
+    maps get unit length, or ``length`` (1, 1, sH, sW) where given."""
     if kind == "normal":
-        rgb = renormalize_encoded_normals(rgb)
+        rgb = renormalize_encoded_normals(rgb, length)
     colour = rgb if n_colour == 3 else rgb.mean(dim=1, keepdim=True)
     parts = [colour] if alpha is None else [colour, alpha]
     out = torch.cat(parts, 1).clamp(0.0, 1.0)[0].permute(1, 2, 0)
     return np.ascontiguousarray(out.detach().cpu().numpy(), dtype=np.float32)
 
 
-def renormalize_encoded_normals(t: torch.Tensor) -> torch.Tensor:
+def renormalize_encoded_normals(
+    t: torch.Tensor, length: torch.Tensor | None = None
+) -> torch.Tensor:
     """Encoded tangent-space normals (N, 3, H, W) in [0, 1] -> decoded, z clamped to >= 1e-3,
-    unit length, re-encoded to [0, 1]. Same shape."""
+    unit length (or ``length``, (N, 1, H, W)), re-encoded to [0, 1]. Same shape."""
     n = t * 2.0 - 1.0
     n = torch.cat([n[:, :2], n[:, 2:3].clamp_min(_MIN_Z)], 1)
     # sum of squares, not Tensor.norm(dim=1): torch's strided channel norm is ~30x slower on CPU
-    n = n / (n * n).sum(1, keepdim=True).clamp_min(1e-24).sqrt()
-    return (n + 1.0) * 0.5
+    scale = (n * n).sum(1, keepdim=True).clamp_min(1e-24).rsqrt()
+    if length is not None:
+        scale = scale * length
+    return ((n * scale + 1.0) * 0.5).clamp(0.0, 1.0)
+
+
+def normal_length(lr: torch.Tensor, scale: int) -> torch.Tensor:
+    """The length |2t - 1| of encoded normals (N, 3, H, W), bicubic-upscaled by ``scale`` and
+    kept in [1e-3, sqrt 3] -> (N, 1, sH, sW): the length an upscaled normal map is stored at."""
+    n = lr * 2.0 - 1.0
+    length = (n * n).sum(1, keepdim=True).sqrt()
+    return bicubic_upscale(length, scale).clamp(*_LENGTH_RANGE)
+
+
+def keep_normal_length(hr: np.ndarray, lr: np.ndarray, scale: int) -> np.ndarray:
+    """An HR normal map (sH, sW, C) with its directions kept and the length of its LR map
+    (H, W, C) (:func:`normal_length`); alpha kept."""
+    colour, alpha, n_colour = _split(_as_hwc(hr))
+    with torch.inference_mode():
+        length = normal_length(_split(_as_hwc(lr))[0], scale)
+        return _merge(colour, alpha, n_colour, "normal", length)
 
 
 def prior_factor(prior: Prior, scale: int, max_scale: int | None) -> int:
@@ -118,8 +150,10 @@ def upscale_map(
     rgb = upscale_rgb(
         prior.for_kind(kind), colour, scale, max_prior_scale=max_prior_scale, progress=progress
     )
-    up_alpha = None if alpha is None else bicubic_upscale(alpha, scale)
-    return _merge(rgb.cpu(), up_alpha, n_colour, kind)
+    with torch.inference_mode():
+        up_alpha = None if alpha is None else bicubic_upscale(alpha, scale)
+        length = normal_length(colour, scale) if kind == "normal" else None
+        return _merge(rgb.cpu(), up_alpha, n_colour, kind, length)
 
 
 def upscale_rgb(
@@ -146,7 +180,7 @@ def upscale_rgb(
 
 def bicubic_map(pixels: np.ndarray, role: str, scale: int) -> np.ndarray:
     """Bicubic upscaling of one stored map with the same conventions as :func:`upscale_map`
-    (every channel interpolated, clamped; normal maps renormalised). pixels (H, W, C) ->
+    (every channel interpolated, clamped; normal maps at the input's length). pixels (H, W, C) ->
     (s*H, s*W, C) float32 in [0, 1]."""
     if not isinstance(scale, int) or scale < 1:
         raise ValueError(f"scale must be a positive integer, got {scale!r}")
@@ -156,7 +190,8 @@ def bicubic_map(pixels: np.ndarray, role: str, scale: int) -> np.ndarray:
     with torch.inference_mode():
         rgb = bicubic_upscale(colour, scale).clamp(0.0, 1.0)
         up_alpha = None if alpha is None else bicubic_upscale(alpha, scale)
-        return _merge(rgb, up_alpha, n_colour, kind)
+        length = normal_length(colour, scale) if kind == "normal" else None
+        return _merge(rgb, up_alpha, n_colour, kind, length)
 
 
 _STRIP_HALO = 8
@@ -170,7 +205,7 @@ def project_map(
 ) -> np.ndarray:
     """One back-projection step (prior/backproject.py) of a stored HR map (sH, sW, C) onto
     its LR map (H, W, C), with the conventions of :func:`upscale_map`: the colour channels
-    are projected (normal maps then renormalised), alpha is kept as it is.
+    are projected (normal maps then at the LR map's length), alpha is kept as it is.
 
     Done in strips of ``strip_rows`` LR rows (plus a halo), so its temporaries are a strip's,
     not the map's: several full-size copies of a 4096² map were the peak memory of a
@@ -196,4 +231,5 @@ def _project_whole(hr: np.ndarray, lr: np.ndarray, scale: int, role: str) -> np.
     lr_colour = _split(_as_hwc(lr))[0]
     with torch.inference_mode():
         rgb = back_project(colour, lr_colour, scale)
-        return _merge(rgb, alpha, n_colour, kind)
+        length = normal_length(lr_colour, scale) if kind == "normal" else None
+        return _merge(rgb, alpha, n_colour, kind, length)
