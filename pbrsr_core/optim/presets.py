@@ -1,15 +1,15 @@
 """Named sets of numbers for the PBR-SR optimiser.
 
-``paper`` reproduces every default of the paper (METHOD.md "Defaults the paper gives"). The
-CPU presets ``fast`` / ``balanced`` / ``quality`` keep the paper's losses and lambdas except a
-weaker pixel term (lambda_pix 1: the pseudo-GT of a small prior carries little true detail),
-back-project the exported colour and data maps onto their LR maps (``project_lr``), and
-change how much work is done and how the pixel target is made: fewer views chosen for
-texel coverage (several views per texel) instead of a fixed sphere, a render resolution that
-follows texel density (one pixel ~ one HR texel, capped), fewer iterations with a larger Adam
-step, and the "detail" pseudo-GT (see ``PbrsrConfig.target``). The numbers come from
-measurements on the procedural demo asset (comments below) and ``pbrsr bench upscale``
-(README)."""
+``paper`` reproduces every default of the paper (../shared/docs/METHOD.md, "Defaults the paper
+gives"). The CPU presets ``fast`` / ``balanced`` / ``quality`` keep the paper's losses and
+lambdas except a weaker pixel term (lambda_pix 1: the pseudo-GT of a small prior carries little
+true detail), back-project the exported colour and data maps onto their LR maps
+(``project_lr``), and change how much work is done and how the pixel target is made: fewer
+views chosen for texel coverage (several views per texel) instead of a fixed sphere, a render
+resolution that follows texel density (one pixel ~ one HR texel, capped), fewer iterations with
+a larger Adam step, and the "detail" pseudo-GT (see ``PbrsrConfig.target``). The comments below
+give the measurements behind each number (docs/METHOD.md has them in context);
+``pbrsr bench upscale`` measures the presets themselves (docs/BENCHMARKS.md)."""
 
 from __future__ import annotations
 
@@ -184,122 +184,85 @@ PAPER = PbrsrConfig(
     eval_views=240,
 )
 
-# CPU presets. Shared rationale:
+# CPU presets. Why each shared number is what it is (x4, LR by `pbrsr degrade`, render PSNR
+# over evaluation views under two HDRs; docs/METHOD.md has the same measurements in context):
 # * fov 30 at distance 3.25 frames the whole unit-size mesh (bounding-sphere radius <= 0.87 <
 #   3.25 tan 15 deg), so a few views cover it; the paper's FoV 10 sees only the central part.
 # * render_res None: resolution from texel density, one pixel per HR texel, capped by
 #   max_render_res (the cost of a step is proportional to the pixels shaded).
-# * target "detail", several views per texel and Adam lr 5e-4: measured on the 512 demo asset
-#   at x4 (24 evaluation views, two lights; fast preset, 60 iterations): the paper's target
-#   (the prior's output) with lr 1e-3 lost 3.5 dB of albedo PSNR against bicubic and gained
-#   0.1 dB render PSNR; "detail" with 3 views per texel and lr 5e-4 kept every map at or above
-#   bicubic (albedo +0.3, roughness +0.5, occlusion +2.5 dB) and gained 0.6 dB render PSNR.
-#   Larger steps (5e-3) made Adam move every texel by its full step each iteration: speckle.
-# * iterations: `pbrsr bench upscale -a ph_painted_wooden_cabinet` (x4, 240 views, two HDRs)
-#   showed render PSNR peaking early and then overfitting the pseudo-GT: balanced at 0 / 10 /
-#   25 / 50 / 100 / 150 iterations gave 29.08 / 29.14 / 29.16 / 29.12 / 29.01 / 28.81 dB
-#   (bicubic 28.66); on the procedural asset 60 and 150 iterations gave 25.29 and 25.33 dB
-#   (bicubic 24.90). Hence 25 / 60 / 150 for fast / balanced / quality with rrdn-thick
-#   (sessions 2-6; see below for waifu2x-photo).
-# * lambda_pix 10 (the paper: 100) and lr 1e-3: with rrdn-thick the pseudo-GT carries little
-#   true detail, and the pixel loss pulled the albedo away from the prior's init while the
-#   PBR-consistency and TV terms improve every map. Measured with balanced at x4 (240 views,
-#   two HDRs): procedural render PSNR 25.32 -> 25.44 dB (albedo 35.23 -> 36.00), cabinet
-#   28.99 -> 29.00; lambda_pix 1 gave the same as 10; lr 2e-3 or 5e-3 lost 0.3-0.9 dB on the
-#   cabinet. The paper's 100 stays in the `paper` preset, for strong priors on a farm.
-# * check_prior: rrdn-thick lost to bicubic on three of the seven shared assets' own colour
-#   maps (prior/selfcheck.py); on the Avocado, fast with the check gave 41.46 dB render PSNR
-#   and albedo 45.89 (bicubic 41.18 / 45.81) against 41.26 / 44.53 without it, in 22 s
-#   instead of 43 s.
-# * map_lr normal 0.3: the render loss moved the normal maps more than their pseudo-GT
-#   supports (cabinet normal PSNR 35.82 bicubic -> 35.53 balanced). Balanced at x4 (120
-#   evaluation views, two HDRs), normal lr x1 -> x0.3: render PSNR cabinet 28.98 -> 29.08,
-#   tea set 31.75 -> 31.75, table 31.30 -> 31.29, ToyCar 33.55 -> 33.62; cabinet normal 35.53
-#   -> 35.78. Metallic x0.3 lost 0.2-0.5 dB of metallic PSNR on the tea set and ToyCar.
-# * emissive maps started from bicubic and stayed there (sessions 5-7; map_lr emissive 0). Emission
-#   adds light, so the render loss can explain any brightness residual with it: balanced at
-#   x4 (120 evaluation views, two HDRs), bicubic emissive ToyCar / WaterBottle 41.87 / 50.99
-#   dB; the prior's init 41.65 / 51.09; optimised from the prior's init 41.60 / 50.72, from
-#   bicubic 41.83 / 48.52. Render PSNR moved by at most 0.05 dB across all of these (ToyCar
-#   33.62 in every case), and the prior call on the emissive map cost 12 s on the WaterBottle.
-# * prior_maps (session 7, prior waifu2x-photo, fast at x4, 60 evaluation views, two HDRs):
-#   the prior on the normal and data maps as well as the albedo, each channel self-checked:
-#   cabinet render PSNR 29.46 (albedo only) -> 30.37 dB (bicubic 28.65; normal map 35.95 ->
-#   37.20), tea set 31.94 -> 32.93 (metallic 27.03 -> 31.40), but ToyCar 34.05 -> 32.19:
-#   its metallic channel from the prior halved the map's MSE and cost 1.57 dB of render PSNR
-#   (the occlusion channel alone: +0.07 dB). Metallic stays bicubic; the render is far more
-#   sensitive to it than its map PSNR says.
-# * iterations with waifu2x-photo: render PSNR peaks by 10-25 steps and then falls (ToyCar
-#   balanced, prior on the albedo only, 0 / 10 / 25 / 50 / 60: 34.00 / 34.09 / 34.04 /
-#   33.88 / 33.77; cabinet 30.39 / 30.48 / 30.47 / 30.44 (40) / 30.39), so fast / balanced /
-#   quality run 10 / 25 / 40.
-# * lr 2.5e-4 (was 1e-3) once the prior's output is back-projected onto its input
-#   (prior/backproject.py, session 8): the init alone then scores best and the pixel loss
-#   against the pseudo-GT pulls the maps away from it. Balanced at x4 (60 evaluation views,
-#   two HDRs), render PSNR init / 25 steps at lr 1e-3 / at 2.5e-4: Avocado 41.61 / 41.41 /
-#   41.56 (albedo 46.34 / 44.47 / 45.69, bicubic 45.81), ToyCar 34.58 / 34.37 / 34.56,
-#   cabinet 30.61 / 30.45 / 30.51. lambda_pix 0 kept the Avocado at 41.59 (albedo 46.07);
-#   lambda_pbr 0 fell to 39.94: the consistency term holds the maps, the pseudo-GT moves them.
-# * prior_maps: every map, each self-checked (session 8). With the back-projected prior the
-#   direct prior beat balanced by 1.6 dB render PSNR on the BoomBox (25.18 against 23.54 for
-#   fast; metallic 23.05 against 20.13, emissive 48.70 against 41.43) and by 1.6 dB on the
-#   procedural asset (metallic 30.50 against 27.65): `pbrsr bench upscale -o
-#   bench-out/upscale-s8`, 120 views, with metallic and emissive from bicubic. Emissive maps
-#   keep map_lr 0: the prior's init, not moved by the render loss.
-# * project_lr colour and data, lambda_pix 1 (session 9). Scored in-process at x4 (balanced,
-#   60 evaluation views, two HDRs), render PSNR direct / balanced as in session 8 / with the
-#   exported colour and data maps back-projected onto their (deblocked) LR maps / that and
-#   lambda_pix 1: Avocado 41.57 / 41.56 / 41.56 / (pix 1 without projection 41.59), ToyCar
-#   34.29 / 34.19 / 34.55, BoomBox 25.17 / 25.06 / 25.32 / 25.33, cabinet 30.51 (balanced) /
-#   30.52. The optimiser's maps drift from the LR model (the render loss and TV move low
-#   frequencies too); the step puts them back and keeps what the optimiser added above the LR
-#   grid (ToyCar roughness 37.21 -> 38.23 dB, metallic 31.79 -> 32.22). Normal maps stay as
-#   optimised: projected, the cabinet's fell 37.17 -> 37.03 dB and its render 30.52 -> 30.39
-#   (its LR normals are renormalised after the blur, which the LR model does not invert).
-#   lambda_pix 10 -> 1 or 0 changed render PSNR by +0.0..+0.08 dB on the Avocado, ToyCar and
-#   cabinet (albedo Avocado 45.69 -> 46.10 dB): with a back-projected prior the pseudo-GT
-#   carries less than the init already has; the paper's 100 stays in `paper`.
+# * target "detail" and several views per texel: on the 512 demo asset (24 evaluation views,
+#   60 iterations) the paper's target (the prior's output) lost 3.5 dB of albedo PSNR against
+#   bicubic and gained 0.1 dB render PSNR; "detail" with 3 views per texel kept every map at or
+#   above bicubic (albedo +0.3, roughness +0.5, occlusion +2.5 dB) and gained 0.6 dB render
+#   PSNR. Adam steps of 5e-3 move every texel by its full step each iteration: speckle.
+# * lr 2.5e-4 and lambda_pix 1 (the paper: 1e-4 and 100). With the prior's output
+#   back-projected onto its input (prior/backproject.py) the init alone scores best, and the
+#   pixel loss against the pseudo-GT pulls the maps away from it. balanced, 60 evaluation
+#   views, render PSNR init / 25 steps at lr 1e-3 / at 2.5e-4: Avocado 41.61 / 41.41 / 41.56
+#   (albedo 46.34 / 44.47 / 45.69, bicubic 45.81), ToyCar 34.58 / 34.37 / 34.56, cabinet
+#   30.61 / 30.45 / 30.51. lambda_pix 0 keeps the Avocado at 41.59 (albedo 46.07); lambda_pbr 0
+#   drops it to 39.94: the consistency term holds the maps, the pseudo-GT moves them. lambda_pix
+#   1 against 10: +0.0..+0.08 dB render PSNR on the Avocado, ToyCar and cabinet (Avocado albedo
+#   46.10 against 45.69 dB). The paper's 100 stays in `paper`, for strong priors on a farm.
+# * iterations: render PSNR peaks within 10-25 steps and then the maps overfit the pseudo-GT
+#   (balanced, prior on the albedo only, 0 / 10 / 25 / 50 / 60 steps: ToyCar 34.00 / 34.09 /
+#   34.04 / 33.88 / 33.77; cabinet at 0 / 10 / 25 / 40 / 60: 30.39 / 30.48 / 30.47 / 30.44 /
+#   30.39), so balanced / quality run 25 / 40.
+# * map_lr normal 0.3: the render loss moves the normal maps more than their pseudo-GT
+#   supports. balanced (120 evaluation views, rrdn-thick), normal lr x1 / x0.3: render PSNR
+#   cabinet 28.98 / 29.08, tea set 31.75 / 31.75, table 31.30 / 31.29, ToyCar 33.55 / 33.62;
+#   cabinet normal 35.53 / 35.78 (bicubic 35.82). Metallic x0.3 lost 0.2-0.5 dB of metallic
+#   PSNR on the tea set and ToyCar, so metallic keeps the full rate.
+# * map_lr emissive 0: emission adds light, so the render loss can explain any brightness
+#   residual with it. balanced (120 evaluation views), emissive ToyCar / WaterBottle: bicubic
+#   41.87 / 50.99 dB; the prior's init 41.65 / 51.09; optimised from the prior's init 41.60 /
+#   50.72, from bicubic 41.83 / 48.52; render PSNR within 0.05 dB across all of these. A map
+#   whose every rate is 0 is rendered as a fixed texture, never differentiated.
+# * prior_maps: every map, each map (each channel of an ORM image) self-checked. With the
+#   back-projected prior the direct prior beats a fast preset whose metallic and emissive
+#   maps come from bicubic by 1.6 dB render PSNR on the BoomBox (metallic 23.05 against 20.13,
+#   emissive 48.70 against 41.43) and by 1.6 dB on the procedural asset (metallic 30.50
+#   against 27.65), 120 evaluation views.
+# * project_lr colour and data: the optimiser's maps drift from the LR model (the render loss
+#   and TV move low frequencies too); one back-projection step onto the (deblocked) LR maps
+#   puts that back and keeps what the optimiser added above the LR grid. balanced, 60
+#   evaluation views, render PSNR direct / without the step / with it: ToyCar 34.29 / 34.19 /
+#   34.55 (roughness 37.21 / 38.23 dB, metallic 31.79 / 32.22 without / with), BoomBox 25.17 /
+#   25.06 / 25.32, Avocado and cabinet within 0.01 dB. Normal maps are not projected: the
+#   cabinet's scores 37.03 dB projected against 37.17, its render 0.13 dB less (its LR normals
+#   are renormalised after the blur, which the LR model does not invert).
 PRIOR_MAPS_CPU = MAP_NAMES
 PROJECT_LR_CPU = ("colour", "data")
-# * check_prior colour and data, not normal maps (session 9). On the nine normal maps of the
-#   shared and procedural assets at x4, the back-projected prior against bicubic, one scale
-#   down (what the check sees) / at the real scale against the GT (covered texels): Avocado
-#   +1.85 / +0.21 dB, BoomBox +0.68 / +2.26, ToyCar +0.01 / -0.05, ToyCar fabric +0.62 /
-#   +0.39, WaterBottle +0.95 / +0.23, cabinet +0.50 / +1.16, tea set +0.37 / -0.05, table
-#   +0.63 / +0.55, procedural -0.12 / +1.21. The check decided wrongly on three of nine, and
-#   where the prior lost it lost at most 0.05 dB; the procedural asset's rejected normal map
-#   cost 1.4 dB of render PSNR against the direct prior. Colour and data maps are still
-#   checked: unchecked, the prior would have cost the Avocado's roughness 0.67 dB (-0.04 one
-#   scale down) and the BoomBox's constant occlusion channel 72 dB (-47 one scale down).
+# * check_prior colour and data, not normal maps. On the nine normal maps of the shared and
+#   procedural assets, the back-projected prior against bicubic, one scale down (what the
+#   check sees) / at the real scale against the GT (covered texels): Avocado +1.85 / +0.21 dB,
+#   BoomBox +0.68 / +2.26, ToyCar +0.01 / -0.05, ToyCar fabric +0.62 / +0.39, WaterBottle
+#   +0.95 / +0.23, cabinet +0.50 / +1.16, tea set +0.37 / -0.05, table +0.63 / +0.55,
+#   procedural -0.12 / +1.21. The check decides wrongly on three of nine; where the prior loses
+#   it loses at most 0.05 dB, and the procedural normal map the check rejects costs 1.4 dB of
+#   render PSNR against the direct prior. Colour and data maps are checked: unchecked, the
+#   prior would cost the Avocado's roughness 0.67 dB (-0.04 one scale down) and the BoomBox's
+#   constant occlusion channel 72 dB (-47 one scale down).
 CHECK_PRIOR_CPU = ("colour", "data")
-# * fast: the prior does x2 of the x4 (max_prior_scale 2; bicubic the rest, then the
-#   back-projection step), 5 steps, 6 views (session 10). Its init was the same work as
-#   balanced's (62-73 % of either preset's time on the 2048² assets): fast kept 100 % of the
-#   gain in 81 % of the time. waifu2x-photo's x2 pass on a 512² map costs 2.1 s against 13.0 s
-#   for its x4 (two passes), and on the shared assets' maps (whole maps, x4 by the protocol's
-#   LR) it keeps most of the x4's gain over bicubic: albedo Avocado +1.47 of +1.75 dB, ToyCar
-#   +3.31 of +4.73, WaterBottle +1.84 of +2.22, BoomBox +4.00 of +4.67; data maps +0.76 of
-#   +0.60 (Avocado) .. +2.54 of +3.06 (ToyCar); normal maps +0.39 of +0.40 (Avocado) .. +1.99 of
-#   +2.25 (BoomBox). The optimiser's steps moved render PSNR by -0.03..+0.03 dB between 0 and
-#   10 steps in every fast run of `pbrsr bench upscale` (60 views), so fast runs 5 and shades
-#   6 views. bfloat16 (2.1x faster on this AVX512-BF16 CPU) was not taken: it cost the
-#   Avocado's roughness 0.67 dB of the prior's gain (x4, whole map).
-
-# * fast: no optimisation steps (session 11). Its optimiser moved render PSNR by -0.01..+0.02
-#   dB between 0 and 5 steps in every fast run of `pbrsr bench upscale` (session 10, 120
-#   views), and by -0.01 (Avocado), +0.01 (BoomBox), +0.05 dB (WaterBottle) in session 11 (60
-#   views): 5 Adam steps of 2.5e-4 move no texel by more than 1.25e-3, a third of an 8-bit
-#   level. Those steps, with the view selection, G-buffers and pseudo-GT they need, were 20-30
-#   % of fast's time (WaterBottle 25.2 -> 20.7 s, Avocado 18.3 -> 14.5 s). So fast is
-#   PBR-SR's init (the checked, back-projected prior at x2 on every map, JPEG deblocking) and
-#   the export's projection onto the LR maps; its view and step numbers below are the ones it
-#   was measured with, and apply to ``FAST.with_(iterations=...)``.
-
-# * quality (session 12, `pbrsr bench upscale` with every CPU preset, 240 views): its 32 views,
-#   renders up to 768² and 40 steps gained what balanced gains (mean +1.71 dB over bicubic on
-#   the seven shared assets; per asset -0.019..+0.022 dB against balanced) in 1.36-1.99x its
-#   time. With waifu2x-photo the pseudo-GT adds nothing the init lacks; quality is kept for
-#   stronger priors, whose pseudo-GT can.
+# * fast: PBR-SR's init and export with no optimisation steps, the prior at x2 of the scale
+#   (max_prior_scale 2; bicubic the rest, then the back-projection step). waifu2x-photo's x2
+#   pass on a 512² map costs 2.1 s against 13.0 s for its x4 (two passes), and on the shared
+#   assets' maps (whole maps, x4 by the protocol's LR) keeps most of the x4's gain over
+#   bicubic: albedo Avocado +1.47 of +1.75 dB, ToyCar +3.31 of +4.73, WaterBottle +1.84 of
+#   +2.22, BoomBox +4.00 of +4.67; data maps +0.76 of +0.60 (Avocado) .. +2.54 of +3.06
+#   (ToyCar); normal maps +0.39 of +0.40 (Avocado) .. +1.99 of +2.25 (BoomBox). 5 Adam steps of
+#   2.5e-4 move no texel by more than 1.25e-3 (a third of an 8-bit level) and moved render
+#   PSNR by -0.01..+0.02 dB in every fast run of `pbrsr bench upscale` (120 views), while the
+#   steps, with the view selection, G-buffers and pseudo-GT they need, cost 20-30 % of fast's
+#   time (WaterBottle 25.2 against 20.7 s, Avocado 18.3 against 14.5 s). Its view and step
+#   numbers below are the ones those steps were measured with, and apply to
+#   ``FAST.with_(iterations=...)``. bfloat16 for the prior (2.1x faster on an AVX512-BF16 CPU)
+#   is not used: it cost the Avocado's roughness 0.67 dB of the prior's gain (x4, whole map).
+# * quality (`pbrsr bench upscale` with every CPU preset, 240 views): its 32 views, renders up
+#   to 768² and 40 steps gain what balanced gains (mean +1.71 dB over bicubic on the seven
+#   shared assets; per asset -0.019..+0.022 dB against balanced) in 1.36-1.99x its time. With
+#   waifu2x-photo the pseudo-GT adds nothing the init lacks; quality is for stronger priors,
+#   whose pseudo-GT can.
 
 _CPU = PbrsrConfig(
     view_mode="coverage",
