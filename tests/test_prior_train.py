@@ -345,3 +345,23 @@ def test_start_weights_resolve_per_kind(tmp_path):
         resolve_start(src, "data", 2)
     with pytest.raises(PriorUnavailable, match="cannot start from"):
         resolve_start("rrdn-thick", "colour", 2)
+
+
+def test_report_leaves_out_the_scales_a_set_cannot_run(tmp_path):
+    """A set of x4 networks only has no x2 (nor x8) entry; its x4 is scored."""
+    from pbrsr_core.prior.train.report import write_report
+
+    folder = make_texture_folder(tmp_path / "tex", n=10, size=256)
+    manifest = read_manifest(folder)
+    held = load_materials(folder, split_materials(manifest)[1], manifest)
+
+    cfg = TrainConfig(kinds=("colour",), widths=TINY, init="random", stride=4, scale=4)
+    (tmp_path / "s4" / "c").mkdir(parents=True)
+    save_network(UpConv7(TINY, stride=4), tmp_path / "s4" / "c" / "c.safetensors", cfg, {})
+    md = write_report(tmp_path / "rep", held, (2, 4), folders=[tmp_path / "s4"])
+    report = json.loads((tmp_path / "rep" / "report.json").read_text())
+    assert "s4" not in report["colour"]["2"] and "s4" in report["colour"]["4"]
+    assert set(report["colour"]["2"]) == {"bicubic", "waifu2x-photo"}
+    row = next(line for line in md.read_text().splitlines() if line.startswith("| s4 "))
+    assert row.split("|")[2].strip() == "-"
+    assert "stride x4" in (tmp_path / "rep" / "MODEL_CARD.md").read_text()

@@ -88,8 +88,10 @@ def evaluate(
             continue
         results[kind] = {"crops": len(crops), "materials": len({n.split("#")[0] for n, _ in crops})}
         for s in scales:
-            results[kind][str(s)] = {
-                label: score_prior(p, kind, crops, s) for label, p in priors.items()
+            results[kind][str(s)] = {  # a set without the networks for a scale has no entry
+                label: score_prior(p, kind, crops, s)
+                for label, p in priors.items()
+                if s in p.for_kind(kind).scales
             }
     return results
 
@@ -127,18 +129,25 @@ def _table(results: dict) -> str:
             f"{by_scale['materials']} held-out materials)\n"
         )
         scales = [s for s in by_scale if s.isdigit()]
-        labels = list(by_scale[scales[0]])
+        labels = list(dict.fromkeys(label for s in scales for label in by_scale[s]))
+        time_scale = "4" if "4" in scales else scales[0]
         head = "| prior | " + " | ".join(f"x{s} PSNR" for s in scales)
         if kind == "normal":
             head += " | " + " | ".join(f"x{s} angle °" for s in scales)
-        head += " | x4 s |"
+        head += f" | x{time_scale} s |"
         lines += [head, "|" + " --- |" * (head.count("|") - 1)]
+
+        def cell(s: str, label: str, key: str, by_scale=by_scale) -> str:
+            entry = by_scale[s].get(label)
+            return "-" if entry is None else f"{entry[key]:.2f}"
+
         for label in labels:
-            row = [f"{by_scale[s][label]['psnr']:.2f}" for s in scales]
+            row = [cell(s, label, "psnr") for s in scales]
             if kind == "normal":
-                row += [f"{by_scale[s][label]['angle']:.2f}" for s in scales]
-            t = by_scale.get("4", by_scale[scales[0]])[label]["seconds"]
-            lines.append(f"| {label} | " + " | ".join(row) + f" | {t:.2f} |")
+                row += [cell(s, label, "angle") for s in scales]
+            lines.append(
+                f"| {label} | " + " | ".join(row) + f" | {cell(time_scale, label, 'seconds')} |"
+            )
     return "\n".join(lines) + "\n"
 
 
@@ -183,15 +192,17 @@ def model_card(folders: list[Path], results: dict, table: str) -> str:
         "",
         "## Networks",
         "",
-        "| file | kinds | widths | parameters | train scale | steps | init | best step |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| file | kinds | stride | widths | parameters | train scale | steps | init | best step |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for f, meta, cfg, params in nets:
         lines.append(
-            f"| {f.name} | {meta.get('kinds')} | {meta.get('widths')} | {params:,} | "
+            f"| {f.name} | {meta.get('kinds')} | x{meta.get('stride', '2')} | "
+            f"{meta.get('widths')} | {params:,} | "
             f"x{meta.get('scale')} | {cfg.get('steps')} | {cfg.get('init')} | {meta.get('step')} |"
         )
     cfg = nets[0][2]
+    strides = sorted({int(meta.get("stride", "2")) for _, meta, _, _ in nets})
     lines += [
         "",
         "## Data",
@@ -213,8 +224,10 @@ def model_card(folders: list[Path], results: dict, table: str) -> str:
         f"weight decay {cfg.get('weight_decay')}, halved at 40 % and 80 % of the steps; EMA "
         f"{cfg.get('ema')}; the best EMA weights by mean validation PSNR are kept. Seed "
         f"{cfg.get('seed')}.",
-        "- Scales: each network is x2 per pass; x4 and x8 chain two and three passes; every "
-        "output is back-projected onto its input (one step) as pbrsr runs every network prior.",
+        f"- Scales: networks of stride {', '.join(f'x{v}' for v in strides)} (one pass each); "
+        "a scale runs as the fewest passes whose strides multiply to it (x8 with an x4 and an "
+        "x2 network: x4 then x2); every output is back-projected onto its input (one step) as "
+        "pbrsr runs every network prior.",
         f"- Command: `{meta0.get('command', '?')}`",
         "",
         "## Measured (held-out materials)",
