@@ -15,7 +15,7 @@ resolution take part; subsampled chroma (4:2:0, 4:2:2: the decoder interpolated 
 8x8 grid is not the image's) stays as decoded, so those files get their luma deblocked. On
 the cabinet's three x4 LR maps (written by ``pbrsr degrade`` at quality 95) it brings the
 decoded pixels 1.0-1.4 dB closer to the values that were compressed, in 0.1 s per 256² map;
-its effect on PBR-SR is in the README ("Why some maps fall below bicubic"). The same maps
+its effect on PBR-SR is in docs/METHOD.md ("JPEG LR maps are deblocked first"). The same maps
 written 4:2:0 at quality 85 gain only 0.02-0.5 dB (normal 30.93 -> 31.02, albedo 35.68 ->
 36.16, ORM 28.82 -> 28.87 dB against the values compressed): there the error is mostly the
 subsampled chroma, which this does not restore.

@@ -39,7 +39,11 @@ def register(app: typer.Typer) -> None:
         method: Annotated[str, typer.Option(help="pbrsr, direct or bicubic")] = "pbrsr",
         preset: Annotated[str, typer.Option(help="fast, balanced, quality, paper")] = "balanced",
         prior: Annotated[
-            str, typer.Option(help="waifu2x-photo, rrdn-thick, bicubic, spandrel:<path>")
+            str,
+            typer.Option(
+                help="pbr-upconv7, waifu2x-photo, rrdn-thick, bicubic, texture:<folder>, "
+                "spandrel:<path>, diffusion:<dir> (pbrsr priors list)"
+            ),
         ] = DEFAULT_PRIOR,
         envmap: Annotated[str | None, typer.Option(help=".hdr/.exr environment")] = None,
         seed: Annotated[int, typer.Option()] = 0,
