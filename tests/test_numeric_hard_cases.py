@@ -20,7 +20,7 @@ from pbrsr_core.optim.presets import get_preset
 from pbrsr_core.options import UpscaleOptions
 from pbrsr_core.pipeline import upscale_asset
 from pbrsr_core.prior.bicubic import BicubicPrior
-from pbrsr_core.prior.direct import bicubic_map
+from pbrsr_core.prior.direct import bicubic_map, normal_length
 from pbrsr_core.render import camera as cam
 from pbrsr_core.render import raster, shade
 from pbrsr_core.render.light import EnvLight
@@ -313,15 +313,18 @@ def test_pipeline_pbrsr_on_hard_asset(tmp_path, monkeypatch):
     assert all(math.isfinite(v) for e in report.get("history", []) for v in e["losses"].values())
     assert report["images"]
     result = load_asset(out / p.name)
+    lr_normal = next(i.pixels for i in load_asset(p).images if "normal" in i.roles)
     for img in result.images:
         if not img.roles:
             continue
         px = img.pixels
         assert np.isfinite(px).all() and px.min() >= 0 and px.max() <= 1, img.name
-        if "normal" in img.roles:
+        if "normal" in img.roles:  # facing out, at the input's length
             n = px[..., :3].astype(np.float64) * 2 - 1
-            assert np.allclose(np.linalg.norm(n, axis=-1), 1.0, atol=2e-2), img.name
-            assert (n[..., 2] > 0).all(), img.name
+            lr_t = torch.from_numpy(lr_normal[..., :3]).permute(2, 0, 1)[None]
+            want = normal_length(lr_t, 2)[0, 0].numpy()
+            assert np.allclose(np.linalg.norm(n, axis=-1), want, atol=2e-2), img.name
+            assert (n[..., 2] >= 0).all(), img.name
     depth = {Path(i["name"]).stem: i["bit_depth"] for i in report["images"]}
     assert depth["base_color"] == 16
     assert depth["metallic_roughness"] == 32

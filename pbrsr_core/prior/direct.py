@@ -30,7 +30,7 @@ from .bicubic import bicubic_upscale
 
 _NORMAL = {"normal"}
 _MIN_Z = 1e-3
-_LENGTH_RANGE = (1e-3, 3**0.5)
+_LENGTH_RANGE = (1e-3, 1.0)
 
 
 def map_kind(role: str) -> str:
@@ -101,7 +101,9 @@ def renormalize_encoded_normals(
 
 def normal_length(lr: torch.Tensor, scale: int) -> torch.Tensor:
     """The length |2t - 1| of encoded normals (N, 3, H, W), bicubic-upscaled by ``scale`` and
-    kept in [1e-3, sqrt 3] -> (N, 1, sH, sW): the length an upscaled normal map is stored at."""
+    kept in [1e-3, 1] -> (N, 1, sH, sW): the length an upscaled normal map is stored at (never
+    longer than unit: longer encodings exist only towards the corners of the cube, and a
+    direction moved by the method would leave it)."""
     n = lr * 2.0 - 1.0
     length = (n * n).sum(1, keepdim=True).sqrt()
     return bicubic_upscale(length, scale).clamp(*_LENGTH_RANGE)
