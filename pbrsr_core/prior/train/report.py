@@ -115,7 +115,8 @@ def _plot(folders: list[Path], path: Path) -> None:
     ax_v.set(xlabel="step", ylabel="dB over bicubic", title="validation PSNR gain (EMA)")
     for ax in (ax_l, ax_v):
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
