@@ -365,3 +365,19 @@ def test_report_leaves_out_the_scales_a_set_cannot_run(tmp_path):
     row = next(line for line in md.read_text().splitlines() if line.startswith("| s4 "))
     assert row.split("|")[2].strip() == "-"
     assert "stride x4" in (tmp_path / "rep" / "MODEL_CARD.md").read_text()
+
+
+def test_set_without_colour_network_runs_renders_through_the_fallback(tmp_path):
+    """A set of a normal network only: normal maps go through it; colour maps and images of
+    no stated kind (the optimiser's renders) through waifu2x-photo."""
+    cfg = TrainConfig(kinds=("normal",), widths=TINY, init="random")
+    save_network(UpConv7(TINY), tmp_path / "n.safetensors", cfg, {})
+    prior = TexturePrior(tmp_path)
+    photo = load_prior("waifu2x-photo")
+    assert prior.for_kind("colour") is prior.for_kind("data")
+    assert prior.for_kind("colour").name == photo.name and prior.scales == photo.scales
+    x = torch.rand(1, 3, 12, 12)
+    assert torch.allclose(prior.upscale(x, 2), photo.upscale(x, 2), atol=1e-6)
+    own = prior.for_kind("normal").upscale(x, 2)
+    assert own.shape == (1, 3, 24, 24) and not torch.allclose(own, photo.upscale(x, 2))
+    assert prior.num_parameters() == photo.num_parameters()

@@ -6,7 +6,7 @@ command in its MODEL_CARD.md); ``texture:<folder or file>`` loads any set ``pbrs
 train/finetune`` wrote. :meth:`TexturePrior.for_kind` gives the network for one map kind;
 a kind without weights of its own uses the ``fallback`` prior (waifu2x-photo). The prior
 itself, called on images of no stated kind (the optimiser's renders), runs the colour
-network.
+network, or the fallback where the set has no colour network.
 """
 
 from __future__ import annotations
@@ -101,10 +101,16 @@ class TexturePrior(Prior):
                 loaded[f] = net.to(memory_format=torch.channels_last)
             self.nets.setdefault(kind, {})[stride] = loaded[f]
         self.fallback = fallback
-        self.kind = "colour" if "colour" in self.nets else next(iter(self.nets))
-        self.scales = _scales(self.nets[self.kind])
-        self._views: dict[str, Prior] = {self.kind: self}
+        self._views: dict[str, Prior] = {}
         self._lock = threading.Lock()
+        # images of no stated kind (the optimiser's renders) are colour images: the colour
+        # network, or the fallback where the set has none
+        self.kind = "colour" if "colour" in self.nets else None
+        if self.kind is None:
+            self.scales = self.for_kind("colour").scales
+        else:
+            self.scales = _scales(self.nets[self.kind])
+            self._views[self.kind] = self
 
     def for_kind(self, kind: str) -> Prior:
         with self._lock:
@@ -120,6 +126,8 @@ class TexturePrior(Prior):
             return view
 
     def num_parameters(self) -> int:
+        if self.kind is None:
+            return self.for_kind("colour").num_parameters()
         return _parameters(self.nets[self.kind])
 
     def _run(self, kind: str, x: torch.Tensor, scale: int) -> torch.Tensor:
@@ -130,6 +138,8 @@ class TexturePrior(Prior):
         return x
 
     def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
+        if self.kind is None:
+            return self.for_kind("colour")._forward(x, scale)
         return self._run(self.kind, x, scale)
 
     def describe(self) -> dict:
