@@ -6,8 +6,9 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-DEFAULT_PRIOR = "waifu2x-photo"
-"""The image SR prior a run uses unless told otherwise (see pbrsr_core/prior/waifu2x.py)."""
+DEFAULT_PRIOR = "pbr-upconv7"
+"""The image SR prior a run uses unless told otherwise: the shipped texture prior
+(pbrsr_core/prior/texture.py), whose kinds without trained weights use waifu2x-photo."""
 
 Method = Literal["pbrsr", "direct", "bicubic"]
 ImageFormat = Literal["same", "png", "png16", "exr", "jpeg"]
@@ -27,8 +28,8 @@ class UpscaleOptions(BaseModel):
     preset: str = Field("balanced", description="fast, balanced, quality or paper (pbrsr only).")
     prior: str = Field(
         DEFAULT_PRIOR,
-        description="Image SR prior: waifu2x-photo, rrdn-thick, bicubic, spandrel:<weights path>, "
-        "diffusion:<model dir>.",
+        description="Image SR prior: pbr-upconv7, waifu2x-photo, rrdn-thick, bicubic, "
+        "texture:<weights folder>, spandrel:<weights path>, diffusion:<model dir>.",
     )
     envmap: str | None = Field(
         None,

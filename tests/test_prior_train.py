@@ -209,12 +209,22 @@ def test_weights_file_round_trip_and_texture_prior(tmp_path):
         TexturePrior(tmp_path)
 
 
-def test_shipped_prior_loads_and_upscales_each_kind():
+def test_shipped_prior_loads_and_upscales_each_kind(capfd):
+    """pbr-upconv7 ships its normal network (the kind it wins on, MODEL_CARD.md); colour and
+    data maps and the renders go through waifu2x-photo. The default prior."""
+    from pbrsr_core.options import DEFAULT_PRIOR
+
     prior = load_prior("pbr-upconv7")
+    assert DEFAULT_PRIOR == "pbr-upconv7" and prior.scales == (2, 4, 8)
+    assert set(prior.nets) == {"normal"}
+    assert prior.for_kind("colour").name == prior.for_kind("data").name == "waifu2x-photo"
     x = torch.rand(1, 3, 24, 24)
     for kind in ("colour", "data", "normal"):
-        y = prior.for_kind(kind).upscale(x, 2)
-        assert y.shape == (1, 3, 48, 48) and torch.isfinite(y).all()
+        for s in (2, 4):
+            y = prior.for_kind(kind).upscale(x, s)
+            assert y.shape == (1, 3, 24 * s, 24 * s) and torch.isfinite(y).all()
+    code, err = run_cli(["priors", "install", "pbr-upconv7"], capfd)
+    assert code == 0, err
 
 
 def test_cli_trains_reports_and_the_result_is_a_prior(tmp_path, capfd):

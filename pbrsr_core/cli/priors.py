@@ -47,7 +47,7 @@ def list_cmd() -> None:
 @priors_app.command("install")
 def install_cmd(
     name: str = typer.Argument(
-        "rrdn-thick", help="The prior to install (rrdn-thick, waifu2x-photo)."
+        "rrdn-thick", help="The prior to install (rrdn-thick, waifu2x-photo, pbr-upconv7)."
     ),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Print nothing when done."),
     force: bool = typer.Option(False, "--force", help="Convert again even if present."),
@@ -78,6 +78,16 @@ def install_cmd(
             raise PriorUnavailable(f"the prior '{name}' is not installed: {waifu2x.INSTALL_HINT}")
         if not quiet:
             typer.echo(f"{name}: read from the installed {waifu2x.DISTRIBUTION} package")
+        return
+    if name == "pbr-upconv7":
+        from ..prior import texture
+
+        if texture.installed_stats()[0] is None:
+            raise PriorUnavailable(f"the weights of {name} are missing from {texture.WEIGHTS_DIR}")
+        if not waifu2x.is_installed():  # the fallback of the kinds without weights
+            raise PriorUnavailable(f"{name} needs waifu2x-photo: {waifu2x.INSTALL_HINT}")
+        if not quiet:
+            typer.echo(f"{name}: its weights ship with pbrsr ({texture.WEIGHTS_DIR})")
         return
     raise InvalidOptions(
         f"nothing to install for {name!r}: spandrel:<file> and diffusion:<dir> use local "

@@ -22,7 +22,7 @@ BUILTIN = ("bicubic", "rrdn-thick", "waifu2x-photo", "pbr-upconv7")
 PREFIXES = ("spandrel:", "diffusion:", "texture:")
 
 _cache: dict[tuple[str, str], Prior] = {}
-_lock = threading.Lock()
+_lock = threading.RLock()  # reentrant: a texture prior loads its fallback while built
 
 
 def _key(name: str) -> str:

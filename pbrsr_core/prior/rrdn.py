@@ -1,4 +1,4 @@
-"""``rrdn-thick``, the default prior: UpscalerJS's pretrained RRDN (ESRGAN-style residual in
+"""``rrdn-thick``: UpscalerJS's pretrained RRDN (ESRGAN-style residual in
 residual dense blocks; C=4, D=3, G=32, G0=64, T=10; trained on DIV2K; MIT licence) from the
 npm package ``@upscalerjs/esrgan-thick@1.0.0`` (x2, x3, x4, x8).
 
