@@ -5,8 +5,8 @@ materials (``report.json``, ``report.md``), and a model card (``MODEL_CARD.md``)
 Scores: PSNR of the stored values (sRGB for colour, linear for data, encoded for normals)
 with ``s`` pixels shaved off each border, and for normal maps the mean angle between the
 decoded vectors in degrees. Every prior runs as pbrsr runs it (:meth:`Prior.upscale`, with
-back-projection; normal maps renormalised as :func:`~pbrsr_core.prior.direct.upscale_map`
-does), on the same crops.
+back-projection; normal maps at their LR crop's length as
+:func:`~pbrsr_core.prior.direct.upscale_map` stores them), on the same crops.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from ..base import Prior
-from ..direct import renormalize_encoded_normals
+from ..direct import normal_length, renormalize_encoded_normals
 from .data import KINDS, Material, degrade_pair, validation_crops
 from .loop import HISTORY, psnr
 
@@ -48,7 +48,7 @@ def score_prior(
     up = torch.cat([p.upscale(lr[i : i + 1], scale) for i in range(len(lr))])
     seconds = time.perf_counter() - t0
     if kind == "normal":
-        up = renormalize_encoded_normals(up)
+        up = renormalize_encoded_normals(up, normal_length(lr, scale))
     s = scale
     out = {"psnr": psnr(up[..., s:-s, s:-s], hr[..., s:-s, s:-s]), "seconds": seconds}
     if kind == "normal":
