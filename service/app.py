@@ -13,7 +13,7 @@ from fastapi.staticfiles import StaticFiles
 from redis import Redis
 
 from pbrsr_core import __version__
-from pbrsr_core.settings import Settings, get_settings
+from pbrsr_jobs.settings import Settings, get_settings
 
 from .problems import install_handlers
 from .routes import health, jobs, metrics

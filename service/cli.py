@@ -19,7 +19,7 @@ def register(app: typer.Typer) -> None:
         import uvicorn
         from pydantic import ValidationError
 
-        from pbrsr_core.settings import Settings
+        from pbrsr_jobs.settings import Settings
 
         try:
             settings = Settings()

@@ -10,8 +10,8 @@ from fastapi.security import APIKeyHeader
 from redis import Redis
 from rq import Queue
 
-from pbrsr_core.jobstore import JobIndex, JobLayout, owner_of
-from pbrsr_core.settings import Settings, get_settings
+from pbrsr_jobs.settings import Settings, get_settings
+from pbrsr_jobs.store import JobIndex, JobLayout, owner_of
 
 from .problems import ProblemError
 

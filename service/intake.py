@@ -18,7 +18,9 @@ from pathlib import Path
 from typing import Any
 
 from pbrsr_core.errors import InvalidAsset, InvalidOptions, LimitExceeded, UnprocessableAsset
-from pbrsr_core.jobstore import (
+from pbrsr_core.options import UpscaleOptions
+from pbrsr_jobs.settings import Settings
+from pbrsr_jobs.store import (
     JobIndex,
     JobLayout,
     JobManifest,
@@ -27,8 +29,6 @@ from pbrsr_core.jobstore import (
     resolve_options,
     safe_display_name,
 )
-from pbrsr_core.options import UpscaleOptions
-from pbrsr_core.settings import Settings
 
 from .problems import ProblemError
 from .uploads import Upload

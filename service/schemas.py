@@ -6,7 +6,7 @@ from datetime import datetime
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from pbrsr_core.jobstore import JobState
+from pbrsr_jobs.store import JobState
 
 
 class JobLinks(BaseModel):

@@ -5,7 +5,7 @@ from __future__ import annotations
 from datetime import UTC, datetime
 from typing import Any
 
-from pbrsr_core.jobstore import JobIndex, JobLayout, JobState, job_state
+from pbrsr_jobs.store import JobIndex, JobLayout, JobState, job_state
 
 from .schemas import HistoryPoint, JobDetail, JobLinks, JobSummary
 

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from pbrsr_core.bench.load import Recorder, big_payload, print_table, run
+from pbrsr_bench.load import Recorder, big_payload, print_table, run
 
 pytestmark = pytest.mark.slow
 

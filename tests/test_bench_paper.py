@@ -9,8 +9,8 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from pbrsr_core.bench.paper import extrapolate, run
-from pbrsr_core.cli import bench
+from pbrsr_bench import cli as bench
+from pbrsr_bench.paper import extrapolate, run
 from pbrsr_core.optim.presets import PAPER
 
 

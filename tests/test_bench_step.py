@@ -7,8 +7,8 @@ import json
 import typer
 from typer.testing import CliRunner
 
-from pbrsr_core.bench.step import FLOOR_ARRAYS, PASSES, copy_bandwidth
-from pbrsr_core.cli import bench
+from pbrsr_bench import cli as bench
+from pbrsr_bench.step import FLOOR_ARRAYS, PASSES, copy_bandwidth
 
 
 def test_bench_step_cli_writes_table_json_and_plot(tmp_path):

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from pbrsr_bench.upscale import bench_assets, run
 from pbrsr_core.asset import make_demo_asset
-from pbrsr_core.bench.upscale import bench_assets, run
 
 
 def test_bench_upscale_small_run(tmp_path: Path):
@@ -51,7 +51,7 @@ def _row(asset, method, render, albedo, run_s):
 
 
 def test_summary_gains_worst_map_and_fast_share():
-    from pbrsr_core.bench.upscale import markdown_table, summary, summary_table
+    from pbrsr_bench.upscale import markdown_table, summary, summary_table
 
     rows = [
         _row("a", "bicubic", 28.0, 27.0, 1.0),
@@ -96,7 +96,7 @@ def test_bench_assets_refuses_an_unknown_name(tmp_path: Path):
 
 
 def test_methods_may_name_their_prior_and_unknown_ones_are_refused():
-    from pbrsr_core.bench.upscale import check_methods, method_options
+    from pbrsr_bench.upscale import check_methods, method_options
 
     assert method_options("direct@bicubic", 4, "waifu2x-photo")["prior"] == "bicubic"
     assert method_options("direct", 4, "waifu2x-photo")["prior"] == "waifu2x-photo"
@@ -110,7 +110,7 @@ def test_methods_may_name_their_prior_and_unknown_ones_are_refused():
 
 
 def test_methods_take_preset_changes():
-    from pbrsr_core.bench.upscale import check_methods, parse_method
+    from pbrsr_bench.upscale import check_methods, parse_method
 
     name, prior, changes = parse_method("balanced@pbr-upconv7+lambda_pix=0+pseudo_gt_prior=bicubic")
     assert (name, prior) == ("balanced", "pbr-upconv7")

@@ -41,7 +41,7 @@ from test_service_support import (
     worker_process,
 )
 
-from pbrsr_core.jobstore import JobLayout
+from pbrsr_jobs.store import JobLayout
 
 pytestmark = pytest.mark.slow
 

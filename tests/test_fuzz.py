@@ -17,9 +17,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pbrsr_core.asset import extract_zip, load_asset, make_quad_asset
-from pbrsr_core.asset.gltf_read import parse_glb
-from pbrsr_core.bench.fuzz import (
+from pbrsr_bench.fuzz import (
     FUZZ_LIMITS,
     make_case,
     make_seeds,
@@ -28,6 +26,8 @@ from pbrsr_core.bench.fuzz import (
     run,
     run_case,
 )
+from pbrsr_core.asset import extract_zip, load_asset, make_quad_asset
+from pbrsr_core.asset.gltf_read import parse_glb
 from pbrsr_core.errors import InvalidAsset
 
 _SEEDS: list = []
@@ -65,7 +65,7 @@ def test_bench_fuzz_small_run(tmp_path):
 
 def test_an_escape_is_reported_with_its_reproducer(tmp_path, monkeypatch):
     """The bench is able to fail: a reader that raises a non-pbrsr error is caught."""
-    import pbrsr_core.bench.fuzz as fuzz
+    import pbrsr_bench.fuzz as fuzz
 
     def broken(path, limits=None, **kw):
         raise KeyError("boom")
@@ -116,7 +116,7 @@ def test_glb_length_lies(tmp_path, offset, value):
 def test_mutate_bytes_is_reproducible():
     import numpy as np
 
-    from pbrsr_core.bench.fuzz import RngDraw
+    from pbrsr_bench.fuzz import RngDraw
 
     data = bytes(range(256)) * 4
     a = mutate_bytes(data, RngDraw(np.random.default_rng(5)))

@@ -99,9 +99,12 @@ def test_subsampled_chroma_stays_as_decoded_and_the_luma_is_deblocked(subsamplin
     assert np.isfinite(out).all() and out.min() >= 0.0 and out.max() <= 1.0
 
     def ycc(a):
-        return a.astype(np.float64) @ np.array(
-            [[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]]
-        ).T
+        return (
+            a.astype(np.float64)
+            @ np.array(
+                [[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]]
+            ).T
+        )
 
     inside = (out > 0.002).all(-1) & (out < 0.998).all(-1)  # no clamping at 0 or 1
     np.testing.assert_allclose(ycc(out)[inside][:, 1:], ycc(decoded)[inside][:, 1:], atol=1e-5)

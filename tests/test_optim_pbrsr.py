@@ -410,9 +410,18 @@ def test_prior_sees_only_the_covered_box_and_covered_pixels_keep_their_target(
         prior = _ShapeRecordingPrior()
         cache = tmp_path / f"c{context}"
         optimize_pbrsr(
-            mesh, mats, {0: lr}, {0: _bicubic(lr, s)}, {0: {"base_color"}}, prior=prior,
-            scale=s, light=EnvLight.uniform(1.0), device=CPU, cameras=[camera],
-            config=_cfg(iterations=1, lr_render=lr_render, target="detail"), cache_dir=cache,
+            mesh,
+            mats,
+            {0: lr},
+            {0: _bicubic(lr, s)},
+            {0: {"base_color"}},
+            prior=prior,
+            scale=s,
+            light=EnvLight.uniform(1.0),
+            device=CPU,
+            cameras=[camera],
+            config=_cfg(iterations=1, lr_render=lr_render, target="detail"),
+            cache_dir=cache,
         )
         (f,) = cache.glob("*.npy")
         targets[context] = np.load(f).reshape(-1, 3)

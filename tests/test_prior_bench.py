@@ -8,7 +8,7 @@ import numpy as np
 import OpenImageIO as oiio
 from skimage.metrics import peak_signal_noise_ratio
 
-from pbrsr_core.bench.prior import psnr, run, texture_crops
+from pbrsr_bench.prior import psnr, run, texture_crops
 
 
 def _write_png(path, img):

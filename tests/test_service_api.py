@@ -24,7 +24,7 @@ from test_service_support import (
     settings_scope,
 )
 
-from pbrsr_core.jobstore import JobIndex, JobLayout, sweep_expired
+from pbrsr_jobs.store import JobIndex, JobLayout, sweep_expired
 from service.app import create_app
 
 

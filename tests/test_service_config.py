@@ -11,7 +11,7 @@ from pydantic import ValidationError
 from test_service_support import REPO
 
 from pbrsr_core.limits import Limits
-from pbrsr_core.settings import Settings
+from pbrsr_jobs.settings import Settings
 
 ENV_NAMES = {f"PBRSR_{name.upper()}" for name in Settings.model_fields}
 

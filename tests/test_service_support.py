@@ -23,7 +23,7 @@ from typing import Any
 
 import pytest
 
-from pbrsr_core.settings import Settings
+from pbrsr_jobs.settings import Settings
 
 REPO = Path(__file__).resolve().parents[1]
 TEST_REDIS_DB = 9

@@ -22,7 +22,7 @@ from test_service_support import (
     worker_process,
 )
 
-from pbrsr_core.jobstore import JobLayout
+from pbrsr_jobs.store import JobLayout
 from service.app import create_app
 
 pytestmark = pytest.mark.slow

@@ -9,8 +9,8 @@ from rq.job import Job
 from test_service_support import redis_client, settings_scope
 
 from pbrsr_core.errors import Cancelled
-from pbrsr_core.jobstore import JobIndex, JobState
 from pbrsr_core.progress import Progress
+from pbrsr_jobs.store import JobIndex, JobState
 from worker.progress import MAX_HISTORY, JobReporter
 
 

@@ -16,7 +16,7 @@ def register(app: typer.Typer) -> None:
         """Run a job worker (RQ) on the device and queue from the PBRSR_* settings."""
         from pydantic import ValidationError
 
-        from pbrsr_core.settings import Settings
+        from pbrsr_jobs.settings import Settings
 
         try:
             settings = Settings()

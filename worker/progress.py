@@ -22,8 +22,8 @@ from redis.exceptions import ConnectionError as RedisConnectionError
 from redis.exceptions import TimeoutError as RedisTimeoutError
 
 from pbrsr_core.errors import Cancelled
-from pbrsr_core.jobstore import JobIndex, JobState
 from pbrsr_core.progress import Progress
+from pbrsr_jobs.store import JobIndex, JobState
 
 # Share of the whole run each pipeline stage takes, per method, in the order the stages
 # come (measured roughly on CPU: previews dominate bicubic, the optimizer dominates pbrsr).

@@ -43,8 +43,8 @@ from rq import Queue, SimpleWorker
 from rq.worker import WorkerStatus
 
 from pbrsr_core.errors import PbrsrError
-from pbrsr_core.jobstore import JobIndex, JobLayout, sweep_expired
-from pbrsr_core.settings import Settings
+from pbrsr_jobs.settings import Settings
+from pbrsr_jobs.store import JobIndex, JobLayout, sweep_expired
 
 from .tasks import WorkerContext, set_context
 

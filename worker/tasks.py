@@ -33,8 +33,8 @@ from typing import Any
 import numpy as np
 
 from pbrsr_core.errors import Cancelled, PbrsrError, StorageError
-from pbrsr_core.jobstore import JobIndex, JobLayout, JobState, publish, resolve_options
-from pbrsr_core.settings import Settings
+from pbrsr_jobs.settings import Settings
+from pbrsr_jobs.store import JobIndex, JobLayout, JobState, publish, resolve_options
 
 from .cancel import CancelWatchdog
 from .progress import JobReporter
@@ -257,7 +257,7 @@ def _box_downsample(pixels: np.ndarray, size: int) -> np.ndarray:
 
 def _remove_all(paths: list[Path]) -> None:
     """Remove a run's temporary files and folders (idempotent)."""
-    from pbrsr_core.jobstore import _remove
+    from pbrsr_jobs.store import _remove
 
     for path in paths:
         if path.exists():

@@ -20,7 +20,7 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
-_COMMAND_MODULES: list[str] = ["upscale", "priors", "degrade", "bench", "render"]
+_COMMAND_MODULES: list[str] = ["upscale", "priors", "degrade", "render"]
 
 
 def _register_all() -> None:

@@ -11,7 +11,7 @@ from fastapi.responses import FileResponse
 from rq.exceptions import InvalidJobOperation, NoSuchJobError
 from rq.job import Job
 
-from pbrsr_core.jobstore import JobIndex, JobState, check_job_id, sweep_expired
+from pbrsr_jobs.store import JobIndex, JobState, check_job_id, sweep_expired
 
 from ..deps import IndexDep, LayoutDep, OwnerDep, QueueDep, RedisDep, SettingsDep
 from ..intake import create_job

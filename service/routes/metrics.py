@@ -18,7 +18,7 @@ from prometheus_client.core import (
     HistogramMetricFamily,
 )
 
-from pbrsr_core.jobstore import JobIndex
+from pbrsr_jobs.store import JobIndex
 
 log = logging.getLogger("pbrsr.service")
 router = APIRouter(tags=["metrics"])
@@ -43,9 +43,7 @@ class QueueCollector:
             redis = self.app.state.metrics_redis()
             queues = [Queue(q, connection=redis) for q in settings.listen_queues("all")]
             depths = {q.name: q.count for q in queues}
-            queued = sum(depths.values()) + sum(
-                ScheduledJobRegistry(queue=q).count for q in queues
-            )
+            queued = sum(depths.values()) + sum(ScheduledJobRegistry(queue=q).count for q in queues)
             running = sum(StartedJobRegistry(queue=q).count for q in queues)
             workers = len({w.name for q in queues for w in Worker.all(queue=q)})
             index = JobIndex(redis, settings.key_prefix)
@@ -62,9 +60,7 @@ class QueueCollector:
         jobs.add_metric(["queued"], queued)
         jobs.add_metric(["running"], running)
         yield jobs
-        depth = GaugeMetricFamily(
-            "pbrsr_queue_depth", "Jobs waiting, per queue.", labels=["queue"]
-        )
+        depth = GaugeMetricFamily("pbrsr_queue_depth", "Jobs waiting, per queue.", labels=["queue"])
         for name, n in depths.items():
             depth.add_metric([name], n)
         yield depth

@@ -25,11 +25,11 @@ from pathlib import Path
 
 import torch
 
-from ..hostmem import reuse_large_blocks
-from ..optim.losses import ssim_target
-from ..optim.pbrsr import channel_lr, map_groups, regularize_grads
-from ..optim.presets import get_preset
-from ..optim.texel_ops import MapAdam
+from pbrsr_core.hostmem import reuse_large_blocks
+from pbrsr_core.optim.losses import ssim_target
+from pbrsr_core.optim.pbrsr import channel_lr, map_groups, regularize_grads
+from pbrsr_core.optim.presets import get_preset
+from pbrsr_core.optim.texel_ops import MapAdam
 
 FLOOR_ARRAYS = 8  # float32 arrays per texel channel a step must move (see the docstring)
 PASSES = ("regularize", "adam_project")

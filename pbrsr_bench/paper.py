@@ -2,7 +2,7 @@
 
 The paper preset renders 750 views (15 x 50 at FoV 10), makes a 1024² pseudo-GT for each and
 runs 2000 Adam steps of 4 views at 1024²: hours on a CPU. This benchmark runs that preset for
-real on a sample, in its own process (``run_one``): a ``elev`` x ``azim`` grid over the same
+real on a sample, in its own process (``isolated_run``): a ``elev`` x ``azim`` grid over the same
 view sphere, ``iterations`` steps, and the G-buffer cache cut by the same fraction as the views
 (so a step re-rasterises as often as in the full run). Each stage is then extrapolated by its
 unit of work: G-buffers and pseudo-GT per view, the optimisation per step; every other stage
@@ -20,9 +20,10 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from ..degrade import degrade_asset
-from ..optim.presets import PAPER
-from ..options import DEFAULT_PRIOR
+from pbrsr_core.degrade import degrade_asset
+from pbrsr_core.optim.presets import PAPER
+from pbrsr_core.options import DEFAULT_PRIOR
+
 from .upscale import SHARED_ASSETS, bench_assets, run_subprocess
 
 PER_VIEW = ("gbuffers", "pseudo_gt")

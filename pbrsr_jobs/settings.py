@@ -18,8 +18,8 @@ from typing import Annotated
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-from .limits import Limits
-from .options import DEFAULT_PRIOR
+from pbrsr_core.limits import Limits
+from pbrsr_core.options import DEFAULT_PRIOR
 
 _MB = 1024 * 1024
 _DEVICE_RE = re.compile(r"^(auto|cpu|cuda|cuda:\d+)$")

@@ -43,11 +43,11 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from ..asset import detect_kind, extract_zip, load_asset, make_quad_asset, make_test_asset
-from ..asset.gltf_read import CHUNK_BIN, CHUNK_JSON, parse_glb
-from ..asset.gltf_write import save_asset
-from ..errors import PbrsrError
-from ..limits import Limits
+from pbrsr_core.asset import detect_kind, extract_zip, load_asset, make_quad_asset, make_test_asset
+from pbrsr_core.asset.gltf_read import CHUNK_BIN, CHUNK_JSON, parse_glb
+from pbrsr_core.asset.gltf_write import save_asset
+from pbrsr_core.errors import PbrsrError
+from pbrsr_core.limits import Limits
 
 SHARED_ASSETS = Path(__file__).resolve().parents[2].parent / "shared" / "assets"
 

@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import PbrsrError
+from pbrsr_core.errors import PbrsrError
 
 OK_STATUS = {"get_job": 200, "list_jobs": 200, "upload": 202, "big_upload": 202}
 _MB = 1024 * 1024
@@ -271,7 +271,7 @@ def service_stack(work_dir: Path, redis_url: str | None = None) -> Iterator[Serv
 # ----------------------------------------------------------------------------- payloads
 def small_payloads(folder: Path, n: int = 4, size: int = 32) -> list[tuple[str, bytes]]:
     """``n`` small procedural assets (test and demo assets, GLB and .gltf-less) as bytes."""
-    from ..asset import make_demo_asset, make_test_asset
+    from pbrsr_core.asset import make_demo_asset, make_test_asset
 
     folder.mkdir(parents=True, exist_ok=True)
     out = []
@@ -288,7 +288,7 @@ def small_payloads(folder: Path, n: int = 4, size: int = 32) -> list[tuple[str, 
 def big_payload(folder: Path, target_mb: float, seed: int = 0) -> tuple[str, bytes]:
     """A valid GLB of about ``target_mb`` MB: the demo asset with its base colour replaced by
     an RGB noise texture (PNG cannot compress noise, so the size is predictable)."""
-    from ..asset import load_asset, make_demo_asset, save_asset
+    from pbrsr_core.asset import load_asset, make_demo_asset, save_asset
 
     folder.mkdir(parents=True, exist_ok=True)
     src = make_demo_asset(folder / "big-src.glb", size=16)

@@ -22,13 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..asset import load_asset, make_demo_asset
-from ..asset.model import Asset
-from ..degrade import degrade_asset
-from ..metrics import RenderEvaluator, eval_cameras, map_metrics
-from ..options import DEFAULT_PRIOR
-from ..render.light import EnvLight
-from ..scene import procedural_light, rotated_procedural_light
+from pbrsr_core.asset import load_asset, make_demo_asset
+from pbrsr_core.asset.model import Asset
+from pbrsr_core.degrade import degrade_asset
+from pbrsr_core.metrics import RenderEvaluator, eval_cameras, map_metrics
+from pbrsr_core.options import DEFAULT_PRIOR
+from pbrsr_core.render.light import EnvLight
+from pbrsr_core.scene import procedural_light, rotated_procedural_light
 
 SHARED_ASSETS = Path(__file__).resolve().parents[2].parent / "shared" / "assets"
 DEFAULT_METHODS = ("bicubic", "direct", "fast", "balanced")
@@ -130,9 +130,9 @@ def method_options(method: str, scale: int, prior: str) -> dict:
 def check_methods(methods: tuple[str, ...], prior: str) -> None:
     """Raise ValueError naming the first method (its prior or a preset change) that is
     unknown."""
-    from ..errors import PbrsrError
-    from ..optim.presets import PRESETS
-    from ..prior.registry import check_name
+    from pbrsr_core.errors import PbrsrError
+    from pbrsr_core.optim.presets import PRESETS
+    from pbrsr_core.prior.registry import check_name
 
     for m in methods:
         name, own_prior, changes = parse_method(m)
@@ -158,7 +158,7 @@ def run_subprocess(spec: dict, work: Path) -> dict:
     spec_path.write_text(json.dumps(spec))
     t0 = time.perf_counter()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "pbrsr_core.bench.run_one", str(spec_path)],
+        [sys.executable, "-m", "pbrsr_bench.isolated_run", str(spec_path)],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,

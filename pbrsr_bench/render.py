@@ -29,10 +29,10 @@ from pathlib import Path
 
 import torch
 
-from ..asset.model import Material, Mesh, TextureRef
-from ..render import camera as cam
-from ..render import light as light_mod
-from ..render import raster, shade, shapes
+from pbrsr_core.asset.model import Material, Mesh, TextureRef
+from pbrsr_core.render import camera as cam
+from pbrsr_core.render import light as light_mod
+from pbrsr_core.render import raster, shade, shapes
 
 SHARED_ASSETS = Path("/work/shared/assets")
 TARGET_GBUFFER_S = 0.5  # 100k triangles at 1024^2
@@ -93,8 +93,8 @@ def asset_cases(log: Callable[[str], None]):
         log(f"{SHARED_ASSETS} not found: procedural mesh only")
         return []
     try:
-        from ..asset import load_asset
-        from ..scene import asset_textures, make_scene
+        from pbrsr_core.asset import load_asset
+        from pbrsr_core.scene import asset_textures, make_scene
     except ImportError as exc:  # the asset module is not there yet
         log(f"asset loading unavailable ({exc}): procedural mesh only")
         return []

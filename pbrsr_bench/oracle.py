@@ -1,4 +1,4 @@
-"""`pbrsr bench headroom`: where the render error of an upscaled asset lives, map by map.
+"""`pbrsr bench oracle`: where the render error of an upscaled asset lives, map by map.
 
 For each asset (as in ``pbrsr bench upscale``: the procedural one and every shared asset, LR
 made by ``pbrsr degrade``) the LR maps are upscaled by bicubic interpolation, and the render
@@ -22,12 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..asset import load_asset
-from ..asset.model import Asset
-from ..degrade import degrade_asset
-from ..metrics import MAP_CHANNELS, RenderEvaluator, images_for
-from ..options import UpscaleOptions
-from ..pipeline import upscale_asset
+from pbrsr_core.asset import load_asset
+from pbrsr_core.asset.model import Asset
+from pbrsr_core.degrade import degrade_asset
+from pbrsr_core.metrics import MAP_CHANNELS, RenderEvaluator, images_for
+from pbrsr_core.options import UpscaleOptions
+from pbrsr_core.pipeline import upscale_asset
+
 from .upscale import SHARED_ASSETS, bench_assets, cpu_evaluator, eval_lights
 
 
@@ -53,7 +54,7 @@ def with_gt_maps(pred: Asset, gt: Asset, names: list[str]) -> Asset:
     return dataclasses.replace(pred, images=images)
 
 
-def asset_headroom(gt: Asset, bicubic: Asset, evaluator: RenderEvaluator) -> dict:
+def oracle_gains(gt: Asset, bicubic: Asset, evaluator: RenderEvaluator) -> dict:
     """Render PSNR of ``bicubic``, and of it with each map the asset has (then every map)
     replaced by the ground truth's."""
     present = [n for n, (role, _) in MAP_CHANNELS.items() if images_for(gt, role)]
@@ -66,7 +67,7 @@ def asset_headroom(gt: Asset, bicubic: Asset, evaluator: RenderEvaluator) -> dic
 
 def run(
     *,
-    out_dir: Path = Path("bench-out/headroom"),
+    out_dir: Path = Path("bench-out/oracle"),
     assets: list[str] | None = None,
     scale: int = 4,
     eval_res: int = 256,
@@ -76,11 +77,11 @@ def run(
     shared: Path = SHARED_ASSETS,
     say=print,
 ) -> list[dict]:
-    """Run the benchmark; write ``headroom.json`` and ``headroom.png``; return the rows."""
+    """Run the benchmark; write ``oracle.json`` and ``oracle.png``; return the rows."""
 
     out_dir.mkdir(parents=True, exist_ok=True)
     lights, light_names = eval_lights(shared)
-    work = Path(tempfile.mkdtemp(prefix="pbrsr-headroom-"))
+    work = Path(tempfile.mkdtemp(prefix="pbrsr-oracle-"))
     rows: list[dict] = []
     try:
         todo = bench_assets(work, include_procedural, procedural_size, shared, assets, say)
@@ -97,7 +98,7 @@ def run(
             evaluator = cpu_evaluator(gt, eval_res, eval_views, lights)
             row = {
                 "asset": name,
-                **asset_headroom(gt, load_asset(work / name / "out" / lr.name), evaluator),
+                **oracle_gains(gt, load_asset(work / name / "out" / lr.name), evaluator),
             }
             rows.append(row)
             say("   " + _row_text(row))
@@ -107,8 +108,8 @@ def run(
             "eval_views": eval_views,
             "lights": light_names,
         }
-        (out_dir / "headroom.json").write_text(json.dumps({**meta, "rows": rows}, indent=2))
-        plot(rows, out_dir / "headroom.png")
+        (out_dir / "oracle.json").write_text(json.dumps({**meta, "rows": rows}, indent=2))
+        plot(rows, out_dir / "oracle.png")
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return rows

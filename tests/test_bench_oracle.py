@@ -1,4 +1,4 @@
-"""`pbrsr bench headroom` on a tiny procedural asset (no shared assets)."""
+"""`pbrsr bench oracle` on a tiny procedural asset (no shared assets)."""
 
 from __future__ import annotations
 
@@ -9,12 +9,12 @@ from pathlib import Path
 
 import numpy as np
 
+from pbrsr_bench.oracle import markdown_table, run, with_gt_maps
 from pbrsr_core.asset import load_asset, make_demo_asset
-from pbrsr_core.bench.headroom import markdown_table, run, with_gt_maps
 from pbrsr_core.metrics import MAP_CHANNELS, images_for
 
 
-def test_bench_headroom_small_run(tmp_path: Path):
+def test_bench_oracle_small_run(tmp_path: Path):
     said: list[str] = []
     rows = run(
         out_dir=tmp_path / "out",
@@ -31,9 +31,9 @@ def test_bench_headroom_small_run(tmp_path: Path):
     assert all(math.isfinite(v) for v in row["maps"].values())
     assert row["maps"]["albedo"] > row["bicubic"]  # the true albedo renders closer
     assert row["all"] == math.inf  # every map from the ground truth: the ground truth's render
-    saved = json.loads((tmp_path / "out" / "headroom.json").read_text())
+    saved = json.loads((tmp_path / "out" / "oracle.json").read_text())
     assert saved["rows"][0]["maps"] == row["maps"]
-    assert (tmp_path / "out" / "headroom.png").stat().st_size > 0
+    assert (tmp_path / "out" / "oracle.png").stat().st_size > 0
     table = markdown_table(rows)
     assert "| procedural |" in table and "GT albedo" in table
 

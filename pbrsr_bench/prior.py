@@ -22,11 +22,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..degrade import degrade_image
-from ..device import resolve_device
-from ..prior import load_prior
-from ..prior.base import Prior
-from ..prior.tiling import count_tiles
+from pbrsr_core.degrade import degrade_image
+from pbrsr_core.device import resolve_device
+from pbrsr_core.prior import load_prior
+from pbrsr_core.prior.base import Prior
+from pbrsr_core.prior.tiling import count_tiles
 
 SHARED_ASSETS = Path("/work/shared/assets")
 NATURAL = ("astronaut", "coffee", "chelsea", "rocket", "immunohistochemistry")
@@ -174,7 +174,7 @@ def _timed(prior: Prior, side: int, scale: int, device: torch.device) -> tuple[f
 
 
 def default_priors() -> list[str]:
-    from ..prior import rrdn, waifu2x
+    from pbrsr_core.prior import rrdn, waifu2x
 
     installed = [(rrdn.NAME, rrdn.is_installed()), (waifu2x.NAME, waifu2x.is_installed())]
     return ["bicubic"] + [name for name, ok in installed if ok]

@@ -388,8 +388,8 @@ def resolve_options(raw: dict[str, Any], settings: Any, *, device: str | None = 
     """
     from pydantic import ValidationError
 
-    from .errors import InvalidOptions
-    from .options import UpscaleOptions
+    from pbrsr_core.errors import InvalidOptions
+    from pbrsr_core.options import UpscaleOptions
 
     if not isinstance(raw, dict):
         raise InvalidOptions("options must be a JSON object")
@@ -421,7 +421,7 @@ def resolve_options(raw: dict[str, Any], settings: Any, *, device: str | None = 
 
 
 def _named_file(name: str, folder: Path | None, what: str) -> Path:
-    from .errors import InvalidOptions
+    from pbrsr_core.errors import InvalidOptions
 
     if folder is None:
         raise InvalidOptions(f"this server offers no custom {what} files; leave '{what}' out")

@@ -1,4 +1,4 @@
-"""One benchmark run in its own process: ``python -m pbrsr_core.bench.run_one spec.json``.
+"""One benchmark run in its own process: ``python -m pbrsr_bench.isolated_run spec.json``.
 
 Runs :func:`pbrsr_core.pipeline.upscale_asset` and, for PBR-SR, saves the maps at
 intermediate iterations (``snap_<it>.npz``, as they would be exported) with the wall time at
@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..optim.presets import get_preset
-from ..options import UpscaleOptions
-from ..pipeline import upscale_asset
+from pbrsr_core.optim.presets import get_preset
+from pbrsr_core.options import UpscaleOptions
+from pbrsr_core.pipeline import upscale_asset
 
 SNAPSHOT_AT = (0, 5, 10, 25, 50, 100, 200, 400, 800, 1600)
 

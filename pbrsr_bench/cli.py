@@ -1,4 +1,4 @@
-"""``pbrsr bench <name>``: benchmarks (implemented in ``pbrsr_core/bench/<name>.py``)."""
+"""``pbrsr bench <name>``: benchmarks (implemented in ``pbrsr_bench/<name>.py``)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from typing import NoReturn
 
 import typer
 
-from ..options import DEFAULT_PRIOR
+from pbrsr_core.options import DEFAULT_PRIOR
 
 bench_app = typer.Typer(help="Benchmarks: print a table, write JSON and plots to bench-out/.")
 
@@ -38,7 +38,7 @@ def prior_cmd(
 ) -> None:
     """Prior speed (256² and tiled 1024² inputs), peak memory and PSNR gain over bicubic on
     skimage photos and on albedo crops of /work/shared/assets (when present)."""
-    from ..bench.prior import print_table, run
+    from pbrsr_bench.prior import print_table, run
 
     result = run(
         out_dir=out,
@@ -65,7 +65,7 @@ def fuzz_cmd(
 ) -> None:
     """Fuzz the GLB/glTF reader, writer and zip extraction with mutated valid assets; any
     exception that is not a pbrsr error is an escape, saved under OUT/findings/."""
-    from ..bench.fuzz import print_table, run
+    from pbrsr_bench.fuzz import print_table, run
 
     result = run(
         cases=cases, seed=seed, out_dir=out, shared=shared, log=lambda m: typer.echo(m, err=True)
@@ -87,7 +87,7 @@ def render_cmd(
     """Renderer speed: G-buffer time per view (coverage + interpolation), shading forward +
     backward throughput (Mpixel/s) and peak memory, on a ~100k-triangle procedural mesh and
     the shared assets; plus a per-operator profile of shading."""
-    from ..bench.render import print_table, run
+    from pbrsr_bench.render import print_table, run
 
     result = run(
         out_dir=out,
@@ -112,7 +112,7 @@ def step_cmd(
 ) -> None:
     """The optimiser step's whole-map part (consistency + TV gradient and masking, Adam,
     projection) against its memory-traffic floor, per map size."""
-    from ..bench.step import print_table, run
+    from pbrsr_bench.step import print_table, run
 
     result = run(
         out_dir=out,
@@ -151,7 +151,7 @@ def upscale_cmd(
 ) -> None:
     """Speed against error: bicubic, direct prior and each PBR-SR preset on degraded assets;
     wall time, peak memory, PSNR per map and render PSNR, with curves over iterations."""
-    from ..bench.upscale import markdown_table, run, summary_table
+    from pbrsr_bench.upscale import markdown_table, run, summary_table
 
     try:
         rows = run(
@@ -194,7 +194,7 @@ def load_cmd(
     """The job service under load, on loopback only: one API process, a private Redis and
     temporary storage; polling + uploads for --duration s, concurrent big uploads, then
     --jobs small jobs drained by --workers workers. Fails (exit 1) on any error or lost job."""
-    from ..bench.load import print_table, run
+    from pbrsr_bench.load import print_table, run
 
     result = run(
         out,
@@ -229,7 +229,7 @@ def service_cmd(
     """The API alone (the first phases of ``bench load``, no job drain): status-poll
     throughput and p50/p99 latency with concurrent clients, and throughput of concurrent big
     uploads, against one API process on loopback."""
-    from ..bench.load import print_table, run
+    from pbrsr_bench.load import print_table, run
 
     result = run(
         out,
@@ -251,9 +251,9 @@ def register(app: typer.Typer) -> None:
     app.add_typer(bench_app, name="bench")
 
 
-@bench_app.command("headroom")
-def headroom_cmd(
-    out: Path = typer.Option(Path("bench-out/headroom"), "--out", "-o", help="Output directory."),
+@bench_app.command("oracle")
+def oracle_cmd(
+    out: Path = typer.Option(Path("bench-out/oracle"), "--out", "-o", help="Output directory."),
     asset: list[str] = typer.Option(  # noqa: B006
         [], "--asset", "-a", help="Shared asset folder name (repeatable); default: all."
     ),
@@ -264,7 +264,7 @@ def headroom_cmd(
 ) -> None:
     """Where the render error lives: render PSNR of bicubic maps, and with each map replaced
     by the ground truth's (the most an upscaler of that map alone can add)."""
-    from ..bench.headroom import markdown_table, run
+    from pbrsr_bench.oracle import markdown_table, run
 
     try:
         rows = run(
@@ -279,7 +279,7 @@ def headroom_cmd(
     except ValueError as exc:
         _bad_input(exc)
     typer.echo(markdown_table(rows))
-    typer.echo(f"wrote {out / 'headroom.json'} and {out / 'headroom.png'}")
+    typer.echo(f"wrote {out / 'oracle.json'} and {out / 'oracle.png'}")
 
 
 @bench_app.command("paper")
@@ -296,7 +296,7 @@ def paper_cmd(
 ) -> None:
     """What the paper preset (750 views, 2000 steps) costs here: a sample of its views and
     steps run for real, each stage extrapolated by its unit of work."""
-    from ..bench.paper import print_table, run
+    from pbrsr_bench.paper import print_table, run
 
     try:
         result = run(
