@@ -261,8 +261,10 @@ def test_cli_trains_reports_and_the_result_is_a_prior(tmp_path, capfd):
     assert "angle" in report["normal"]["4"]["out"]
     card = (out / "MODEL_CARD.md").read_text()
     assert "CC0" in card and "priors train" in card and (out / "report.png").is_file()
-    prior = TexturePrior(sorted(out.glob("*/*.safetensors")))
+    prior = TexturePrior(out)  # the training output folder is a prior as it is written
+    assert set(prior.nets) == {"colour", "normal"}
     assert prior.for_kind("normal").upscale(torch.rand(1, 3, 16, 16), 4).shape[-1] == 64
+    check_name(f"texture:{out}")
     cmp = tmp_path / "cmp"
     args = ["priors", "report", str(out), "-o", str(cmp), "--textures", str(folder)]
     code, err = run_cli([*args, "--scales", "4"], capfd)

@@ -27,13 +27,16 @@ KINDS = ("colour", "data", "normal")
 
 
 def weight_files(source: Path | list[Path]) -> dict[tuple[str, int], Path]:
-    """(kind, stride) -> weights file of a folder (every ``*.safetensors`` in it), of one
-    file or of a list of files, from each file's ``kinds`` and ``stride`` metadata."""
+    """(kind, stride) -> weights file of a folder (every ``*.safetensors`` in it, else in its
+    subfolders: the layout ``pbrsr priors train -o`` writes), of one file or of a list of
+    files, from each file's ``kinds`` and ``stride`` metadata."""
     if isinstance(source, list):
         files = [Path(f) for f in source]
     else:
         source = Path(source)
-        files = sorted(source.glob("*.safetensors")) if source.is_dir() else [source]
+        files = [source]
+        if source.is_dir():
+            files = sorted(source.glob("*.safetensors")) or sorted(source.glob("*/*.safetensors"))
     if not files or not all(f.is_file() for f in files):
         raise PriorUnavailable(f"no texture prior weights at '{source}'")
     out: dict[tuple[str, int], Path] = {}
