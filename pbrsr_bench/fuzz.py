@@ -49,7 +49,7 @@ from pbrsr_core.asset.gltf_write import save_asset
 from pbrsr_core.errors import PbrsrError
 from pbrsr_core.limits import Limits
 
-SHARED_ASSETS = Path(__file__).resolve().parents[2].parent / "shared" / "assets"
+SHARED_ASSETS = Path(__file__).resolve().parents[1].parent / "shared" / "assets"
 
 # small limits keep every case fast (a mutated size field cannot ask for gigabytes)
 FUZZ_LIMITS = Limits(

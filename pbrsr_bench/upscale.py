@@ -30,7 +30,7 @@ from pbrsr_core.options import DEFAULT_PRIOR
 from pbrsr_core.render.light import EnvLight
 from pbrsr_core.scene import procedural_light, rotated_procedural_light
 
-SHARED_ASSETS = Path(__file__).resolve().parents[2].parent / "shared" / "assets"
+SHARED_ASSETS = Path(__file__).resolve().parents[1].parent / "shared" / "assets"
 DEFAULT_METHODS = ("bicubic", "direct", "fast", "balanced")
 ENVMAPS = ("studio_small_03_1k.hdr", "venice_sunset_1k.hdr")
 MAP_COLUMNS = ("albedo", "roughness", "metallic", "normal", "occlusion", "emissive")
