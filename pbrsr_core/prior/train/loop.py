@@ -3,8 +3,9 @@ of the steps, L1 on the HR crop's interior, EMA weights, validation on held-out 
 checkpoints a run resumes from exactly, and the best EMA weights by validation written as
 safetensors (:mod:`pbrsr_core.prior.texture` loads them).
 
-The network is an :class:`~pbrsr_core.prior.waifu2x.UpConv7` (x2 per pass; x4 training
-chains two passes with a clamp between them, as inference does)."""
+The network is an :class:`~pbrsr_core.prior.waifu2x.UpConv7` or a
+:class:`~pbrsr_core.prior.compact.Compact` network, of stride 2 or 4 (x4 training of a stride-2
+network chains two passes with a clamp between them, as inference does)."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from pathlib import Path
 import torch
 
 from ...errors import InvalidOptions
+from .. import compact
 from ..backproject import back_project
 from ..waifu2x import UpConv7
 from . import weights
@@ -43,12 +45,15 @@ class TrainConfig:
     weight_decay: float = 1e-5
     ema: float = 0.999
     seed: int = 0
+    arch: str = "upconv7"
+    """``upconv7`` or ``compact`` (:func:`~pbrsr_core.prior.train.weights.new_network`)."""
     widths: tuple[int, ...] = (16, 32, 64, 128, 128, 256)
     stride: int = 2
     """Upscaling of one network pass: 2 (``scale`` 4 chains two passes) or 4."""
     init: str = "waifu2x-photo"
-    """Start weights: ``waifu2x-photo``, a weights file, or ``random`` (seeded). Start
-    weights of another stride give the convolutions; the new head starts at random."""
+    """Start weights: ``waifu2x-photo`` (UpConv7), ``realesr-animevideov3`` (compact), a
+    weights file, or ``random`` (seeded). Start weights of another stride give the
+    convolutions; the new head starts at random."""
     val_every: int = 250
     val_patch: int = 128
     ckpt_every: int = 250
@@ -71,6 +76,10 @@ class TrainConfig:
             raise InvalidOptions("patch sizes must be multiples of the scale")
         if not (0.0 <= self.ema < 1.0):
             raise InvalidOptions(f"ema must be in [0, 1), not {self.ema}")
+        try:
+            weights.new_network(self.arch, self.widths, self.stride)
+        except ValueError as exc:
+            raise InvalidOptions(str(exc)) from exc
 
 
 @dataclass
@@ -90,35 +99,42 @@ Progress = Callable[[int, int, dict], None]
 validation, ``val`` (mean PSNR)."""
 
 
-def build_network(config: TrainConfig) -> UpConv7:
-    """The network at its start weights."""
-    torch.manual_seed(config.seed)
-    net = UpConv7(config.widths, stride=config.stride)
-    if config.init == "random":
-        return net
-    if config.init == "waifu2x-photo":
+def start_network(init: str) -> weights.Network:
+    """The start weights ``init`` names (not ``random``) as a network."""
+    if init == "waifu2x-photo":
         from ..ncnn import read_model
         from ..waifu2x import INSTALL_HINT, model_files
 
         files = model_files()
         if files is None:
             raise InvalidOptions(f"waifu2x-photo is not installed: {INSTALL_HINT}")
-        start = UpConv7.from_ncnn(read_model(*files))
-    else:
-        start = weights.load_network(Path(config.init))
-    if start.widths != tuple(config.widths):
+        return UpConv7.from_ncnn(read_model(*files))
+    if init == compact.START:
+        return compact.start_network()
+    return weights.load_network(Path(init))
+
+
+def build_network(config: TrainConfig) -> weights.Network:
+    """The network at its start weights."""
+    torch.manual_seed(config.seed)
+    net = weights.new_network(config.arch, config.widths, config.stride)
+    if config.init == "random":
+        return net
+    start = start_network(config.init)
+    if weights.arch_of(start) != config.arch or start.widths != tuple(config.widths):
         raise InvalidOptions(
-            f"the start weights have widths {start.widths}, the config asks for {config.widths}"
+            f"the start weights are {weights.arch_of(start)} of widths {start.widths}, the "
+            f"config asks for {config.arch} of widths {config.widths}"
         )
     state = start.state_dict()
     if start.stride != config.stride:  # the convolutions only; the head stays as built
-        head = f"mods.{len(config.widths)}."
+        head = weights.head_prefix(start)
         state = {k: v for k, v in state.items() if not k.startswith(head)}
     net.load_state_dict(state, strict=False)
     return net
 
 
-def upscale_net(net: UpConv7, lr: torch.Tensor, scale: int) -> torch.Tensor:
+def upscale_net(net: weights.Network, lr: torch.Tensor, scale: int) -> torch.Tensor:
     """Passes of ``net`` up to ``scale``, clamped between passes as inference does."""
     x, done = lr, 1
     while done < scale:
@@ -215,7 +231,7 @@ def train(
     if config.threads:
         torch.set_num_threads(config.threads)
     net = build_network(config).train()
-    ema = UpConv7(config.widths, stride=config.stride)
+    ema = weights.new_network(config.arch, config.widths, config.stride)
     ema.load_state_dict(net.state_dict())
     ema.eval().requires_grad_(False)
     opt = torch.optim.AdamW(

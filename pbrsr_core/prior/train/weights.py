@@ -9,23 +9,52 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ...errors import PriorUnavailable
+from ..compact import START as COMPACT_START
+from ..compact import Compact
 from ..waifu2x import UpConv7
 
 if TYPE_CHECKING:
     from .loop import TrainConfig
 
-ARCH = "upconv7"
+Network = UpConv7 | Compact
+ARCHS = ("upconv7", "compact")
 
 
-def save_network(net: UpConv7, path: Path, config: TrainConfig, extra: dict[str, str]) -> None:
-    """Write ``net``'s weights (float32) with metadata: ``arch``, ``widths``, ``slope``,
-    ``kinds``, ``scale``, the training config as JSON and ``extra``."""
+def arch_of(net: Network) -> str:
+    return "compact" if isinstance(net, Compact) else "upconv7"
+
+
+def new_network(arch: str, widths: tuple[int, ...], stride: int) -> Network:
+    """A network of ``arch`` at random weights: UpConv7 of ``widths``, or a compact network
+    of ``len(widths) - 1`` body convolutions of ``widths[0]`` features (all equal)."""
+    if arch == "compact":
+        if len(set(widths)) != 1:
+            raise ValueError(f"a compact network has equal widths, not {widths}")
+        return Compact(widths[0], len(widths) - 1, stride)
+    if arch == "upconv7":
+        return UpConv7(widths, stride=stride)
+    raise ValueError(f"unknown architecture {arch!r}: use {', '.join(ARCHS)}")
+
+
+def head_prefix(net: Network) -> str:
+    """The state-dict prefix of the layer that upscales (the part a new stride replaces)."""
+    return "head." if isinstance(net, Compact) else f"mods.{len(net.widths)}."
+
+
+def save_network(net: Network, path: Path, config: TrainConfig, extra: dict[str, str]) -> None:
+    """Write ``net``'s weights (float32) with metadata: ``arch``, its shape (UpConv7:
+    ``widths``, ``slope``; compact: ``feat``, ``convs``), ``stride``, ``kinds``, ``scale``, the
+    training config as JSON and ``extra``."""
     from safetensors.torch import save_file
 
+    if isinstance(net, Compact):
+        shape = {"feat": str(net.feat), "convs": str(net.convs)}
+    else:
+        shape = {"slope": str(net.slope)}
     meta = {
-        "arch": ARCH,
+        "arch": arch_of(net),
         "widths": ",".join(str(w) for w in net.widths),
-        "slope": str(net.slope),
+        **shape,
         "stride": str(net.stride),
         "kinds": ",".join(config.kinds),
         "scale": str(config.scale),
@@ -48,7 +77,7 @@ def read_metadata(path: Path) -> dict[str, str]:
         raise PriorUnavailable(f"'{path}' is not a safetensors weights file: {exc}") from exc
 
 
-def load_network(path: Path) -> UpConv7:
+def load_network(path: Path) -> Network:
     """The network stored in ``path`` (written by :func:`save_network`)."""
     from safetensors.torch import load_file
 
@@ -56,13 +85,17 @@ def load_network(path: Path) -> UpConv7:
     if not path.is_file():
         raise PriorUnavailable(f"no weights file at '{path}'")
     meta = read_metadata(path)
-    if meta.get("arch") != ARCH:
-        raise PriorUnavailable(f"'{path.name}' is not a pbrsr {ARCH} weights file")
+    arch = meta.get("arch")
+    if arch not in ARCHS:
+        raise PriorUnavailable(f"'{path.name}' is not a pbrsr network weights file")
     try:
-        widths = tuple(int(w) for w in meta["widths"].split(","))
-        net = UpConv7(
-            widths, slope=float(meta.get("slope", "0.1")), stride=int(meta.get("stride", "2"))
-        )
+        stride = int(meta.get("stride", "2"))
+        net: Network
+        if arch == "compact":
+            net = Compact(int(meta["feat"]), int(meta["convs"]), stride)
+        else:
+            widths = tuple(int(w) for w in meta["widths"].split(","))
+            net = UpConv7(widths, slope=float(meta.get("slope", "0.1")), stride=stride)
         net.load_state_dict(load_file(str(path)))
     except (KeyError, ValueError, RuntimeError) as exc:
         raise PriorUnavailable(
@@ -71,11 +104,25 @@ def load_network(path: Path) -> UpConv7:
     return net.eval()
 
 
+def start_shape(start: str, arch: str) -> tuple[str, tuple[int, ...]]:
+    """(architecture, widths) of the start weights ``start`` (a :func:`resolve_start`
+    result); ``random`` takes ``arch`` at its default widths."""
+    if start == "random":
+        return arch, (Compact().widths if arch == "compact" else UpConv7().widths)
+    if start == "waifu2x-photo":
+        return "upconv7", UpConv7().widths
+    if start == COMPACT_START:
+        return "compact", Compact().widths
+    net = load_network(Path(start))
+    return arch_of(net), net.widths
+
+
 def resolve_start(source: str, kind: str, stride: int) -> str:
-    """The start weights of a network for ``kind`` maps: ``random`` and ``waifu2x-photo`` as
-    they are, a ``.safetensors`` file as it is, and a texture prior (``pbr-upconv7``,
-    ``texture:<folder>``) as its file for ``kind`` (of ``stride`` where it has one)."""
-    if source in ("random", "waifu2x-photo") or source.endswith(".safetensors"):
+    """The start weights of a network for ``kind`` maps: ``random``, ``waifu2x-photo`` and
+    ``realesr-animevideov3`` as they are, a ``.safetensors`` file as it is, and a texture prior
+    (``pbr-upconv7``, ``texture:<folder>``) as its file for ``kind`` (of ``stride`` where it
+    has one)."""
+    if source in ("random", "waifu2x-photo", COMPACT_START) or source.endswith(".safetensors"):
         return source
     from ..texture import NAME, WEIGHTS_DIR, weight_files
 
@@ -85,7 +132,7 @@ def resolve_start(source: str, kind: str, stride: int) -> str:
         folder = Path(source[len("texture:") :]).expanduser()
     else:
         raise PriorUnavailable(
-            f"cannot start from {source!r}: use random, waifu2x-photo, {NAME}, "
+            f"cannot start from {source!r}: use random, waifu2x-photo, {COMPACT_START}, {NAME}, "
             "texture:<folder> or a .safetensors file"
         )
     files = weight_files(folder)
