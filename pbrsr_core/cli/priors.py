@@ -79,15 +79,18 @@ def install_cmd(
         if not quiet:
             typer.echo(f"{name}: read from the installed {waifu2x.DISTRIBUTION} package")
         return
-    if name == "pbr-upconv7":
-        from ..prior import texture
+    from ..prior import texture
 
-        if texture.installed_stats()[0] is None:
-            raise PriorUnavailable(f"the weights of {name} are missing from {texture.WEIGHTS_DIR}")
+    if name in texture.SHIPPED:
+        if texture.installed_stats(name)[0] is None:
+            raise PriorUnavailable(
+                f"the weights of {name} are missing from {texture.WEIGHTS_ROOT}: "
+                + ", ".join(texture.SHIPPED[name])
+            )
         if not waifu2x.is_installed():  # the fallback of the kinds without weights
             raise PriorUnavailable(f"{name} needs waifu2x-photo: {waifu2x.INSTALL_HINT}")
         if not quiet:
-            typer.echo(f"{name}: its weights ship with pbrsr ({texture.WEIGHTS_DIR})")
+            typer.echo(f"{name}: its weights ship with pbrsr ({texture.WEIGHTS_ROOT})")
         return
     raise InvalidOptions(
         f"nothing to install for {name!r}: spandrel:<file> and diffusion:<dir> use local "

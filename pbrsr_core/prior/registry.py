@@ -1,6 +1,7 @@
 """``load_prior(name, device)``: priors by name, loaded once per process and reused.
 
-Names: ``bicubic``, ``pbr-upconv7`` (trained on PBR textures), ``waifu2x-photo``,
+Names: ``bicubic``, the shipped texture sets (``pbr-upconv7``: trained on PBR textures,
+:data:`pbrsr_core.prior.texture.SHIPPED`), ``waifu2x-photo``,
 ``rrdn-thick``, ``texture:<weights folder or file>`` (``pbrsr priors train``),
 ``spandrel:<weights path>``, ``diffusion:<local model dir>``. An unknown name raises
 :class:`pbrsr_core.errors.InvalidOptions`; a prior that is not installed raises
@@ -17,8 +18,9 @@ import torch
 from ..errors import InvalidOptions
 from ..options import DEFAULT_PRIOR
 from .base import Prior
+from .texture import SHIPPED
 
-BUILTIN = ("bicubic", "rrdn-thick", "waifu2x-photo", "pbr-upconv7")
+BUILTIN = ("bicubic", "rrdn-thick", "waifu2x-photo", *SHIPPED)
 PREFIXES = ("spandrel:", "diffusion:", "texture:")
 
 _cache: dict[tuple[str, str], Prior] = {}
@@ -43,7 +45,7 @@ def check_name(name: str) -> None:
                 raise InvalidOptions(f"prior {name!r} needs a path after '{prefix}'")
             return
     raise InvalidOptions(
-        f"unknown prior {name!r}: use pbr-upconv7, waifu2x-photo, rrdn-thick, bicubic, "
+        f"unknown prior {name!r}: use {', '.join(SHIPPED)}, waifu2x-photo, rrdn-thick, bicubic, "
         "texture:<weights folder or file>, spandrel:<weights file> or "
         "diffusion:<model directory>"
     )
@@ -62,10 +64,10 @@ def _build(name: str, device: torch.device) -> Prior:
         from .waifu2x import Waifu2xPrior
 
         return Waifu2xPrior(device)
-    if name == "pbr-upconv7":
-        from .texture import NAME, WEIGHTS_DIR, TexturePrior
+    if name in SHIPPED:
+        from .texture import TexturePrior, shipped_files
 
-        return TexturePrior(WEIGHTS_DIR, device, name=NAME)
+        return TexturePrior(shipped_files(name), device, name=name)
     if name.startswith("texture:"):
         from .texture import TexturePrior
 
@@ -149,18 +151,19 @@ def list_priors() -> list[dict]:
     )
     from . import texture
 
-    params, size = texture.installed_stats()
-    rows.append(
-        {
-            "name": texture.NAME,
-            "installed": params is not None,
-            "scales": [2, 4, 8],
-            "parameters": params,
-            "size_bytes": size,
-            "devices": "cpu, cuda",
-            "note": note(texture.NAME, params is not None, "its weights ship with pbrsr"),
-        }
-    )
+    for name in texture.SHIPPED:
+        params, size = texture.installed_stats(name)
+        rows.append(
+            {
+                "name": name,
+                "installed": params is not None,
+                "scales": [2, 4, 8],
+                "parameters": params,
+                "size_bytes": size,
+                "devices": "cpu, cuda",
+                "note": note(name, params is not None, "its weights ship with pbrsr"),
+            }
+        )
     rows.append(
         {
             "name": "texture:<weights>",

@@ -1,11 +1,12 @@
-"""Texture priors: UpConv7 networks trained on PBR texture maps (``pbrsr priors finetune``),
-one set of weights per map kind (colour, data, normal) or one shared by several kinds.
+"""Texture priors: networks (UpConv7 or compact) trained on PBR texture maps (``pbrsr priors
+finetune``), one set of weights per map kind (colour, data, normal) or one shared by several
+kinds, of stride 2 or 4.
 
-``pbr-upconv7`` is the set shipped in ``pbrsr_core/prior/weights/pbr-upconv7`` (made by the
-command in its MODEL_CARD.md); ``texture:<folder or file>`` loads any set ``pbrsr priors
-train/finetune`` wrote. :meth:`TexturePrior.for_kind` gives the network for one map kind;
-a kind without weights of its own uses the ``fallback`` prior (waifu2x-photo). The prior
-itself, called on images of no stated kind (the optimiser's renders), runs the colour
+The shipped sets (:data:`SHIPPED`) are files in ``pbrsr_core/prior/weights/<set>/`` (each made
+by the command in its folder's MODEL_CARD.md); ``texture:<folder or file>`` loads any set
+``pbrsr priors train/finetune`` wrote. :meth:`TexturePrior.for_kind` gives the network for
+one map kind; a kind without weights of its own uses the ``fallback`` prior (waifu2x-photo).
+The prior itself, called on images of no stated kind (the optimiser's renders), runs the colour
 network, or the fallback where the set has no colour network.
 """
 
@@ -20,8 +21,20 @@ from ..errors import PriorUnavailable
 from .base import Prior
 from .train.weights import Network, load_network, read_metadata
 
-NAME = "pbr-upconv7"
-WEIGHTS_DIR = Path(__file__).resolve().parent / "weights" / NAME
+WEIGHTS_ROOT = Path(__file__).resolve().parent / "weights"
+SHIPPED: dict[str, tuple[str, ...]] = {
+    # UpConv7 x2 normal network fine-tuned from waifu2x-photo
+    "pbr-upconv7": ("pbr-upconv7/pbr-upconv7-normal.safetensors",),
+}
+"""Shipped set name -> its weights files under :data:`WEIGHTS_ROOT` (one per kind and
+stride; a kind without one uses the fallback)."""
+
+
+def shipped_files(name: str) -> list[Path]:
+    """The weights files of the shipped set ``name``."""
+    return [WEIGHTS_ROOT / f for f in SHIPPED[name]]
+
+
 KINDS = ("colour", "data", "normal")
 
 
@@ -64,11 +77,11 @@ def passes(strides: set[int], scale: int) -> list[int] | None:
     return plan if left == 1 else None
 
 
-def installed_stats() -> tuple[int | None, int | None]:
-    """(parameters of the colour x4 network, bytes on disk of the set) of the shipped
-    weights."""
+def installed_stats(name: str) -> tuple[int | None, int | None]:
+    """(parameters of the network that runs x4 colour, else of the first, bytes on disk of
+    the set) of the shipped set ``name``; (None, None) where its files are missing."""
     try:
-        files = weight_files(WEIGHTS_DIR)
+        files = weight_files(shipped_files(name))
     except PriorUnavailable:
         return None, None
     first = files.get(("colour", 4)) or next(iter(files.values()))
@@ -77,8 +90,8 @@ def installed_stats() -> tuple[int | None, int | None]:
 
 
 class TexturePrior(Prior):
-    """UpConv7 networks trained on texture maps: per kind an x2 network, an x4 network or
-    both; a scale runs as the fewest passes whose strides multiply to it (x8: x4 then x2)."""
+    """Networks trained on texture maps: per kind an x2 network, an x4 network or both; a
+    scale runs as the fewest passes whose strides multiply to it (x8: x4 then x2)."""
 
     bytes_per_pixel = 8192.0  # as waifu2x-photo: the same network shape
     default_overlap = 32

@@ -120,20 +120,21 @@ def start_shape(start: str, arch: str) -> tuple[str, tuple[int, ...]]:
 def resolve_start(source: str, kind: str, stride: int) -> str:
     """The start weights of a network for ``kind`` maps: ``random``, ``waifu2x-photo`` and
     ``realesr-animevideov3`` as they are, a ``.safetensors`` file as it is, and a texture prior
-    (``pbr-upconv7``, ``texture:<folder>``) as its file for ``kind`` (of ``stride`` where it
+    (a shipped set, ``texture:<folder>``) as its file for ``kind`` (of ``stride`` where it
     has one)."""
     if source in ("random", "waifu2x-photo", COMPACT_START) or source.endswith(".safetensors"):
         return source
-    from ..texture import NAME, WEIGHTS_DIR, weight_files
+    from ..texture import SHIPPED, shipped_files, weight_files
 
-    if source == NAME:
-        folder = WEIGHTS_DIR
+    folder: Path | list[Path]
+    if source in SHIPPED:
+        folder = shipped_files(source)
     elif source.startswith("texture:"):
         folder = Path(source[len("texture:") :]).expanduser()
     else:
         raise PriorUnavailable(
-            f"cannot start from {source!r}: use random, waifu2x-photo, {COMPACT_START}, {NAME}, "
-            "texture:<folder> or a .safetensors file"
+            f"cannot start from {source!r}: use random, waifu2x-photo, {COMPACT_START}, "
+            f"{', '.join(SHIPPED)}, texture:<folder> or a .safetensors file"
         )
     files = weight_files(folder)
     for key in ((kind, stride), *((kind, s) for s in (2, 4) if s != stride)):
