@@ -152,21 +152,23 @@ class RecordingNearest(Prior):
 
 
 @pytest.mark.parametrize(
-    ("scales", "scale", "max_scale", "factor"),
+    ("scales", "scale", "max_scale", "factor", "one_pass"),
     [
-        ((2, 4, 8), 4, None, 4),
-        ((2, 4, 8), 4, 2, 2),
-        ((2, 4, 8), 4, 8, 4),
-        ((2, 4, 8), 8, 2, 2),
-        ((2, 4, 8), 8, 4, 4),
-        ((2, 4, 8), 8, 3, 2),
-        ((2, 3, 4, 8), 3, 2, 3),  # nothing at most 2 divides 3: the whole scale
-        ((4,), 4, 2, 4),  # a x4-only network does the whole scale
+        ((2, 4, 8), 4, None, 4, ()),
+        ((2, 4, 8), 4, 2, 2, ()),
+        ((2, 4, 8), 4, 2, 4, (2, 4)),  # one pass makes x4: it costs what an x2 pass does
+        ((2, 4, 8), 8, 2, 4, (2, 4)),  # x8 is two passes: one of them
+        ((2, 4, 8), 4, 8, 4, ()),
+        ((2, 4, 8), 8, 2, 2, (2,)),
+        ((2, 4, 8), 8, 4, 4, ()),
+        ((2, 4, 8), 8, 3, 2, ()),
+        ((2, 3, 4, 8), 3, 2, 3, ()),  # nothing at most 2 divides 3: the whole scale
+        ((4,), 4, 2, 4, ()),  # a x4-only network does the whole scale
     ],
 )
-def test_prior_factor(scales, scale, max_scale, factor):
+def test_prior_factor(scales, scale, max_scale, factor, one_pass):
     prior = RecordingNearest()
-    prior.scales = scales
+    prior.scales, prior.one_pass_scales = scales, one_pass
     assert prior_factor(prior, scale, max_scale) == factor
     assert prior_factor(load_prior("bicubic"), scale, max_scale) == scale  # not a network
 

@@ -52,6 +52,9 @@ class Prior(ABC):
     default_overlap: int = 16
     is_network: bool = True
     """False for classical interpolation (never run in reduced precision)."""
+    one_pass_scales: tuple[int, ...] = ()
+    """Scales its network makes in one pass at the input's size (waifu2x: x2; a stride-4
+    texture network: x4); a pass costs about the same whatever its scale."""
     back_project: bool = True
     """Whether :meth:`upscale` back-projects the output onto the input (prior/backproject.py);
     False for interpolation, whose output already is what it is meant to be."""

@@ -120,12 +120,14 @@ def keep_normal_length(hr: np.ndarray, lr: np.ndarray, scale: int) -> np.ndarray
 
 def prior_factor(prior: Prior, scale: int, max_scale: int | None) -> int:
     """The factor the prior upscales by when it may do at most ``max_scale`` of ``scale``:
-    the largest of its scales that is at most ``max_scale`` and divides ``scale`` (the full
-    scale when ``max_scale`` is None, no such scale exists, or the prior is not a network:
-    bicubic costs the same either way)."""
+    the largest of its scales that divides ``scale`` and is at most ``max_scale`` or made in
+    one pass of its network (``max_scale`` bounds the cost of one pass at the input's size,
+    which such a pass has); the full scale when ``max_scale`` is None, no such scale exists,
+    or the prior is not a network (bicubic costs the same either way)."""
     if max_scale is None or max_scale >= scale or not prior.is_network:
         return scale
     fits = [f for f in prior.scales if 2 <= f <= max_scale and scale % f == 0]
+    fits += [f for f in prior.one_pass_scales if scale % f == 0]
     return max(fits, default=scale)
 
 

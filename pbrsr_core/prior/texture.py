@@ -123,8 +123,10 @@ class TexturePrior(Prior):
         self.kind = "colour" if "colour" in self.nets else None
         if self.kind is None:
             self.scales = self.for_kind("colour").scales
+            self.one_pass_scales = self.for_kind("colour").one_pass_scales
         else:
             self.scales = _scales(self.nets[self.kind])
+            self.one_pass_scales = tuple(sorted(self.nets[self.kind]))
             self._views[self.kind] = self
 
     def for_kind(self, kind: str) -> Prior:
@@ -174,6 +176,7 @@ class _KindView(Prior):
         self.parent, self.kind = parent, kind
         self.name = f"{parent.name}[{kind}]"
         self.scales, self.device = _scales(parent.nets[kind]), parent.device
+        self.one_pass_scales = tuple(sorted(parent.nets[kind]))
         self.bytes_per_pixel = parent.bytes_per_pixel
         self.default_overlap = parent.default_overlap
 

@@ -170,6 +170,7 @@ class Waifu2xPrior(Prior):
 
     name = NAME
     scales = SCALES
+    one_pass_scales = (2,)
     # Peak memory per LR input pixel: the widest activation (256 channels) at the input size
     # of the last pass (4x the LR pixels at x8's third pass is 16x): a bound, doubled.
     bytes_per_pixel = 8192.0
