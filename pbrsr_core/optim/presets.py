@@ -68,8 +68,9 @@ class PbrsrConfig:
     """The prior upscales by at most this factor (e.g. 2 of x4), or by the larger factor one
     pass of its network makes (a stride-4 texture network: x4; a pass at the input's size
     costs about the same whatever its stride), and bicubic interpolation does the rest, then
-    one back-projection step onto its input (prior/direct.py ``upscale_rgb``): in the init, in the self-check (which scores the same upscaling) and in
-    the pseudo-GT. None: the prior does the whole scale (the paper)."""
+    one back-projection step onto its input (prior/direct.py ``upscale_rgb``): in the init,
+    in the self-check (which scores the same upscaling) and in the pseudo-GT. None: the prior
+    does the whole scale (the paper)."""
     deblock_jpeg: bool = False
     """LR maps stored as JPEG have their block artefacts reduced with the file's own
     quantisation tables (every component of 4:4:4 files, the luma of chroma-subsampled ones)
