@@ -265,7 +265,7 @@ def prior_channels(img, config) -> list[bool]:
     """Which of an image's colour channels the preset lets the prior initialise: one entry
     for colour and normal maps (the image as a whole), one per channel for data maps (an ORM
     image's occlusion, roughness and metallic are separate maps, named in ``prior_maps``)."""
-    from .optim.pbrsr import map_groups
+    from .optim.groups import map_groups
 
     n_colour = 3 if img.pixels.shape[2] >= 3 else 1
     named = {

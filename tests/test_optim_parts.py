@@ -11,8 +11,9 @@ import torch
 
 from pbrsr_core.errors import InvalidOptions
 from pbrsr_core.optim import pseudo_gt
-from pbrsr_core.optim.pbrsr import channel_lr, map_groups
+from pbrsr_core.optim.groups import map_groups
 from pbrsr_core.optim.presets import MAP_NAMES, PRESETS, get_preset
+from pbrsr_core.optim.schedule import channel_lr
 from pbrsr_core.optim.texel_ops import dilate_islands, project_
 from pbrsr_core.optim.views import fibonacci_directions, texel_density_resolution
 

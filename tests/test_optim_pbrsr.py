@@ -369,7 +369,7 @@ def test_coverage_views_on_a_sphere_and_progress_cancel():
 
 
 def test_covered_box_in_lr_pixels_with_context():
-    from pbrsr_core.optim.pbrsr import covered_box
+    from pbrsr_core.optim.targets import covered_box
 
     assert covered_box(torch.zeros(0, dtype=torch.long), (16, 16), 4, context=16) is None
     pix = torch.tensor([5 * 16 + 7])  # row 5, column 7 of a 16 x 16 image
@@ -395,7 +395,8 @@ def test_prior_sees_only_the_covered_box_and_covered_pixels_keep_their_target(
     inside the context), and the prior is run on fewer pixels."""
     import numpy as np
 
-    from pbrsr_core.optim import pbrsr, pseudo_gt
+    from pbrsr_core.optim import pseudo_gt
+    from pbrsr_core.optim import targets as target_mod
     from pbrsr_core.render.raster import coverage
 
     s = 2
@@ -403,9 +404,9 @@ def test_prior_sees_only_the_covered_box_and_covered_pixels_keep_their_target(
     mesh, mats = _quad_scene()
     camera = cam.look_at((0.0, 0.0, 8.0), fov_deg=30.0, resolution=(128, 128))
     targets = {}
-    assert pbrsr.PRIOR_CONTEXT == 16
+    assert target_mod.PRIOR_CONTEXT == 16
     for context in (16, 10**6):
-        monkeypatch.setattr(pbrsr, "PRIOR_CONTEXT", context)
+        monkeypatch.setattr(target_mod, "PRIOR_CONTEXT", context)
         pseudo_gt.MEMORY_CACHE.clear()
         prior = _ShapeRecordingPrior()
         cache = tmp_path / f"c{context}"
