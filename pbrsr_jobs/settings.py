@@ -18,6 +18,8 @@ from typing import Annotated
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from pbrsr_core import runtime
+from pbrsr_core.cli.environment import configure_from_env
 from pbrsr_core.limits import Limits
 from pbrsr_core.options import DEFAULT_PRIOR
 
@@ -70,11 +72,9 @@ class Settings(BaseSettings):
         "pbrsr", description="Prefix of pbrsr's own Redis keys (job index, cancel flags)."
     )
     cache_dir: Path | None = Field(
-        None, description="Converted prior weights (read by the prior code as PBRSR_CACHE_DIR)."
+        None, description="Converted prior weights, BRDF table and prefiltered lights."
     )
-    npm_dir: Path | None = Field(
-        None, description="node_modules holding the TF.js prior (PBRSR_NPM_DIR)."
-    )
+    npm_dir: Path | None = Field(None, description="node_modules holding the TF.js prior.")
     models_dir: Path | None = Field(
         None,
         description="Folder of extra prior weights a job may name as 'spandrel:<file>' or "
@@ -246,12 +246,13 @@ class Settings(BaseSettings):
             ) from None
         return root
 
-    def export_env(self) -> None:
-        """Put the variables the core reads directly (cache and npm dirs) into os.environ."""
-        if self.cache_dir is not None:
-            os.environ["PBRSR_CACHE_DIR"] = str(self.cache_dir)
-        if self.npm_dir is not None:
-            os.environ["PBRSR_NPM_DIR"] = str(self.npm_dir)
+    def configure_runtime(self) -> None:
+        """Install the core's runtime settings for this process: the ``PBRSR_*`` tuning
+        variables (:mod:`pbrsr_core.cli.environment`), then this configuration's cache and npm
+        folders."""
+        configure_from_env()
+        folders = {"cache_dir": self.cache_dir, "npm_dir": self.npm_dir}
+        runtime.configure(**{k: v for k, v in folders.items() if v is not None})
 
 
 @lru_cache(maxsize=1)

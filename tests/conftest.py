@@ -5,7 +5,16 @@ from __future__ import annotations
 import pytest
 import torch
 
+from pbrsr_core import runtime
+
 
 @pytest.fixture(autouse=True)
 def _seed():
     torch.manual_seed(0)
+
+
+@pytest.fixture
+def set_runtime(monkeypatch):
+    """``runtime.configure`` for one test: the settings in effect before come back after."""
+    monkeypatch.setattr(runtime, "_current", runtime.current())
+    return runtime.configure

@@ -24,8 +24,8 @@ def app():
 
 
 @pytest.mark.skipif(not (rrdn.package_dir() / "package.json").is_file(), reason="no npm package")
-def test_install_then_noop_then_list(app, tmp_path, monkeypatch):
-    monkeypatch.setenv("PBRSR_CACHE_DIR", str(tmp_path))
+def test_install_then_noop_then_list(app, tmp_path, set_runtime):
+    set_runtime(cache_dir=tmp_path)
     clear_cache()
     runner = CliRunner()
     first = runner.invoke(app, ["priors", "install", "rrdn-thick"])
@@ -41,8 +41,8 @@ def test_install_then_noop_then_list(app, tmp_path, monkeypatch):
     assert "yes" in line and "x2, x3, x4, x8" in line and "MB" in line
 
 
-def test_list_shows_not_installed(app, tmp_path, monkeypatch):
-    monkeypatch.setenv("PBRSR_CACHE_DIR", str(tmp_path / "empty"))
+def test_list_shows_not_installed(app, tmp_path, set_runtime):
+    set_runtime(cache_dir=tmp_path / "empty")
     out = CliRunner().invoke(app, ["priors", "list"]).output
     line = next(ln for ln in out.splitlines() if "rrdn-thick" in ln)
     assert " no " in line and "pbrsr priors install" in line

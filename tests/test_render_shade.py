@@ -112,8 +112,8 @@ def test_brdf_lut_against_quadrature(rough, n_dot_v):
         assert f0 * a.item() + b.item() == pytest.approx(ref, rel=0.03, abs=2e-3)
 
 
-def test_brdf_lut_is_cached_on_disk(tmp_path, monkeypatch):
-    monkeypatch.setenv("PBRSR_CACHE_DIR", str(tmp_path))
+def test_brdf_lut_is_cached_on_disk(tmp_path, monkeypatch, set_runtime):
+    set_runtime(cache_dir=tmp_path)
     monkeypatch.setattr(light, "_LUT_MEMO", {})
     lut = light.brdf_lut(size=8, samples=64)
     files = list(tmp_path.glob("brdf_lut_*.npz"))
@@ -124,10 +124,10 @@ def test_brdf_lut_is_cached_on_disk(tmp_path, monkeypatch):
     assert light.brdf_lut().sum(-1).max() <= 1.0 + 2e-3
 
 
-def test_prefiltered_environment_is_cached_on_disk(tmp_path, monkeypatch):
+def test_prefiltered_environment_is_cached_on_disk(tmp_path, monkeypatch, set_runtime):
     from pbrsr_core.render.envmaps import procedural_sky
 
-    monkeypatch.setenv("PBRSR_CACHE_DIR", str(tmp_path))
+    set_runtime(cache_dir=tmp_path)
     sky = procedural_sky()
     first = light.EnvLight(sky)
     files = list(tmp_path.glob("envlight_*.npz"))
@@ -147,7 +147,7 @@ def test_prefiltered_environment_is_cached_on_disk(tmp_path, monkeypatch):
     light.EnvLight(torch.roll(sky, 7, dims=1))
     assert len(list(tmp_path.glob("envlight_*.npz"))) == 2
     # an unwritable cache only costs the computation
-    monkeypatch.setenv("PBRSR_CACHE_DIR", str(tmp_path / "file"))
+    set_runtime(cache_dir=tmp_path / "file")
     (tmp_path / "file").write_text("not a folder")
     assert light.EnvLight(sky).diffuse_map.equal(first.diffuse_map)
 

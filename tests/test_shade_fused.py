@@ -248,12 +248,12 @@ def test_hostile_inputs_stay_finite(env):
     assert (ins[5].grad[:8] == 0).all()  # degenerate normal: the geometric one, no gradient
 
 
-def test_reference_switch(gbuffers, env, monkeypatch):
+def test_reference_switch(gbuffers, env, set_runtime):
     gb, tex = gbuffers[0], _textures()
     assert shade.use_fused(gb, tex, env)
-    monkeypatch.setenv(shade.REFERENCE_ENV, "1")
+    set_runtime(shade_reference=True)
     assert not shade.use_fused(gb, tex, env)
-    monkeypatch.setenv(shade.REFERENCE_ENV, "0")
+    set_runtime(shade_reference=False)
     assert shade.use_fused(gb, tex, env)
     half = {k: v.half() for k, v in tex.items()}
     assert not shade.use_fused(gb, half, env)  # only float32/float64 kernels

@@ -117,7 +117,7 @@ def build_worker(settings: Settings, *, name: str | None = None) -> PbrsrWorker:
 
     from pbrsr_core.device import resolve_device
 
-    settings.export_env()
+    settings.configure_runtime()
     layout = JobLayout(settings.prepare_storage())
     redis = Redis.from_url(settings.redis_url)
     redis.ping()

@@ -11,6 +11,7 @@ from importlib.metadata import entry_points
 import typer
 
 from ..errors import PbrsrError
+from .environment import configure_from_env
 
 app = typer.Typer(
     name="pbrsr",
@@ -37,6 +38,7 @@ def _register_all() -> None:
 def main() -> None:
     _register_all()
     try:
+        configure_from_env()
         app()
     except PbrsrError as exc:
         typer.secho(f"error: {exc.message}", fg="red", err=True)

@@ -27,6 +27,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .. import runtime
+
 _Q = 65535.0
 
 
@@ -42,10 +44,18 @@ def dequantize(q: np.ndarray, device: torch.device) -> torch.Tensor:
 
 
 class _MemoryCache:
-    def __init__(self, max_bytes: int):
-        self.max_bytes = max_bytes
+    """LRU of uint16 targets; ``max_bytes`` None: the runtime's ``pseudo_gt_cache_mb``."""
+
+    def __init__(self, max_bytes: int | None = None):
+        self._max_bytes = max_bytes
         self.items: OrderedDict[str, np.ndarray] = OrderedDict()
         self.bytes = 0
+
+    @property
+    def max_bytes(self) -> int:
+        if self._max_bytes is not None:
+            return self._max_bytes
+        return runtime.current().pseudo_gt_cache_mb * 2**20
 
     def get(self, key: str) -> np.ndarray | None:
         v = self.items.get(key)
@@ -69,7 +79,7 @@ class _MemoryCache:
         self.bytes = 0
 
 
-MEMORY_CACHE = _MemoryCache(int(os.environ.get("PBRSR_PSEUDO_GT_CACHE_MB", "512")) * 2**20)
+MEMORY_CACHE = _MemoryCache()
 
 
 def _feed(h, obj, depth: int = 0) -> None:

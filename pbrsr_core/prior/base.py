@@ -13,25 +13,23 @@ Precision: a network prior whose bfloat16 output was measured against its float3
 (``bf16_validated``) runs under bfloat16 autocast where the hardware computes bfloat16
 natively (AVX512-BF16/AMX CPUs, CUDA GPUs with bf16): rrdn-thick at x4 ran 2.1x faster on an
 AVX512-BF16 CPU and its output stayed 56 dB from float32's; where bfloat16 is only emulated it
-runs in float32. ``$PBRSR_PRIOR_PRECISION`` (or the
+runs in float32. The runtime's ``prior_precision`` (``$PBRSR_PRIOR_PRECISION``; or the
 ``precision`` attribute) = ``fp32`` turns that off, ``bf16`` forces it for any network prior.
 """
 
 from __future__ import annotations
 
-import os
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
 
+from .. import runtime
 from ..errors import InvalidOptions, UnprocessableAsset
+from ..runtime import PRECISIONS
 from .backproject import back_project
 from .tiling import count_tiles, default_tile_size, run_tiled
-
-PRECISION_ENV = "PBRSR_PRIOR_PRECISION"
-PRECISIONS = ("auto", "fp32", "bf16")
 
 TileProgress = Callable[[int, int], None]
 """``progress(done, total)`` in tiles; raise :class:`pbrsr_core.errors.Cancelled` to stop."""
@@ -64,7 +62,7 @@ class Prior(ABC):
     def __init__(self) -> None:
         self.tile_size: int | None = None  # LR pixels; None: chosen from free memory
         self.tile_overlap: int | None = None  # LR pixels; None: default_overlap
-        self.precision: str | None = None  # auto, fp32, bf16; None: $PBRSR_PRIOR_PRECISION
+        self.precision: str | None = None  # auto, fp32, bf16; None: the runtime's
 
     # -- to implement ------------------------------------------------------------------
     @abstractmethod
@@ -92,11 +90,10 @@ class Prior(ABC):
 
     def uses_bf16(self) -> bool:
         """Whether the network runs under bfloat16 autocast (see the module docstring)."""
-        choice = self.precision or os.environ.get(PRECISION_ENV) or "auto"
+        choice = self.precision or runtime.current().prior_precision
         if choice not in PRECISIONS:
             raise InvalidOptions(
-                f"prior precision {choice!r} is not one of {', '.join(PRECISIONS)} "
-                f"(set by {PRECISION_ENV})"
+                f"prior precision {choice!r} is not one of {', '.join(PRECISIONS)}"
             )
         if not self.is_network or choice == "fp32":
             return False

@@ -12,10 +12,11 @@ their sums, so the blend is a partition of unity and the result needs no final d
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Callable
 
 import torch
+
+from .. import runtime
 
 TileFn = Callable[[torch.Tensor], torch.Tensor]
 
@@ -140,10 +141,10 @@ def default_tile_size(
 ) -> int:
     """Largest tile side (LR pixels, a multiple of 32 in [64, 1024]; at most 512 on CPU where
     larger tiles are not faster) whose estimated peak memory ``tile**2 * bytes_per_pixel``
-    fits in ``fraction`` of the free memory. ``PBRSR_PRIOR_TILE`` overrides it."""
-    env = os.environ.get("PBRSR_PRIOR_TILE")
-    if env:
-        return max(16, int(env))
+    fits in ``fraction`` of the free memory. The runtime's ``prior_tile`` overrides it."""
+    tile = runtime.current().prior_tile
+    if tile:
+        return max(16, tile)
     budget = free_memory_bytes(device) * fraction
     side = int(math.sqrt(max(budget, 1.0) / max(bytes_per_pixel, 1.0)))
     side = side // 32 * 32

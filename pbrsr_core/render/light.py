@@ -13,7 +13,7 @@ An :class:`EnvLight` holds, precomputed once from an equirectangular radiance ma
 * :func:`brdf_lut`: the split-sum BRDF table, ``(A, B)`` with ``int f cos = F0 * A + B`` as a
   function of (NdotV, roughness), integrated by GGX importance sampling with the separable
   Smith GGX G (exact G1) and Schlick's Fresnel. Computed by the code, cached in memory and
-  on disk (``$PBRSR_CACHE_DIR``, else ``$XDG_CACHE_HOME/pbrsr`` or ``~/.cache/pbrsr``),
+  on disk (the runtime's cache folder, :func:`pbrsr_core.runtime.cache_dir`),
   never shipped as a file.
 
 Lookups use ``grid_sample`` so they are differentiable w.r.t. the direction and roughness
@@ -33,6 +33,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from .. import runtime
 from .envmaps import (
     dir_to_uv,
     procedural_sky,
@@ -272,13 +273,8 @@ _LUT_MEMO: dict[tuple, torch.Tensor] = {}
 
 
 def _cache_dir() -> Path:
-    """``$PBRSR_CACHE_DIR``, else ``$XDG_CACHE_HOME/pbrsr`` or ``~/.cache/pbrsr`` (the same
-    rule as the prior weights cache)."""
-    root = os.environ.get("PBRSR_CACHE_DIR")
-    if root:
-        return Path(root).expanduser()
-    xdg = os.environ.get("XDG_CACHE_HOME")
-    return (Path(xdg).expanduser() if xdg else Path.home() / ".cache") / "pbrsr"
+    """The runtime's cache folder (:func:`pbrsr_core.runtime.cache_dir`), as for prior weights."""
+    return runtime.cache_dir()
 
 
 def _hammersley(n: int) -> tuple[torch.Tensor, torch.Tensor]:

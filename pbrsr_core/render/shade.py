@@ -21,11 +21,11 @@ tables are finite everywhere (the LUT uses alpha >= ``light.ALPHA_MIN``).
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping, Sequence
 
 import torch
 
+from .. import runtime
 from ..asset.model import DEFAULT_MATERIAL, Material, TextureRef
 from ..colour import linear_to_srgb
 from .light import EnvLight, brdf_lut, lookup_brdf
@@ -34,7 +34,6 @@ from .shade_kernels import DecodeNormal, shade_fused, supported
 from .texture import gather, prepare
 
 NDOTV_MIN = 1e-4
-REFERENCE_ENV = "PBRSR_SHADE_REFERENCE"  # set to 1: the torch reference path on the CPU too
 
 
 def safe_normalize(x: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
@@ -271,8 +270,9 @@ def shade_terms(
 
 def use_fused(gb: GBuffer, textures: Mapping[int, torch.Tensor], light: EnvLight) -> bool:
     """Whether :func:`shade` takes the fused CPU kernels (:mod:`shade_kernels`): everything on
-    the CPU in float32/float64 and ``$PBRSR_SHADE_REFERENCE`` unset (or 0)."""
-    if os.environ.get(REFERENCE_ENV, "").strip() not in ("", "0"):
+    the CPU in float32/float64 and the runtime's ``shade_reference`` off
+    (``$PBRSR_SHADE_REFERENCE`` unset or 0)."""
+    if runtime.current().shade_reference:
         return False
     return gb.device.type == "cpu" and light.device.type == "cpu" and supported(*textures.values())
 
@@ -293,7 +293,7 @@ def shade(
     encoded in [0, 1]); differentiable w.r.t. every texture. ``lut``: the BRDF table
     (default :func:`light.brdf_lut`). On the CPU the per-pixel shading runs as one fused
     numba pass forward and one backward (:mod:`shade_kernels`, equal to the torch path to
-    rounding); ``reference=True`` (or ``$PBRSR_SHADE_REFERENCE=1``) forces the torch path
+    rounding); ``reference=True`` (or the runtime's ``shade_reference``) forces the torch path
     of :func:`shade_terms`, which is also the path on CUDA."""
     dtype = next(iter(textures.values())).dtype if textures else torch.float32
     if gb.num_pixels == 0:
