@@ -58,17 +58,34 @@ def prior_cmd(
 def fuzz_cmd(
     cases: int = typer.Option(3000, "--cases", "-n", help="Number of mutated assets."),
     seed: int = typer.Option(0, "--seed", "-s", help="Seed: case i of seed s is reproducible."),
+    start: int = typer.Option(
+        0, "--start", min=0, help="First case index (--start I --cases 1 replays case I)."
+    ),
     out: Path = typer.Option(Path("bench-out/fuzz"), "--out", "-o", help="Output directory."),
     shared: bool = typer.Option(
-        False, help="Also mutate the .glb files (< 2 MB) of /work/shared/assets, if present."
+        False, help="Also mutate the .glb files (< 2 MB) of the shared assets, if present."
+    ),
+    memory_cap: int | None = typer.Option(
+        None, "--memory-cap", min=0, help="Address-space cap of the case process, MiB [2048]."
+    ),
+    case_timeout: float | None = typer.Option(
+        None, "--case-timeout", min=1.0, help="Seconds one case may take [60]."
     ),
 ) -> None:
-    """Fuzz the GLB/glTF reader, writer and zip extraction with mutated valid assets; any
-    exception that is not a pbrsr error is an escape, saved under OUT/findings/."""
+    """Fuzz the GLB/glTF reader, writer and zip extraction with mutated valid assets in a
+    memory-capped child process; any exception that is not a pbrsr error, a crash, a hang or
+    an allocation past the cap is an escape, saved under OUT/findings/."""
     from pbrsr_bench.fuzz import print_table, run
 
+    limits = {"memory_cap_mib": memory_cap, "case_timeout_s": case_timeout}
     result = run(
-        cases=cases, seed=seed, out_dir=out, shared=shared, log=lambda m: typer.echo(m, err=True)
+        cases=cases,
+        seed=seed,
+        start=start,
+        out_dir=out,
+        shared=shared,
+        log=lambda m: typer.echo(m, err=True),
+        **{k: v for k, v in limits.items() if v is not None},
     )
     print_table(result)
     typer.echo(f"wrote {out / 'fuzz.json'} and {out / 'fuzz.png'}")

@@ -382,7 +382,7 @@ def make_case(seed: Seed, draw: Draw) -> Case:
     return Case(seed.label, seed.name, data, res, ops)
 
 
-def run_case(case: Case, work: Path, limits: Limits = FUZZ_LIMITS) -> str:
+def run_case(case: Case, work: Path, limits: Limits = FUZZ_LIMITS, load=load_asset) -> str:
     """Load (and on success save and reload) one case inside ``work`` (emptied first).
 
     Returns the outcome: "ok", "ok-saved" or the PbrsrError class name. Any other exception
@@ -399,7 +399,7 @@ def run_case(case: Case, work: Path, limits: Limits = FUZZ_LIMITS) -> str:
     try:
         kind = detect_kind(main)
         path = extract_zip(main, work / "unzipped", limits) if kind == "zip" else main
-        asset = load_asset(path, limits)
+        asset = load(path, limits)
         for suffix in ("glb", "gltf"):
             out = work / f"out_{suffix}" / f"r.{suffix}"
             save_asset(asset, out)
@@ -437,86 +437,194 @@ def _save_finding(out_dir: Path, index: int, case: Case, exc: BaseException) -> 
 
 
 # ----------------------------------------------------------------------------- the benchmark
+MEMORY_CAP_MIB = 2048
+"""Address-space limit (RLIMIT_AS) of the process that runs the cases."""
+CASE_TIMEOUT_S = 60.0
+"""A case that runs longer is a finding (the case process is restarted)."""
+
+
+def _escape(index: int, case: Case, exc: BaseException, out_dir: Path) -> dict:
+    return {
+        "index": index,
+        "seed": case.seed,
+        "ops": case.ops,
+        "error": f"{type(exc).__name__}: {str(exc)[:300]}",
+        "path": str(_save_finding(out_dir, index, case, exc)),
+    }
+
+
+def _case_of(seeds: list[Seed], seed: int, index: int) -> tuple[Seed, Case]:
+    s = seeds[index % len(seeds)]
+    return s, make_case(s, RngDraw(np.random.default_rng([seed, index])))
+
+
+def _one(index: int, seed: int, seeds: list[Seed], root: Path, out_dir: Path, load) -> dict:
+    """Case ``index``: its outcome, time, and the escape it found (if any)."""
+    import resource
+
+    s, case = _case_of(seeds, seed, index)
+    t0 = time.perf_counter()
+    escape = None
+    try:
+        outcome = run_case(case, root / "case", load=load)
+    except Exception as exc:  # noqa: BLE001 - an escape is what we are looking for
+        outcome = f"ESCAPE {type(exc).__name__}"
+        escape = _escape(index, case, exc, out_dir)
+    stray = _outside_writes(root, {"seeds", "case"})
+    if stray:
+        outcome = "ESCAPE write-outside"
+        exc = RuntimeError(f"files written outside the case folder: {stray}")
+        escape = _escape(index, case, exc, out_dir)
+        for name in stray:
+            shutil.rmtree(root / name, ignore_errors=True)
+    return {
+        "index": index,
+        "seed": s.label,
+        "outcome": outcome,
+        "seconds": time.perf_counter() - t0,
+        "escape": escape,
+        "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
+
+
+def _case_process(conn, seed: int, shared: bool, root: Path, out_dir: Path, cap_mib: int, load):
+    """The child that runs cases: address space capped, then case indices in, results out."""
+    import resource
+
+    if cap_mib:
+        cap = cap_mib * 1024 * 1024
+        resource.setrlimit(resource.RLIMIT_AS, (cap, cap))
+    seeds = make_seeds(root / "seeds", shared)
+    conn.send(len(seeds))
+    while (index := conn.recv()) is not None:
+        conn.send(_one(index, seed, seeds, root, out_dir, load))
+
+
+class _CaseRunner:
+    """A capped child process that runs one case at a time; restarted after it dies."""
+
+    def __init__(self, seed: int, shared: bool, root: Path, out_dir: Path, cap_mib: int, load):
+        import multiprocessing
+
+        self.ctx = multiprocessing.get_context("spawn")
+        self.args = (seed, shared, root, out_dir, cap_mib, load)
+        self.root = root
+        self.proc = None
+        self.conn = None
+
+    def _start(self) -> None:
+        shutil.rmtree(self.root, ignore_errors=True)
+        self.root.mkdir(parents=True)
+        self.conn, child = self.ctx.Pipe()
+        self.proc = self.ctx.Process(target=_case_process, args=(child, *self.args), daemon=True)
+        self.proc.start()
+        child.close()
+        if not self.conn.poll(300):
+            raise RuntimeError("the fuzz case process did not start")
+        self.conn.recv()
+
+    def run(self, index: int, timeout: float) -> dict | str:
+        """The case's result, or why the process ended without one ("timeout", "exit 1",
+        "signal 9")."""
+        if self.proc is None or not self.proc.is_alive():
+            self._start()
+        self.conn.send(index)
+        try:
+            if self.conn.poll(timeout):
+                return self.conn.recv()
+            why = f"timeout after {timeout:.0f} s"
+        except (EOFError, ConnectionError):
+            why = ""
+        self.stop(kill=True)
+        code = self.proc.exitcode
+        return why or (f"signal {-code}" if code is not None and code < 0 else f"exit {code}")
+
+    def stop(self, kill: bool = False) -> None:
+        if self.proc is None:
+            return
+        if kill:
+            self.proc.kill()
+        elif self.proc.is_alive():
+            self.conn.send(None)
+        self.proc.join(30)
+        if self.proc.is_alive():
+            self.proc.kill()
+            self.proc.join()
+
+
 def run(
     *,
     cases: int = 3000,
     seed: int = 0,
+    start: int = 0,
     out_dir: Path = Path("bench-out/fuzz"),
     shared: bool = False,
+    memory_cap_mib: int = MEMORY_CAP_MIB,
+    case_timeout_s: float = CASE_TIMEOUT_S,
+    load=load_asset,
     log=None,
 ) -> dict:
-    """Fuzz ``cases`` mutated assets; write ``fuzz.json`` and ``fuzz.png`` into ``out_dir``.
+    """Fuzz cases ``start .. start + cases - 1`` of ``seed``; write ``fuzz.json`` and
+    ``fuzz.png`` into ``out_dir``.
 
-    Returns {"cases", "seconds", "cases_per_s", "outcomes" {name: n}, "by_seed" {seed:
-    {outcome: n}}, "escapes" [{index, seed, ops, error, path}], "slowest" [(s, index, seed)]}.
+    The cases run in a child process whose address space is capped at ``memory_cap_mib``
+    (RLIMIT_AS; 0: no cap): an asset that makes the reader allocate past it is a finding
+    (MemoryError), and a case that kills or hangs the process is one too ("crash: signal 9",
+    "crash: timeout"); the process is restarted and the run goes on. ``load`` is the reader
+    (a picklable function; the tests pass broken ones).
+
+    Returns {"cases", "start", "seconds", "cases_per_s", "outcomes" {name: n}, "by_seed"
+    {seed: {outcome: n}}, "escapes" [{index, seed, ops, error, path}], "slowest" [...],
+    "memory_cap_mib", "peak_rss_mib"}.
     """
-    out_dir = Path(out_dir)
+    out_dir = Path(out_dir).resolve()
     out_dir.mkdir(parents=True, exist_ok=True)
     shutil.rmtree(out_dir / "findings", ignore_errors=True)
-    root = Path(tempfile.mkdtemp(prefix="pbrsr-fuzz-"))
+    tmp = Path(tempfile.mkdtemp(prefix="pbrsr-fuzz-"))
     outcomes: Counter[str] = Counter()
     by_seed: dict[str, Counter[str]] = {}
     escapes: list[dict] = []
     slowest: list[tuple[float, int, str]] = []
+    peak = 0.0
+    if shared and not SHARED_ASSETS.is_dir() and log:
+        log(f"{SHARED_ASSETS} does not exist: procedural seeds only")
+    runner = _CaseRunner(seed, shared, tmp / "cases", out_dir, memory_cap_mib, load)
+    seeds: list[Seed] = []
     try:
-        seeds = make_seeds(root / "seeds", shared)
-        if shared and not SHARED_ASSETS.is_dir() and log:
-            log(f"{SHARED_ASSETS} does not exist: procedural seeds only")
-        work = root / "case"
-        allowed = {"seeds", "case"}
         t0 = time.perf_counter()
-        for i in range(cases):
-            rng = np.random.default_rng([seed, i])
-            s = seeds[i % len(seeds)]
-            case = make_case(s, RngDraw(rng))
-            tc = time.perf_counter()
-            try:
-                outcome = run_case(case, work)
-            except Exception as exc:  # noqa: BLE001 - an escape is what we are looking for
-                outcome = f"ESCAPE {type(exc).__name__}"
-                path = _save_finding(out_dir, i, case, exc)
-                escapes.append(
-                    {
-                        "index": i,
-                        "seed": s.label,
-                        "ops": case.ops,
-                        "error": f"{type(exc).__name__}: {str(exc)[:300]}",
-                        "path": str(path),
-                    }
-                )
-            stray = _outside_writes(root, allowed)
-            if stray:
-                outcome = "ESCAPE write-outside"
-                exc = RuntimeError(f"files written outside the case folder: {stray}")
-                escapes.append(
-                    {
-                        "index": i,
-                        "seed": s.label,
-                        "ops": case.ops,
-                        "error": str(exc),
-                        "path": str(_save_finding(out_dir, i, case, exc)),
-                    }
-                )
-                for name in stray:
-                    shutil.rmtree(root / name, ignore_errors=True)
-            dt = time.perf_counter() - tc
-            slowest = sorted([*slowest, (dt, i, s.label)], reverse=True)[:5]
-            outcomes[outcome] += 1
-            by_seed.setdefault(s.label, Counter())[outcome] += 1
-            if log and (i + 1) % 500 == 0:
-                log(f"{i + 1}/{cases} cases, {len(escapes)} escapes")
+        for n, index in enumerate(range(start, start + cases), 1):
+            res = runner.run(index, case_timeout_s)
+            if isinstance(res, str):  # the process died or hung: regenerate the case here
+                seeds = seeds or make_seeds(tmp / "parent-seeds", shared)
+                s, case = _case_of(seeds, seed, index)
+                exc = RuntimeError(f"the case process ended: {res}")
+                escapes.append(_escape(index, case, exc, out_dir))
+                res = {"seed": s.label, "outcome": "ESCAPE crash", "seconds": case_timeout_s}
+            elif res["escape"]:
+                escapes.append(res["escape"])
+            if "peak_rss_mib" in res:
+                peak = max(peak, res["peak_rss_mib"])
+            slowest = sorted([*slowest, (res["seconds"], index, res["seed"])], reverse=True)[:5]
+            outcomes[res["outcome"]] += 1
+            by_seed.setdefault(res["seed"], Counter())[res["outcome"]] += 1
+            if log and n % 500 == 0:
+                log(f"{n}/{cases} cases, {len(escapes)} escapes, peak RSS {peak:.0f} MiB")
         seconds = time.perf_counter() - t0
     finally:
-        shutil.rmtree(root, ignore_errors=True)
+        runner.stop()
+        shutil.rmtree(tmp, ignore_errors=True)
     result = {
         "cases": cases,
         "seed": seed,
+        "start": start,
         "seconds": round(seconds, 3),
         "cases_per_s": round(cases / max(seconds, 1e-9), 1),
         "outcomes": dict(outcomes.most_common()),
         "by_seed": {k: dict(v.most_common()) for k, v in by_seed.items()},
         "escapes": escapes,
         "slowest": [{"seconds": round(t, 3), "index": i, "seed": lbl} for t, i, lbl in slowest],
+        "memory_cap_mib": memory_cap_mib,
+        "peak_rss_mib": round(peak, 1),
         "shared_assets": SHARED_ASSETS.is_dir() and shared,
     }
     (out_dir / "fuzz.json").write_text(json.dumps(result, indent=2))
@@ -559,9 +667,12 @@ def print_table(result: dict) -> None:
         style = "red" if name.startswith("ESCAPE") else None
         t.add_row(name, str(n), f"{100 * n / result['cases']:.1f}%", style=style)
     console.print(t)
+    first, last = result["start"], result["start"] + result["cases"] - 1
+    cap = f"{result['memory_cap_mib']} MiB" if result["memory_cap_mib"] else "none"
     console.print(
-        f"{result['cases']} cases in {result['seconds']:.1f} s "
-        f"({result['cases_per_s']} cases/s); escapes: {len(result['escapes'])}"
+        f"cases {first}..{last} of seed {result['seed']} in {result['seconds']:.1f} s "
+        f"({result['cases_per_s']} cases/s); escapes: {len(result['escapes'])}; "
+        f"peak RSS of the case process {result['peak_rss_mib']:.0f} MiB (cap {cap})"
     )
     for e in result["escapes"][:10]:
         console.print(f"[red]escape[/red] #{e['index']} {e['seed']} {e['ops']}: {e['error']}")

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import io
 import json
+import os
+import signal
 import struct
 import tempfile
 import zipfile
@@ -28,7 +30,7 @@ from pbrsr_bench.fuzz import (
 )
 from pbrsr_core.asset import extract_zip, load_asset, make_quad_asset
 from pbrsr_core.asset.gltf_read import parse_glb
-from pbrsr_core.errors import InvalidAsset
+from pbrsr_core.errors import InvalidAsset, UnsupportedAsset
 
 _SEEDS: list = []
 
@@ -63,20 +65,58 @@ def test_bench_fuzz_small_run(tmp_path):
     assert (tmp_path / "fuzz.png").stat().st_size > 1000
 
 
-def test_an_escape_is_reported_with_its_reproducer(tmp_path, monkeypatch):
+def _broken_reader(path, limits=None, **kw):
+    raise KeyError("boom")
+
+
+def _memory_bomb(path, limits=None, **kw):
+    """A reader that allocates 3 GiB for any asset: past the case process's cap."""
+    return bytearray(3 * 2**30)
+
+
+def _killer(path, limits=None, **kw):
+    if path.suffix == ".gltf":
+        os.kill(os.getpid(), signal.SIGKILL)
+    raise InvalidAsset("refused")
+
+
+def test_an_escape_is_reported_with_its_reproducer(tmp_path):
     """The bench is able to fail: a reader that raises a non-pbrsr error is caught."""
-    import pbrsr_bench.fuzz as fuzz
-
-    def broken(path, limits=None, **kw):
-        raise KeyError("boom")
-
-    monkeypatch.setattr(fuzz, "load_asset", broken)
-    result = run(cases=6, seed=0, out_dir=tmp_path)
+    result = run(cases=6, seed=0, out_dir=tmp_path, load=_broken_reader)
     glb_or_gltf = [e for e in result["escapes"] if e["error"].startswith("KeyError")]
     assert glb_or_gltf
     d = Path(glb_or_gltf[0]["path"])
     assert (d / "finding.json").is_file()
     assert any(p.suffix in (".glb", ".gltf", ".zip") for p in d.iterdir())
+
+
+def test_an_allocation_past_the_cap_is_a_finding_not_a_dead_run(tmp_path):
+    result = run(cases=3, seed=0, out_dir=tmp_path, memory_cap_mib=2048, load=_memory_bomb)
+    assert sum(result["outcomes"].values()) == 3  # every case ran
+    bombs = [e for e in result["escapes"] if e["error"].startswith("MemoryError")]
+    assert bombs and all(Path(e["path"], "finding.json").is_file() for e in bombs)
+    assert result["peak_rss_mib"] < 2048
+
+
+def test_a_killed_case_process_is_a_finding_and_the_run_goes_on(tmp_path):
+    # seeds cycle quad.glb, rich.glb, datauri.gltf, external.gltf, external.zip
+    result = run(cases=5, seed=0, out_dir=tmp_path, load=_killer)
+    crashed = sorted(e["index"] for e in result["escapes"])
+    assert result["outcomes"]["ESCAPE crash"] == len(crashed) >= 2
+    assert 0 not in crashed and 1 not in crashed  # GLB cases: refused, the process lives on
+    assert {2, 3} <= set(crashed)  # the two .gltf seeds reach the reader and kill it
+    assert result["outcomes"].get("InvalidAsset", 0) >= 1
+    assert all("signal 9" in e["error"] for e in result["escapes"])
+
+
+def test_start_replays_one_case(tmp_path):
+    """``--start I --cases 1`` runs case I of the seed alone, as the whole run made it: case
+    7321 of seed 23 named texture coordinate set 2**53 + 1, which grew the reader's memory
+    without bound."""
+    result = run(cases=1, seed=23, start=7321, out_dir=tmp_path)
+    assert result["escapes"] == []
+    assert result["outcomes"] == {"UnsupportedAsset": 1}
+    assert result["start"] == 7321
 
 
 @settings(
@@ -195,3 +235,16 @@ def test_zip_with_lying_offsets_is_invalid(tmp_path):
     z.write_bytes(bytes(cut))
     with pytest.raises(InvalidAsset):
         extract_zip(z, tmp_path / "out3")
+
+
+@pytest.mark.parametrize(
+    ("value", "error", "says"),
+    [(2**53 + 1, UnsupportedAsset, "set 9007199254740993"), ("a" * 5000, InvalidAsset, "texCoord")],
+)
+def test_texcoord_sets_are_checked_before_anything_is_made_for_them(tmp_path, value, error, says):
+    def edit(doc):
+        doc["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"]["texCoord"] = value
+
+    with pytest.raises(error, match=says) as info:
+        load_asset(_glb_with(tmp_path, edit))
+    assert len(str(info.value)) < 200

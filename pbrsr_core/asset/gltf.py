@@ -107,6 +107,21 @@ def node_matrix(node: dict, what: str = "node") -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- materials
+MAX_TEXCOORD_SETS = 32
+"""Texture coordinate sets (TEXCOORD_0..31) a material may name; real assets use one or two."""
+
+
+def _texcoord_set(value, what: str) -> int:
+    if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+        raise InvalidAsset(f"{what} has an invalid texCoord {value!r:.40}")
+    if value >= MAX_TEXCOORD_SETS:
+        raise UnsupportedAsset(
+            f"{what} names texture coordinate set {value}; pbrsr reads sets 0 to "
+            f"{MAX_TEXCOORD_SETS - 1}"
+        )
+    return value
+
+
 def _texture_ref(doc: dict, info: dict, what: str) -> TextureRef | None:
     if not isinstance(info, dict):
         raise InvalidAsset(f"{what} is not an object")
@@ -123,15 +138,13 @@ def _texture_ref(doc: dict, info: dict, what: str) -> TextureRef | None:
                 )
         return None
     image = get_index(tex, "source", len(doc.get("images", [])), f"texture {ti}")
-    texcoord = info.get("texCoord", 0)
-    if not isinstance(texcoord, int) or texcoord < 0:
-        raise InvalidAsset(f"{what} has an invalid texCoord")
+    texcoord = _texcoord_set(info.get("texCoord", 0), what)
     uv_transform = None
     ktt = (info.get("extensions") or {}).get("KHR_texture_transform")
     if isinstance(ktt, dict):
         uv_transform = texture_transform_matrix(ktt)
-        if isinstance(ktt.get("texCoord"), int) and ktt["texCoord"] >= 0:
-            texcoord = ktt["texCoord"]
+        if "texCoord" in ktt:
+            texcoord = _texcoord_set(ktt["texCoord"], f"{what}'s KHR_texture_transform")
     wrap_s = wrap_t = REPEAT
     mag = minf = None
     if "sampler" in tex:
