@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 import typer
 
@@ -16,6 +17,29 @@ def _bad_input(exc: ValueError) -> NoReturn:
     """A benchmark refused its input (an unknown asset, an impossible size): say why, exit 2."""
     typer.echo(f"error: {exc}", err=True)
     raise typer.Exit(2) from None
+
+
+def _log(message: str) -> None:
+    typer.echo(message, err=True)
+
+
+def _report(
+    run: Callable[..., Any],
+    show: Callable[[Any], None],
+    written: list[Path],
+    failed: Callable[[Any], bool] | None = None,
+    **options: Any,
+) -> None:
+    """Every bench command: run with ``options`` and progress on stderr (a refused input exits
+    2), print the table with ``show``, name the files written, exit 1 when ``failed``."""
+    try:
+        result = run(log=_log, **options)
+    except ValueError as exc:
+        _bad_input(exc)
+    show(result)
+    typer.echo("wrote " + ", ".join(str(p) for p in written))
+    if failed is not None and failed(result):
+        raise typer.Exit(1)
 
 
 def _ints(text: str) -> tuple[int, ...]:
@@ -37,10 +61,13 @@ def prior_cmd(
     threads: int = typer.Option(0, help="torch intra-op threads (0: torch's default)."),
 ) -> None:
     """Prior speed (256² and tiled 1024² inputs), peak memory and PSNR gain over bicubic on
-    skimage photos and on albedo crops of /work/shared/assets (when present)."""
+    skimage photos and on albedo crops of the shared assets (when present)."""
     from pbrsr_bench.prior import print_table, run
 
-    result = run(
+    _report(
+        run,
+        print_table,
+        [out / "prior.json", out / "prior.png"],
         out_dir=out,
         priors=prior or None,
         scales=_ints(scales),
@@ -48,10 +75,7 @@ def prior_cmd(
         device=device,
         crop=crop,
         threads=threads or None,
-        log=lambda m: typer.echo(m, err=True),
     )
-    print_table(result)
-    typer.echo(f"wrote {out / 'prior.json'} and {out / 'prior.png'}")
 
 
 @bench_app.command("fuzz")
@@ -78,19 +102,18 @@ def fuzz_cmd(
     from pbrsr_bench.fuzz import print_table, run
 
     limits = {"memory_cap_mib": memory_cap, "case_timeout_s": case_timeout}
-    result = run(
+    _report(
+        run,
+        print_table,
+        [out / "fuzz.json", out / "fuzz.png"],
+        lambda result: bool(result["escapes"]),
         cases=cases,
         seed=seed,
         start=start,
         out_dir=out,
         shared=shared,
-        log=lambda m: typer.echo(m, err=True),
         **{k: v for k, v in limits.items() if v is not None},
     )
-    print_table(result)
-    typer.echo(f"wrote {out / 'fuzz.json'} and {out / 'fuzz.png'}")
-    if result["escapes"]:
-        raise typer.Exit(1)
 
 
 @bench_app.command("render")
@@ -98,7 +121,7 @@ def render_cmd(
     out: Path = typer.Option(Path("bench-out/render"), "--out", "-o", help="Output directory."),
     resolutions: str = typer.Option("512,1024", help="Render resolutions, comma-separated."),
     views: int = typer.Option(3, help="Orbit views per case (medians are reported)."),
-    shared: bool = typer.Option(True, help="Include /work/shared/assets when present."),
+    shared: bool = typer.Option(True, help="Include the shared assets when present."),
     threads: int = typer.Option(0, help="torch intra-op threads (0: torch's default)."),
 ) -> None:
     """Renderer speed: G-buffer time per view (coverage + interpolation), shading forward +
@@ -106,16 +129,16 @@ def render_cmd(
     the shared assets; plus a per-operator profile of shading."""
     from pbrsr_bench.render import print_table, run
 
-    result = run(
+    _report(
+        run,
+        print_table,
+        [out / "render.json", out / "render.png"],
         out_dir=out,
         resolutions=_ints(resolutions),
         n_views=views,
         shared=shared,
         threads=threads or None,
-        log=lambda m: typer.echo(m, err=True),
     )
-    print_table(result)
-    typer.echo(f"wrote {out / 'render.json'} and {out / 'render.png'}")
 
 
 @bench_app.command("step")
@@ -131,17 +154,17 @@ def step_cmd(
     projection) against its memory-traffic floor, per map size."""
     from pbrsr_bench.step import print_table, run
 
-    result = run(
+    _report(
+        run,
+        print_table,
+        [out / "step.json", out / "step.png"],
         out_dir=out,
         sizes=_ints(sizes),
         images=images,
         channels=channels,
         steps=steps,
         threads=threads or None,
-        log=lambda m: typer.echo(m, err=True),
     )
-    print_table(result)
-    typer.echo(f"wrote {out / 'step.json'} and {out / 'step.png'}")
 
 
 @bench_app.command("upscale")
@@ -170,26 +193,29 @@ def upscale_cmd(
     wall time, peak memory, PSNR per map and render PSNR, with curves over iterations."""
     from pbrsr_bench.upscale import markdown_table, run, summary_table
 
-    try:
-        rows = run(
-            out_dir=out,
-            assets=asset or None,
-            methods=tuple(m.strip() for m in methods.split(",") if m.strip()),
-            scale=scale,
-            prior=prior,
-            eval_res=eval_res,
-            eval_views=eval_views,
-            include_procedural=procedural,
-            include_shared=shared,
-            procedural_size=procedural_size,
-            lr_format=lr_format,
-            say=lambda m: typer.echo(m, err=True),
-        )
-    except ValueError as exc:
-        _bad_input(exc)
-    typer.echo(markdown_table(rows))
-    typer.echo(summary_table(rows))
-    typer.echo(f"wrote {out / 'results.json'}, {out / 'results.md'}, {out / 'speed_vs_error.png'}")
+    _report(
+        run,
+        lambda rows: typer.echo(markdown_table(rows) + "\n" + summary_table(rows)),
+        [out / "results.json", out / "results.md", out / "speed_vs_error.png"],
+        out_dir=out,
+        assets=asset or None,
+        methods=tuple(m.strip() for m in methods.split(",") if m.strip()),
+        scale=scale,
+        prior=prior,
+        eval_res=eval_res,
+        eval_views=eval_views,
+        include_procedural=procedural,
+        include_shared=shared,
+        procedural_size=procedural_size,
+        lr_format=lr_format,
+    )
+
+
+def _load_report(out: Path, **options: Any) -> None:
+    from pbrsr_bench.load import print_table, run
+
+    written = [out / "load.json", out / "load.png"]
+    _report(run, print_table, written, lambda result: not result["ok"], out_dir=out, **options)
 
 
 @bench_app.command("load")
@@ -211,9 +237,7 @@ def load_cmd(
     """The job service under load, on loopback only: one API process, a private Redis and
     temporary storage; polling + uploads for --duration s, concurrent big uploads, then
     --jobs small jobs drained by --workers workers. Fails (exit 1) on any error or lost job."""
-    from pbrsr_bench.load import print_table, run
-
-    result = run(
+    _load_report(
         out,
         duration=duration,
         baseline=baseline,
@@ -225,12 +249,7 @@ def load_cmd(
         workers=workers,
         drain_timeout=drain_timeout,
         redis_url=redis_url,
-        log=lambda m: typer.echo(m, err=True),
     )
-    print_table(result)
-    typer.echo(f"wrote {out / 'load.json'} and {out / 'load.png'}")
-    if not result["ok"]:
-        raise typer.Exit(1)
 
 
 @bench_app.command("service")
@@ -246,9 +265,7 @@ def service_cmd(
     """The API alone (the first phases of ``bench load``, no job drain): status-poll
     throughput and p50/p99 latency with concurrent clients, and throughput of concurrent big
     uploads, against one API process on loopback."""
-    from pbrsr_bench.load import print_table, run
-
-    result = run(
+    _load_report(
         out,
         duration=duration,
         baseline=duration,
@@ -256,12 +273,7 @@ def service_cmd(
         uploaders=uploaders,
         upload_mb=upload_mb,
         jobs=0,
-        log=lambda m: typer.echo(m, err=True),
     )
-    print_table(result)
-    typer.echo(f"wrote {out / 'load.json'} and {out / 'load.png'}")
-    if not result["ok"]:
-        raise typer.Exit(1)
 
 
 def register(app: typer.Typer) -> None:
@@ -283,20 +295,17 @@ def oracle_cmd(
     by the ground truth's (the most an upscaler of that map alone can add)."""
     from pbrsr_bench.oracle import markdown_table, run
 
-    try:
-        rows = run(
-            out_dir=out,
-            assets=asset or None,
-            scale=scale,
-            eval_res=eval_res,
-            eval_views=eval_views,
-            include_procedural=procedural,
-            say=lambda m: typer.echo(m, err=True),
-        )
-    except ValueError as exc:
-        _bad_input(exc)
-    typer.echo(markdown_table(rows))
-    typer.echo(f"wrote {out / 'oracle.json'} and {out / 'oracle.png'}")
+    _report(
+        run,
+        lambda rows: typer.echo(markdown_table(rows)),
+        [out / "oracle.json", out / "oracle.png"],
+        out_dir=out,
+        assets=asset or None,
+        scale=scale,
+        eval_res=eval_res,
+        eval_views=eval_views,
+        include_procedural=procedural,
+    )
 
 
 @bench_app.command("paper")
@@ -315,18 +324,15 @@ def paper_cmd(
     steps run for real, each stage extrapolated by its unit of work."""
     from pbrsr_bench.paper import print_table, run
 
-    try:
-        result = run(
-            out_dir=out,
-            asset=asset,
-            elev=elev,
-            azim=azim,
-            iterations=iterations,
-            scale=scale,
-            prior=prior,
-            say=lambda m: typer.echo(m, err=True),
-        )
-    except ValueError as exc:
-        _bad_input(exc)
-    print_table(result)
-    typer.echo(f"wrote {out / 'paper.json'} and {out / 'paper.png'}")
+    _report(
+        run,
+        print_table,
+        [out / "paper.json", out / "paper.png"],
+        out_dir=out,
+        asset=asset,
+        elev=elev,
+        azim=azim,
+        iterations=iterations,
+        scale=scale,
+        prior=prior,
+    )

@@ -49,7 +49,7 @@ from pbrsr_core.asset.gltf_write import save_asset
 from pbrsr_core.errors import PbrsrError
 from pbrsr_core.limits import Limits
 
-SHARED_ASSETS = Path(__file__).resolve().parents[1].parent / "shared" / "assets"
+from .shared import SHARED_ASSETS
 
 # small limits keep every case fast (a mutated size field cannot ask for gigabytes)
 FUZZ_LIMITS = Limits(
@@ -151,7 +151,7 @@ class Case:
 # ----------------------------------------------------------------------------- seeds
 def make_seeds(folder: Path, shared: bool = False) -> list[Seed]:
     """The valid procedural assets mutations start from (plus the GLB files of
-    /work/shared/assets under 2 MB when ``shared`` and the folder exists)."""
+    the shared assets folder under 2 MB when ``shared`` and the folder exists)."""
     folder = Path(folder)
     seeds = []
     p = make_quad_asset(folder / "quad" / "quad.glb", size=8, subdiv=2)

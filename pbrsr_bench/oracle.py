@@ -29,7 +29,8 @@ from pbrsr_core.metrics import MAP_CHANNELS, RenderEvaluator, images_for
 from pbrsr_core.options import UpscaleOptions
 from pbrsr_core.pipeline import upscale_asset
 
-from .upscale import SHARED_ASSETS, bench_assets, cpu_evaluator, eval_lights
+from .shared import SHARED_ASSETS
+from .upscale import bench_assets, cpu_evaluator, eval_lights
 
 
 def with_gt_maps(pred: Asset, gt: Asset, names: list[str]) -> Asset:
@@ -75,7 +76,7 @@ def run(
     procedural_size: int = 512,
     include_procedural: bool = True,
     shared: Path = SHARED_ASSETS,
-    say=print,
+    log=print,
 ) -> list[dict]:
     """Run the benchmark; write ``oracle.json`` and ``oracle.png``; return the rows."""
 
@@ -84,9 +85,9 @@ def run(
     work = Path(tempfile.mkdtemp(prefix="pbrsr-oracle-"))
     rows: list[dict] = []
     try:
-        todo = bench_assets(work, include_procedural, procedural_size, shared, assets, say)
+        todo = bench_assets(work, include_procedural, procedural_size, shared, assets, log)
         for name, gt_path in todo:
-            say(f"== {name}")
+            log(f"== {name}")
             lr = degrade_asset(gt_path, work / name / "lr" / gt_path.name, scale)[0]
             upscale_asset(
                 lr,
@@ -101,7 +102,7 @@ def run(
                 **oracle_gains(gt, load_asset(work / name / "out" / lr.name), evaluator),
             }
             rows.append(row)
-            say("   " + _row_text(row))
+            log("   " + _row_text(row))
         meta = {
             "scale": scale,
             "eval_res": eval_res,

@@ -7,7 +7,7 @@ view sphere, ``iterations`` steps, and the G-buffer cache cut by the same fracti
 (so a step re-rasterises as often as in the full run). Each stage is then extrapolated by its
 unit of work: G-buffers and pseudo-GT per view, the optimisation per step; every other stage
 (loading, the prior's init, the export) does not depend on the view or step counts. The
-sample's loss history is in its report; its maps are not scored (a few steps say nothing of
+sample's loss history is in its report; its maps are not scored (a few steps log nothing of
 2000).
 
 Writes ``paper.json`` and ``paper.png`` and prints a table.
@@ -24,7 +24,8 @@ from pbrsr_core.degrade import degrade_asset
 from pbrsr_core.optim.presets import PAPER
 from pbrsr_core.options import DEFAULT_PRIOR
 
-from .upscale import SHARED_ASSETS, bench_assets, run_subprocess
+from .shared import SHARED_ASSETS
+from .upscale import bench_assets, run_subprocess
 
 PER_VIEW = ("gbuffers", "pseudo_gt")
 PER_STEP = ("optimize",)
@@ -55,7 +56,7 @@ def run(
     prior: str = DEFAULT_PRIOR,
     procedural_size: int = 512,
     shared: Path = SHARED_ASSETS,
-    say=print,
+    log=print,
 ) -> dict:
     """Run the sample; return (and write to ``paper.json``) its measurements and the
     extrapolated full run."""
@@ -70,12 +71,12 @@ def run(
     try:
         names = None if asset == "procedural" else [asset]
         todo = dict(
-            bench_assets(work_root, asset == "procedural", procedural_size, shared, names, say)
+            bench_assets(work_root, asset == "procedural", procedural_size, shared, names, log)
         )
         if asset not in todo:
             raise ValueError(f"asset {asset!r} not found (procedural, or a folder of {shared})")
         gt_path = todo[asset]
-        say(f"== {asset}: degrade x{scale}")
+        log(f"== {asset}: degrade x{scale}")
         lr_path = degrade_asset(gt_path, work_root / "lr" / gt_path.name, scale)[0]
         cache_mb = max(1, round(PAPER.gbuffer_cache_mb * views / full_views))
         changes = {
@@ -95,7 +96,7 @@ def run(
             "config": changes,
             "snapshots": False,
         }
-        say(f"   paper preset, {elev} x {azim} views, {iterations} steps ...")
+        log(f"   paper preset, {elev} x {azim} views, {iterations} steps ...")
         res = run_subprocess(spec, work)
         report = json.loads((work / "out" / "report.json").read_text())
         pseudo_gt_bytes = _dir_bytes(work / "job" / "pseudo_gt")

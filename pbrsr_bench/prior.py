@@ -4,7 +4,7 @@ For each prior and scale: parameters; seconds per 256x256 input and per 1024x102
 (tiled with the prior's default tile size); peak memory above the baseline (CUDA: allocator
 peak; CPU: resident-set peak sampled every 5 ms); PSNR against the HR image and the gain over
 bicubic on natural photos shipped inside scikit-image (``skimage.data``) and on albedo crops
-of ``/work/shared/assets`` (baseColor/diffuse images), both degraded by the paper's protocol
+of ``the shared assets folder`` (baseColor/diffuse images), both degraded by the paper's protocol
 (:func:`pbrsr_core.degrade.degrade_image`: Gaussian blur, bicubic down). PSNR is measured on
 sRGB values in [0, 1] with ``s`` pixels shaved off each border (the usual SR protocol).
 Writes ``prior.json`` and ``prior.png`` to the output directory and prints a table.
@@ -28,7 +28,8 @@ from pbrsr_core.prior import load_prior
 from pbrsr_core.prior.base import Prior
 from pbrsr_core.prior.tiling import count_tiles
 
-SHARED_ASSETS = Path("/work/shared/assets")
+from .shared import SHARED_ASSETS
+
 NATURAL = ("astronaut", "coffee", "chelsea", "rocket", "immunohistochemistry")
 ALBEDO_HINTS = ("basecolor", "base_color", "albedo", "_diff_", "diffuse")
 

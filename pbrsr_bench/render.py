@@ -1,7 +1,7 @@
 """``pbrsr bench render``: renderer speed per stage.
 
 For a procedural UV sphere of ~100k triangles (three 1024^2 maps: baseColor, ORM, normal)
-and for each asset of ``/work/shared/assets`` (when that folder exists), at each render
+and for each asset of ``the shared assets folder`` (when that folder exists), at each render
 resolution, over a few orbit views:
 
 * G-buffer time per view, split into the coverage kernel (z-buffer) and attribute
@@ -34,7 +34,8 @@ from pbrsr_core.render import camera as cam
 from pbrsr_core.render import light as light_mod
 from pbrsr_core.render import raster, shade, shapes
 
-SHARED_ASSETS = Path("/work/shared/assets")
+from .shared import SHARED_ASSETS
+
 TARGET_GBUFFER_S = 0.5  # 100k triangles at 1024^2
 TARGET_MPIX_S = 2.0  # shading forward + backward
 

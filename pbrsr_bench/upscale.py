@@ -30,7 +30,8 @@ from pbrsr_core.options import DEFAULT_PRIOR
 from pbrsr_core.render.light import EnvLight
 from pbrsr_core.scene import procedural_light, rotated_procedural_light
 
-SHARED_ASSETS = Path(__file__).resolve().parents[1].parent / "shared" / "assets"
+from .shared import SHARED_ASSETS
+
 DEFAULT_METHODS = ("bicubic", "direct", "fast", "balanced")
 ENVMAPS = ("studio_small_03_1k.hdr", "venice_sunset_1k.hdr")
 MAP_COLUMNS = ("albedo", "roughness", "metallic", "normal", "occlusion", "emissive")
@@ -54,7 +55,7 @@ def bench_assets(
     procedural_size: int,
     shared: Path,
     names: list[str] | None,
-    say,
+    log,
     include_shared: bool = True,
 ) -> list[tuple[str, Path]]:
     """(name, ground-truth file) of the assets a benchmark runs on: the procedural demo asset
@@ -73,7 +74,7 @@ def bench_assets(
             raise ValueError(f"asset folder {', '.join(missing)} not found in {shared}")
         todo.extend(found)
     elif include_shared:
-        say(f"shared assets folder {shared} not present: procedural asset only")
+        log(f"shared assets folder {shared} not present: procedural asset only")
     return todo
 
 
@@ -198,7 +199,7 @@ def run(
     include_shared: bool = True,
     lr_format: str = "same",
     shared: Path = SHARED_ASSETS,
-    say=print,
+    log=print,
 ) -> list[dict]:
     """Run the benchmark; write ``results.json``, ``results.md`` and ``speed_vs_error.png``."""
 
@@ -217,10 +218,10 @@ def run(
     }
     try:
         todo = bench_assets(
-            work_root, include_procedural, procedural_size, shared, assets, say, include_shared
+            work_root, include_procedural, procedural_size, shared, assets, log, include_shared
         )
         for name, gt_path in todo:
-            say(f"== {name}: degrade x{scale}")
+            log(f"== {name}: degrade x{scale}")
             lr_path = degrade_asset(
                 gt_path, work_root / name / "lr" / gt_path.name, scale, image_format=lr_format
             )[0]
@@ -237,7 +238,7 @@ def run(
                     "options": method_options(method, scale, prior),
                     "config": parse_method(method)[2],
                 }
-                say(f"   {method} ...")
+                log(f"   {method} ...")
                 res = run_subprocess(spec, work)
                 pred = load_asset(work / "out" / lr_path.name)
                 scores = _score(pred, gt, evaluator)
@@ -257,7 +258,7 @@ def run(
                     "curve": curve,
                 }
                 rows.append(row)
-                say("   " + _row_text(row))
+                log("   " + _row_text(row))
                 _write_results(out_dir, rows, meta)
     finally:
         shutil.rmtree(work_root, ignore_errors=True)

@@ -22,7 +22,7 @@ def test_bench_oracle_small_run(tmp_path: Path):
         eval_views=6,
         procedural_size=64,
         shared=tmp_path / "no-shared-assets",
-        say=said.append,
+        log=said.append,
     )
     assert any("not present" in s for s in said)
     (row,) = rows

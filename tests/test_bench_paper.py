@@ -36,7 +36,7 @@ def test_bench_paper_sample_runs_the_paper_preset(tmp_path: Path):
         prior="bicubic",
         procedural_size=64,
         shared=tmp_path / "no-shared-assets",
-        say=said.append,
+        log=said.append,
     )
     s, f = result["sample"], result["full"]
     assert s["views"] == 2 and s["views_seeing_mesh"] == 2 and s["iterations"] == 2

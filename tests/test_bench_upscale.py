@@ -21,7 +21,7 @@ def test_bench_upscale_small_run(tmp_path: Path):
         eval_views=4,
         procedural_size=64,
         shared=tmp_path / "no-shared-assets",
-        say=said.append,
+        log=said.append,
     )
     assert any("not present" in s for s in said)
     assert [r["method"] for r in rows] == ["fast"]
