@@ -364,32 +364,60 @@ def summary_table(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def plot(rows: list[dict], path: Path) -> None:
+def plot(rows: list[dict], path: Path, columns: int = 4) -> None:
+    """A grid: first the summary (per method, mean render-PSNR gain over bicubic against
+    mean run time, over the shared assets), then one panel per asset (render PSNR against
+    wall seconds: curves over iterations where a method has them, a point where not, bicubic
+    as a dashed line). A method keeps its colour in every panel."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     assets = list(dict.fromkeys(r["asset"] for r in rows))
-    fig, axes = plt.subplots(1, len(assets), figsize=(5 * len(assets), 4), squeeze=False)
-    for ax, a in zip(axes[0], assets, strict=True):
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    colour = {m: f"C{i % 10}" for i, m in enumerate(methods)}
+    panels = 1 + len(assets)
+    ncols = min(columns, panels)
+    nrows = -(-panels // ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(4.6 * ncols, 3.8 * nrows), squeeze=False)
+    flat = list(axes.flat)
+    _plot_summary(flat[0], summary(rows), colour)
+    for ax, a in zip(flat[1:], assets, strict=False):
         for r in (r for r in rows if r["asset"] == a):
+            m = r["method"]
             if r["curve"]:
                 xs = [c["seconds"] for c in r["curve"]] + [r["run_s"]]
                 ys = [c["render.psnr"] for c in r["curve"]] + [r["render.psnr"]]
-                ax.plot(xs, ys, marker="o", label=r["method"])
+                ax.plot(xs, ys, marker="o", markersize=3, label=m, color=colour[m])
+            elif m == "bicubic":
+                ax.axhline(r["render.psnr"], linestyle="--", label=m, color="gray")
             else:
-                ax.axhline(
-                    r["render.psnr"],
-                    linestyle="--",
-                    label=r["method"],
-                    color="gray" if r["method"] == "bicubic" else "black",
-                )
-        ax.set_title(a)
+                ax.plot([r["run_s"]], [r["render.psnr"]], "s", label=m, color=colour[m])
+        ax.set_title(a, fontsize=10)
         ax.set_xlabel("wall seconds")
         ax.set_ylabel("render PSNR (dB)")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=7)
+    for ax in flat[panels:]:
+        ax.axis("off")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def _plot_summary(ax, rows: list[dict], colour: dict[str, str]) -> None:
+    if not rows:
+        ax.text(0.5, 0.5, "no shared asset with a bicubic row", ha="center", va="center")
+        ax.axis("off")
+        return
+    for r in rows:
+        ax.plot(r["mean_run_s"], r["render_gain_db"], "o", color=colour[r["method"]])
+        ax.annotate(r["method"], (r["mean_run_s"], r["render_gain_db"]), fontsize=8,
+                    xytext=(4, 4), textcoords="offset points")  # fmt: skip
+    ax.axhline(0.0, color="gray", linestyle="--", linewidth=0.8)
+    ax.set_xscale("log")
+    ax.set_title(f"mean over {rows[0]['assets']} shared assets", fontsize=10)
+    ax.set_xlabel("mean run seconds (log)")
+    ax.set_ylabel("render PSNR gain over bicubic (dB)")
+    ax.grid(alpha=0.3)
