@@ -188,11 +188,20 @@ def upscale_cmd(
     lr_format: str = typer.Option(
         "same", help="LR image format (pbrsr degrade --format): same, png, png16, exr."
     ),
+    docs: list[Path] = typer.Option(  # noqa: B006
+        [], "--docs", help="Markdown file whose bench:upscale section gets the summary."
+    ),
 ) -> None:
     """Speed against error: bicubic, direct prior and each PBR-SR preset on degraded assets;
     wall time, peak memory, PSNR per map and render PSNR, with curves over iterations."""
+    from pbrsr_bench.docs import section_span
     from pbrsr_bench.upscale import markdown_table, run, summary_table
 
+    for path in docs:  # before hours of benchmark, not after
+        try:
+            section_span(path, "upscale")
+        except (OSError, ValueError) as exc:
+            _bad_input(ValueError(str(exc)))
     _report(
         run,
         lambda rows: typer.echo(markdown_table(rows) + "\n" + summary_table(rows)),
@@ -209,6 +218,36 @@ def upscale_cmd(
         procedural_size=procedural_size,
         lr_format=lr_format,
     )
+    _publish(out, docs)
+
+
+def _publish(out: Path, docs: list[Path]) -> None:
+    from pbrsr_bench.docs import write_section
+    from pbrsr_bench.upscale import published_summary
+
+    if not docs:
+        return
+    text = published_summary(out)
+    for path in docs:
+        try:
+            write_section(path, "upscale", text)
+        except (OSError, ValueError) as exc:
+            _bad_input(ValueError(str(exc)))
+        typer.echo(f"wrote the summary into {path}")
+
+
+@bench_app.command("publish")
+def publish_cmd(
+    out: Path = typer.Argument(..., help="Output directory of a `pbrsr bench upscale` run."),
+    docs: list[Path] = typer.Option(  # noqa: B006
+        ..., "--docs", help="Markdown file with a bench:upscale section (repeatable)."
+    ),
+) -> None:
+    """Write the summary of a finished `pbrsr bench upscale` run into documentation files,
+    between their <!-- bench:upscale --> and <!-- /bench:upscale --> markers."""
+    if not (out / "results.json").is_file():
+        _bad_input(ValueError(f"{out} holds no results.json of pbrsr bench upscale"))
+    _publish(out, docs)
 
 
 def _load_report(out: Path, **options: Any) -> None:

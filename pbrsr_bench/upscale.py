@@ -30,6 +30,7 @@ from pbrsr_core.options import DEFAULT_PRIOR
 from pbrsr_core.render.light import EnvLight
 from pbrsr_core.scene import procedural_light, rotated_procedural_light
 
+from .docs import machine
 from .shared import SHARED_ASSETS
 
 DEFAULT_METHODS = ("bicubic", "direct", "fast", "balanced")
@@ -215,6 +216,7 @@ def run(
         "eval_views": eval_views,
         "lights": light_names,
         "lr_format": lr_format,
+        "machine": machine(),
     }
     try:
         todo = bench_assets(
@@ -362,6 +364,27 @@ def summary_table(rows: list[dict]) -> str:
             f"{100 * time_share:.0f} % of its mean run time."
         )
     return "\n".join(lines) + "\n"
+
+
+def published_summary(out_dir: Path) -> str:
+    """The summary of ``out_dir/results.json`` as a documentation section: what was measured,
+    where and by which command, then :func:`summary_table`."""
+    data = json.loads((Path(out_dir) / "results.json").read_text())
+    rows = data["rows"]
+    methods = ",".join(dict.fromkeys(r["method"] for r in rows))
+    command = f"pbrsr bench upscale --methods {methods} --eval-views {data['eval_views']}"
+    if data["scale"] != 4:
+        command += f" --scale {data['scale']}"
+    if data["prior"] != DEFAULT_PRIOR:
+        command += f" --prior {data['prior']}"
+    shared = sorted({r["asset"] for r in rows} - {"procedural"})
+    return (
+        f"x{data['scale']}, prior `{data['prior']}`, render PSNR over {data['eval_views']} views "
+        f"at {data['eval_res']}² under {' and '.join(data['lights'])}, mean over "
+        f"{len(shared)} shared assets ({', '.join(shared)}); run time is the method's own "
+        f"(load to save), on {data.get('machine') or machine()}. Measured by `{command}`.\n\n"
+        + summary_table(rows)
+    )
 
 
 def plot(rows: list[dict], path: Path, columns: int = 4) -> None:

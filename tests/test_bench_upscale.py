@@ -125,3 +125,60 @@ def test_methods_take_preset_changes():
         check_methods(("balanced+no_such_field=1",), "bicubic")
     with pytest.raises(ValueError, match="unknown prior 'nope'"):
         check_methods(("balanced+pseudo_gt_prior=nope",), "bicubic")
+
+
+def _bench_cli():
+    import typer
+
+    from pbrsr_bench import cli as bench
+
+    app = typer.Typer()
+    bench.register(app)
+    return app
+
+
+def test_publish_writes_the_summary_between_the_markers_only(tmp_path):
+    from typer.testing import CliRunner
+
+    rows = [
+        _row("procedural", "bicubic", 20.0, 20.0, 1.0),
+        _row("a", "bicubic", 28.0, 27.0, 1.0),
+        _row("a", "fast", 28.4, 27.5, 10.0),
+        _row("b", "bicubic", 30.0, 31.0, 1.0),
+        _row("b", "fast", 31.0, 31.2, 14.0),
+    ]
+    meta = {"scale": 4, "prior": "pbr-upconv7", "eval_res": 256, "eval_views": 40}
+    meta.update(lights=["a.hdr", "b.hdr"], machine="a test CPU, 2 cores")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "results.json").write_text(json.dumps({**meta, "rows": rows}))
+    doc = tmp_path / "README.md"
+    head, tail = "# Title\n\ntext before\n", "\ntext after\n"
+    doc.write_text(head + "<!-- bench:upscale -->\nold numbers\n<!-- /bench:upscale -->" + tail)
+    res = CliRunner().invoke(_bench_cli(), ["bench", "publish", str(out), "--docs", str(doc)])
+    assert res.exit_code == 0, res.output
+    text = doc.read_text()
+    assert text.startswith(head + "<!-- bench:upscale -->\n") and text.endswith(tail)
+    assert "old numbers" not in text
+    assert "| fast | 2 | +0.70 dB |" in text  # mean of +0.4 and +1.0 over the shared a, b
+    assert "2 shared assets (a, b)" in text and "a test CPU, 2 cores" in text
+    assert "`pbrsr bench upscale --methods bicubic,fast --eval-views 40`" in text
+    # a second run replaces the section again, nothing else
+    again = CliRunner().invoke(_bench_cli(), ["bench", "publish", str(out), "--docs", str(doc)])
+    assert again.exit_code == 0 and doc.read_text() == text
+
+
+def test_docs_without_markers_are_refused_before_the_bench_runs(tmp_path):
+    from typer.testing import CliRunner
+
+    doc = tmp_path / "plain.md"
+    doc.write_text("# no markers\n")
+    out = tmp_path / "out"
+    res = CliRunner().invoke(
+        _bench_cli(), ["bench", "upscale", "-o", str(out), "--docs", str(doc), "--no-shared"]
+    )
+    assert res.exit_code == 2
+    assert "no '<!-- bench:upscale -->'" in res.output
+    assert not out.exists() and doc.read_text() == "# no markers\n"
+    res = CliRunner().invoke(_bench_cli(), ["bench", "publish", str(out), "--docs", str(doc)])
+    assert res.exit_code == 2 and "no results.json" in res.output
