@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Protocol
+
+from .errors import LimitExceeded
 
 
 @dataclass(frozen=True)
@@ -14,3 +18,20 @@ class Limits:
     max_data_uri_bytes: int = 64 * 1024 * 1024
     max_zip_entries: int = 1000
     max_unpacked_bytes: int = 1024 * 1024 * 1024  # sum of a zip's uncompressed sizes
+
+
+class _Sized(Protocol):
+    name: str
+    width: int
+    height: int
+
+
+def check_output_size(images: Iterable[_Sized], scale: int, limits: Limits) -> None:
+    """Refuse (LimitExceeded) an image whose side times ``scale`` is over ``max_output_dim``."""
+    for img in images:
+        if max(img.width, img.height) * scale > limits.max_output_dim:
+            raise LimitExceeded(
+                f"image '{img.name}' is {img.width}x{img.height}; x{scale} would be "
+                f"{img.width * scale}x{img.height * scale}, over the output limit of "
+                f"{limits.max_output_dim} pixels per side"
+            )

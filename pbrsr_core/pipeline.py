@@ -33,9 +33,9 @@ from .asset import (
 )
 from .asset.model import Asset
 from .device import resolve_device
-from .errors import LimitExceeded, PbrsrError, StorageError, UnprocessableAsset
+from .errors import PbrsrError, StorageError, UnprocessableAsset
 from .hostmem import reuse_large_blocks
-from .limits import Limits
+from .limits import Limits, check_output_size
 from .maps import (
     encoded_to_param,
     kind_of,
@@ -78,16 +78,6 @@ def _resolve_input(input_path: Path, work_dir: Path, limits: Limits) -> Path:
     if kind == "zip":
         return extract_zip(input_path, work_dir / "unzipped", limits)
     return input_path
-
-
-def _check_output_size(images, scale: int, limits: Limits) -> None:
-    for img in images:
-        if max(img.width, img.height) * scale > limits.max_output_dim:
-            raise LimitExceeded(
-                f"image '{img.name}' is {img.width}x{img.height}; x{scale} would be "
-                f"{img.width * scale}x{img.height * scale}, over the output limit of "
-                f"{limits.max_output_dim} pixels per side"
-            )
 
 
 def load_light(envmap: str | None) -> EnvLight:
@@ -332,7 +322,7 @@ def upscale_asset(
                 raise UnprocessableAsset(
                     "nothing to upscale: no material of this asset uses a texture"
                 )
-            _check_output_size(images, options.scale, limits)
+            check_output_size(images, options.scale, limits)
         with reuse_large_blocks():
             hr, method_report = _upscale_maps(
                 asset, options, device, timer, progress, work, snapshots, config

@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from pbrsr_core.errors import InvalidAsset, InvalidOptions, LimitExceeded, UnprocessableAsset
+from pbrsr_core.errors import InvalidAsset, InvalidOptions, UnprocessableAsset
 from pbrsr_core.options import UpscaleOptions
 from pbrsr_jobs.settings import Settings
 from pbrsr_jobs.store import (
@@ -58,6 +58,7 @@ def check_asset(path: Path, options: dict[str, Any], settings: Settings) -> floa
     """Load the asset the way the worker will and check it can be processed. Returns the
     megapixels of all output maps (the job's size, for queue routing)."""
     from pbrsr_core.asset import load_asset
+    from pbrsr_core.limits import check_output_size
     from pbrsr_core.maps import upscalable_images
 
     limits = settings.limits()
@@ -70,13 +71,7 @@ def check_asset(path: Path, options: dict[str, Any], settings: Settings) -> floa
                     "nothing to upscale: no material of this asset uses a texture"
                 )
             scale = int(options["scale"])
-            for img in images:
-                if max(img.width, img.height) * scale > limits.max_output_dim:
-                    raise LimitExceeded(
-                        f"image '{img.name}' is {img.width}x{img.height}; x{scale} would be "
-                        f"{img.width * scale}x{img.height * scale}, over this server's output "
-                        f"limit of {limits.max_output_dim} pixels per side"
-                    )
+            check_output_size(images, scale, limits)
             return sum(img.width * img.height for img in images) * scale * scale / 1e6
         finally:
             del asset
