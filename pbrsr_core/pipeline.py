@@ -112,16 +112,35 @@ def _upscale_maps(
                 out[img.index] = upscale_map(prior, img.pixels, kind_of(img.roles), s)
         return out, {}
 
-    # pbrsr: init = prior on the maps the preset names (paper 3.1: the colour maps), bicubic
-    # on the rest
-    from .asset.jpeg import deblock
-    from .optim.pbrsr import optimize_pbrsr
     from .optim.presets import get_preset
-    from .optim.texel_ops import pad_update
 
     config = config or get_preset(options.preset)
-    # the LR maps as the method sees them: JPEG block artefacts reduced with the file's own
-    # tables (asset/jpeg.py), so the consistency term does not copy them to the HR maps
+    lr_pixels, deblocked = _deblocked(images, config, timer)
+    channels, checks = _prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer,
+                                               progress)  # fmt: skip
+    if checks is not None and not any(any(c) for c in channels.values()):
+        prior = load_prior("bicubic", device)  # for the pseudo-GT
+    init_encoded, init, lr = _init_maps(images, prior, lr_pixels, channels, s, config, timer,
+                                        progress)  # fmt: skip
+    out, report = _optimise(
+        asset, images, init_encoded, init, lr, lr_pixels, channels, prior, options, config,
+        device, timer, progress, work_dir, snapshots,
+    )  # fmt: skip
+    return out, {
+        **report,
+        "prior_check": checks,
+        "prior_used": prior.name,
+        "prior_init": sorted(img.name for img in images if any(channels[img.index])),
+        "jpeg_deblocked": deblocked,
+    }
+
+
+def _deblocked(images, config: PbrsrConfig, timer: StageTimer):
+    """The LR maps as the method sees them: JPEG block artefacts reduced with the file's own
+    tables (asset/jpeg.py) when the preset says so, so that the consistency term does not copy
+    them to the HR maps; and the names of the images deblocked."""
+    from .asset.jpeg import deblock
+
     lr_pixels = {img.index: img.pixels for img in images}
     deblocked = []
     if config.deblock_jpeg:
@@ -130,64 +149,82 @@ def _upscale_maps(
                 if img.jpeg is not None:
                     lr_pixels[img.index] = deblock(img.pixels, img.jpeg)
                     deblocked.append(img.name)
-    # the maps the prior initialises: the ones the preset names (prior_maps; for an ORM image,
-    # its channels one by one), and of those, with check_prior, only the ones where it beats
-    # bicubic one scale down
+    return lr_pixels, deblocked
+
+
+def _prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, progress):
+    """Which channels of each image the prior initialises (paper 3.1: the maps the preset
+    names in ``prior_maps``; an ORM image's channels one by one; bicubic the rest), and with
+    ``check_prior`` only those where the prior beats bicubic one scale down. Returns
+    ({image: [bool per channel]}, the self-check reports or None when nothing was checked)."""
     channels = {img.index: prior_channels(img, config) for img in images}
-    by_prior = {i for i, use in channels.items() if any(use)}
-    checks: list[dict] | None = None
-    if config.check_prior and prior.name != "bicubic" and by_prior:
-        checks = []
-        with timer("prior_check"):
-            emit(progress, Progress(stage="prior_check"))
-            covered = coverage_masks(asset)  # at the LR size: the texels the check compares
-            for img in images:
-                if img.index not in by_prior:
-                    continue
-                kind = kind_of(img.roles)
-                if kind not in config.check_prior:
-                    note = {"use_prior": True, "note": f"{kind} maps are not checked"}
-                    checks.append({"image": img.name, "index": img.index, **note})
-                    continue
-                c = prior_self_check(
-                    prior,
-                    lr_pixels[img.index],
-                    s,
-                    kind,
-                    max_prior_scale=config.max_prior_scale,
-                    covered=covered.get(img.index),
-                )
-                too_small = {"use_prior": True, "note": f"under {4 * s} texels a side"}
-                if c is not None:
-                    use = [a and b for a, b in zip(channels[img.index], c["channels"], strict=True)]
-                    c = {**c, "channels": use, "use_prior": any(use)}
-                    channels[img.index] = use
-                    if not c["use_prior"]:
-                        by_prior.discard(img.index)
-                checks.append({"image": img.name, "index": img.index, **(c or too_small)})
-        if not by_prior:
-            prior = load_prior("bicubic", device)  # for the pseudo-GT
+    if not (config.check_prior and prior.name != "bicubic" and any(map(any, channels.values()))):
+        return channels, None
+    checks: list[dict] = []
+    with timer("prior_check"):
+        emit(progress, Progress(stage="prior_check"))
+        covered = coverage_masks(asset)  # at the LR size: the texels the check compares
+        for img in images:
+            if not any(channels[img.index]):
+                continue
+            kind = kind_of(img.roles)
+            if kind not in config.check_prior:
+                note = {"use_prior": True, "note": f"{kind} maps are not checked"}
+                checks.append({"image": img.name, "index": img.index, **note})
+                continue
+            c = prior_self_check(
+                prior,
+                lr_pixels[img.index],
+                s,
+                kind,
+                max_prior_scale=config.max_prior_scale,
+                covered=covered.get(img.index),
+            )
+            too_small = {"use_prior": True, "note": f"under {4 * s} texels a side"}
+            if c is not None:
+                use = [a and b for a, b in zip(channels[img.index], c["channels"], strict=True)]
+                c = {**c, "channels": use, "use_prior": any(use)}
+                channels[img.index] = use
+            checks.append({"image": img.name, "index": img.index, **(c or too_small)})
+    return channels, checks
+
+
+def _init_maps(images, prior, lr_pixels, channels, s, config, timer, progress):
+    """The optimiser's start: bicubic, with the prior's upscale in the channels it
+    initialises. Returns ({image: HR map, stored encoding}, the same as optimisation
+    parameters, the LR maps as parameters)."""
+    init_encoded, init, lr = {}, {}, {}
     with timer("init"):
-        init, lr, init_encoded = {}, {}, {}
         for n, img in enumerate(images):
             emit(progress, Progress(stage="init", step=n, total=len(images)))
             kind = kind_of(img.roles)
             px = lr_pixels[img.index]
             hr = bicubic_map(px, kind, s)
-            if img.index in by_prior:
+            if any(channels[img.index]):
                 up = upscale_map(prior, px, kind, s, max_prior_scale=config.max_prior_scale)
                 hr = merge_channels(up, hr, channels[img.index])
             init_encoded[img.index] = hr
             init[img.index] = encoded_to_param(torch.from_numpy(hr), kind)
             lr[img.index] = encoded_to_param(torch.from_numpy(px), kind)
+    return init_encoded, init, lr
+
+
+def _optimise(asset, images, init_encoded, init, lr, lr_pixels, channels, prior, options, config,
+              device, timer, progress, work_dir, snapshots):  # fmt: skip
+    """PBR-SR's optimisation from ``init_encoded``, then each map's export: back-projection
+    onto its LR map where the preset says so, and island padding. Returns (HR maps, report)."""
+    from .optim.pbrsr import optimize_pbrsr
+    from .optim.texel_ops import pad_update
+
+    s = options.scale
+    kinds = {img.index: kind_of(img.roles) for img in images}
     with timer("load_light"):
         light = load_light(options.envmap).to(device)
     scene = make_scene(asset, device)
-    kinds = {img.index: kind_of(img.roles) for img in images}
     # project_lr: only what the (back-projected) prior initialised goes back onto its LR map
     projected = {
         i: channels[i]
-        if i in by_prior and prior.back_project and kinds[i] in config.project_lr
+        if any(channels[i]) and prior.back_project and kinds[i] in config.project_lr
         else [False] * len(channels[i])
         for i in kinds
     }
@@ -227,13 +264,7 @@ def _upscale_maps(
             i: pad_update(t, init_encoded[i], islands[i], 2 * s, normal=kinds[i] == "normal")
             for i, t in final.items()
         }
-    return out, {
-        **result.report(),
-        "prior_check": checks,
-        "prior_used": prior.name,
-        "prior_init": sorted(img.name for img in images if img.index in by_prior),
-        "jpeg_deblocked": deblocked,
-    }
+    return out, result.report()
 
 
 def _export_map(
