@@ -16,10 +16,15 @@ def register(app: typer.Typer) -> None:
         """Run the job API and the dashboard (settings from PBRSR_* variables)."""
         import logging
 
-        import uvicorn
         from pydantic import ValidationError
 
-        from pbrsr_jobs.settings import Settings
+        from pbrsr_core.cli.extras import needs_extra
+
+        with needs_extra("serve", "service"):
+            import uvicorn
+
+            import service.app  # noqa: F401  (uvicorn loads it by name)
+            from pbrsr_jobs.settings import Settings
 
         try:
             settings = Settings()

@@ -106,5 +106,8 @@ def test_dockerfile_has_cpu_default_and_cuda_arg():
     assert re.search(r"^ARG TORCH_INDEX=https://download\.pytorch\.org/whl/cpu$", text, re.M)
     assert "torch==2.13.0" in text  # the version pyproject pins
     assert 'CMD ["pbrsr", "serve"' in text
+    assert 'RUN pip install ".[service]"' in text  # the core and the service extra
+    for package in ("pbrsr_core", "pbrsr_jobs", "service", "worker"):
+        assert f"COPY {package} ./{package}" in text
     env_names = set(re.findall(r"\b(PBRSR_[A-Z_]+)=", text))
     assert env_names <= ENV_NAMES

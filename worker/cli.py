@@ -16,17 +16,20 @@ def register(app: typer.Typer) -> None:
         """Run a job worker (RQ) on the device and queue from the PBRSR_* settings."""
         from pydantic import ValidationError
 
-        from pbrsr_jobs.settings import Settings
+        from pbrsr_core.cli.extras import needs_extra
+
+        with needs_extra("worker", "service"):
+            from redis.exceptions import ConnectionError as RedisConnectionError
+
+            from pbrsr_jobs.settings import Settings
+
+            from .runner import run_worker
 
         try:
             settings = Settings()
         except ValidationError as exc:
             typer.secho(f"error: invalid settings:\n{exc}", fg="red", err=True)
             raise typer.Exit(2) from None
-        from redis.exceptions import ConnectionError as RedisConnectionError
-
-        from .runner import run_worker
-
         try:
             run_worker(settings, burst=burst, name=name, max_jobs=max_jobs)
         except ValueError as exc:  # storage not writable
