@@ -16,7 +16,7 @@ from pbrsr_core import __version__
 from pbrsr_jobs.settings import Settings, get_settings
 
 from .problems import install_handlers
-from .routes import health, jobs, metrics
+from .routes import health, jobs, prometheus
 
 STATIC_DIR = Path(__file__).parent / "static"
 log = logging.getLogger("pbrsr.service")
@@ -56,7 +56,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.dependency_overrides[get_settings] = lambda: settings
 
     install_handlers(app)
-    metrics.install_metrics(app)
+    prometheus.install_metrics(app)
     if settings.cors_origins:
         app.add_middleware(
             CORSMiddleware,
@@ -67,7 +67,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         )
     app.include_router(jobs.router)
     app.include_router(health.router)
-    app.include_router(metrics.router)
+    app.include_router(prometheus.router)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
 
     @app.get("/", include_in_schema=False)

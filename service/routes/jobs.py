@@ -15,10 +15,10 @@ from pbrsr_jobs.store import JobIndex, JobState, check_job_id, sweep_expired
 
 from ..deps import IndexDep, LayoutDep, OwnerDep, QueueDep, RedisDep, SettingsDep
 from ..intake import create_job
+from ..job_views import detail_view, links, preview_names, state_of, summary_view, thumb_names
 from ..problems import PROBLEM_RESPONSES, Problem, ProblemError
 from ..schemas import JobCreated, JobDetail, JobPage
 from ..uploads import receive_upload
-from ..views import detail_view, links, preview_names, state_of, summary_view, thumb_names
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=PROBLEM_RESPONSES)
 
