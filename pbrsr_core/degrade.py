@@ -65,8 +65,7 @@ def degrade_image(image: np.ndarray, scale: int, *, normal_map: bool = False) ->
     if scale == 1:
         return arr.copy()
     x = torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1)[None]  # (1, C, H, W)
-    y = degrade_tensor(x, scale)
-    y = y[0].permute(1, 2, 0).clamp(0.0, 1.0).numpy()
+    y = degrade_tensor(x, scale)[0].permute(1, 2, 0).clamp(0.0, 1.0).numpy()
     if normal_map and arr.shape[2] >= 3:
         n = y[..., :3] * 2.0 - 1.0
         n[..., 2] = np.maximum(n[..., 2], 0.0)

@@ -21,9 +21,12 @@ class Limits:
 
 
 class _Sized(Protocol):
-    name: str
-    width: int
-    height: int
+    @property
+    def name(self) -> str: ...
+    @property
+    def width(self) -> int: ...
+    @property
+    def height(self) -> int: ...
 
 
 def check_output_size(images: Iterable[_Sized], scale: int, limits: Limits) -> None:

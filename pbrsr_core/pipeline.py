@@ -341,7 +341,7 @@ def upscale_asset(
     torch.manual_seed(options.seed)
     device = resolve_device(options.device)
     own_work = work_dir is None
-    work = Path(tempfile.mkdtemp(prefix="pbrsr-work-")) if own_work else Path(work_dir)
+    work = Path(tempfile.mkdtemp(prefix="pbrsr-work-")) if work_dir is None else Path(work_dir)
     work.mkdir(parents=True, exist_ok=True)
     try:
         with timer("load"):

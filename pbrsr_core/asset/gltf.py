@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
@@ -170,11 +171,13 @@ def _material(doc: dict, i: int) -> Material:
     pbr = m.get("pbrMetallicRoughness") or {}
     mat = Material(index=i, name=str(m.get("name", "")))
     if "baseColorFactor" in pbr:
-        mat.base_color_factor = tuple(_num_list(pbr["baseColorFactor"], 4, what))
+        r, g, b, a = _num_list(pbr["baseColorFactor"], 4, what)
+        mat.base_color_factor = (r, g, b, a)
     mat.metallic_factor = float(pbr.get("metallicFactor", 1.0))
     mat.roughness_factor = float(pbr.get("roughnessFactor", 1.0))
     if "emissiveFactor" in m:
-        mat.emissive_factor = tuple(_num_list(m["emissiveFactor"], 3, what))
+        r, g, b = _num_list(m["emissiveFactor"], 3, what)
+        mat.emissive_factor = (r, g, b)
     for role, (parent, key) in _SLOT_KEYS.items():
         holder = pbr if parent else m
         if key in holder:
@@ -294,7 +297,9 @@ class _Builder:
 
     def walk(self, roots: list[int]) -> None:
         nodes = self.doc.get("nodes", [])
-        stack = [(r, np.eye(4), frozenset()) for r in reversed(roots)]
+        stack: list[tuple[int, np.ndarray, frozenset[int]]] = [
+            (r, np.eye(4), frozenset()) for r in reversed(roots)
+        ]
         while stack:
             ni, parent, seen = stack.pop()
             if ni in seen:
@@ -518,6 +523,7 @@ def load_asset(path: Path, limits: Limits = Limits(), *, unwrap_missing_uvs: boo
             f"the file '{path.name}' is {size} bytes; the limit is {limits.max_file_bytes}"
         )
     raw = path.read_bytes()
+    kind: Literal["glb", "gltf"]
     if raw[:4] == GLB_MAGIC:
         doc, bin_chunk = parse_glb(raw)
         kind = "glb"

@@ -16,7 +16,7 @@ import numpy as np
 
 from .gltf_read import CHUNK_BIN, CHUNK_JSON
 from .gltf_write import atomic_write
-from .images import EXT, MIME, encode_image
+from .images import EXT, MIME, ImageFormat, encode_image
 
 ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
 _CTYPE = {
@@ -110,7 +110,9 @@ class GltfBuilder:
             prim["material"] = material
         return prim
 
-    def image(self, pixels: np.ndarray, *, fmt: str = "png", bits: int = 8, name: str) -> int:
+    def image(
+        self, pixels: np.ndarray, *, fmt: ImageFormat = "png", bits: int = 8, name: str
+    ) -> int:
         data = encode_image(pixels, bits, fmt)
         self.images.append((data, MIME[fmt], EXT[fmt], name))
         return self.add("images", {"name": name})

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import struct
 from pathlib import Path
+from typing import Literal, overload
 
 import numpy as np
 
@@ -21,7 +22,7 @@ GLB_MAGIC = b"glTF"
 CHUNK_JSON = 0x4E4F534A
 CHUNK_BIN = 0x004E4942
 
-COMPONENT_DTYPES = {
+COMPONENT_DTYPES: dict[int, np.dtype] = {
     5120: np.dtype("i1"),
     5121: np.dtype("u1"),
     5122: np.dtype("<i2"),
@@ -133,6 +134,14 @@ def parse_json(raw: bytes) -> dict:
                 raise InvalidAsset(f"{key}[{i}] in the glTF JSON is not an object")
     check_types(doc)
     return doc
+
+
+@overload
+def get_index(obj: dict, key: str, n: int, what: str, required: Literal[True] = True) -> int: ...
+
+
+@overload
+def get_index(obj: dict, key: str, n: int, what: str, required: bool) -> int | None: ...
 
 
 def get_index(obj: dict, key: str, n: int, what: str, required: bool = True) -> int | None:

@@ -22,6 +22,7 @@ import json
 import os
 import struct
 import tempfile
+from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor, wait
 from pathlib import Path, PurePosixPath
 
@@ -29,7 +30,7 @@ import numpy as np
 
 from ..errors import InvalidOptions, StorageError
 from .gltf_read import CHUNK_BIN, CHUNK_JSON, COMPONENT_DTYPES, read_accessor_raw
-from .images import EncodedImage, encode_image, output_format
+from .images import EncodedImage, ImageFormat, encode_image, output_format
 from .model import Asset, ImageData
 from .uris import encode_uri, is_data_uri, relative_path, resolve_inside, safe_stem
 
@@ -207,7 +208,7 @@ def _write_unwrapped(doc: dict, asset: Asset, out: bytearray, buffer: int) -> No
 
 
 def encode_images(
-    asset: Asset, new_images: dict[int, np.ndarray | EncodedImage], image_format: str = "same"
+    asset: Asset, new_images: Mapping[int, np.ndarray | EncodedImage], image_format: str = "same"
 ) -> dict[int, EncodedImage]:
     """{image index: :class:`EncodedImage`} for every replaced image, in the format
     :func:`output_format` picks for it (images given already encoded are kept as they are).
@@ -218,7 +219,7 @@ def encode_images(
     by_index = {im.index: im for im in asset.images}
     n_images = len(asset.document.get("images", []))
     out: dict[int, EncodedImage] = {}
-    todo: dict[int, tuple[np.ndarray, int, str, str, str]] = {}
+    todo: dict[int, tuple[np.ndarray, int, ImageFormat, str, str]] = {}
     for i, pixels in new_images.items():
         if not isinstance(i, int) or not 0 <= i < n_images:
             raise InvalidOptions(f"there is no image {i!r} to replace")
@@ -451,7 +452,7 @@ def _save_glb(asset: Asset, out_path: Path, encoded: dict) -> list[Path]:
 def save_asset(
     asset: Asset,
     out_path: Path,
-    new_images: dict[int, np.ndarray | EncodedImage] | None = None,
+    new_images: Mapping[int, np.ndarray | EncodedImage] | None = None,
     image_format: str = "same",
 ) -> list[Path]:
     """Write ``asset`` to ``out_path`` (``.glb`` or ``.gltf``, by its suffix) with the images

@@ -32,14 +32,14 @@ from .model import ImageData
 
 ImageFormat = Literal["png", "jpeg", "exr", "tiff"]
 
-MIME = {
+MIME: dict[ImageFormat, str] = {
     "png": "image/png",
     "jpeg": "image/jpeg",
     "exr": "image/x-exr",
     "tiff": "image/tiff",
 }
-EXT = {"png": ".png", "jpeg": ".jpg", "exr": ".exr", "tiff": ".tif"}
-FORMAT_OF_MIME = {v: k for k, v in MIME.items()}
+EXT: dict[ImageFormat, str] = {"png": ".png", "jpeg": ".jpg", "exr": ".exr", "tiff": ".tif"}
+FORMAT_OF_MIME: dict[str, ImageFormat] = {v: k for k, v in MIME.items()}
 
 
 class EncodedImage(NamedTuple):
@@ -299,6 +299,7 @@ def output_format(image: ImageData, requested: str = "same") -> tuple[ImageForma
     """
     src = FORMAT_OF_MIME.get(image.mime, "png")
     depth = image.bit_depth
+    fmt: ImageFormat
     if requested == "same":
         fmt, bits = src, depth
     elif requested == "png":

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -102,15 +103,15 @@ def rounded_box(n: int = 16, radius: float = 0.25):
         (np.array([0, 0, -1]), np.array([-1, 0, 0]), np.array([0, -1, 0])),
     ]
     t = np.linspace(0.0, 1.0, n + 1)
-    u, v = np.meshgrid(t, t, indexing="xy")
-    u, v = u.reshape(-1), v.reshape(-1)
-    cell = []
+    u2, v2 = np.meshgrid(t, t, indexing="xy")
+    u, v = u2.reshape(-1), v2.reshape(-1)
+    cells = []
     for i in range(n):
         for j in range(n):
             a, b = i * (n + 1) + j, i * (n + 1) + j + 1
             c, d = a + n + 1, b + n + 1
-            cell += [(a, c, b), (b, c, d)]
-    cell = np.array(cell, dtype=np.int64)
+            cells += [(a, c, b), (b, c, d)]
+    cell = np.array(cells, dtype=np.int64)
     P, N, UV, T = [], [], [], []
     inner = 1.0 - radius
     for k, (nz, ax_u, ax_v) in enumerate(faces):
@@ -443,7 +444,7 @@ def make_test_asset(
         b.doc["meshes"][mesh0]["primitives"].append(prim)
 
     nodes = b._list("nodes")
-    root = {"name": "root", "children": []}
+    root: dict[str, Any] = {"name": "root", "children": []}
     nodes.append(root)
     sphere_node = b.add("nodes", {"name": "sphere", "mesh": mesh0})
     if f("hierarchy"):

@@ -56,17 +56,20 @@ class FusedAdam:
     @torch.no_grad()
     def step(self) -> None:
         for lr, params in self.groups:
-            by_kind: dict[tuple, list[torch.Tensor]] = {}
+            # (parameters, their gradients) per device and dtype
+            by_kind: dict[tuple, tuple[list[torch.Tensor], list[torch.Tensor]]] = {}
             for p in params:
                 if p.grad is not None:
-                    by_kind.setdefault((p.device, p.dtype), []).append(p)
-            for ps in by_kind.values():  # the kernel takes one device and dtype per call
+                    ps, gs = by_kind.setdefault((p.device, p.dtype), ([], []))
+                    ps.append(p)
+                    gs.append(p.grad)
+            for ps, gs in by_kind.values():  # the kernel takes one device and dtype per call
                 state = [self._moments(p) for p in ps]
                 steps = [s[2] for s in state]
                 torch._foreach_add_(steps, 1)
                 torch._fused_adam_(
                     ps,
-                    [p.grad for p in ps],
+                    gs,
                     [s[0] for s in state],
                     [s[1] for s in state],
                     [],

@@ -8,6 +8,8 @@ from __future__ import annotations
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
+from types import ModuleType
+from typing import Any
 
 import torch
 
@@ -24,7 +26,7 @@ def _num_pixels(gb) -> int:
 def subset_gbuffer(gb, idx: torch.Tensor):
     """The G-buffer restricted to covered pixels ``idx`` (indices into its P entries)."""
     p = _num_pixels(gb)
-    changes = {}
+    changes: dict[str, Any] = {}
     for f in fields(gb):
         v = getattr(gb, f.name)
         if isinstance(v, torch.Tensor) and v.ndim >= 1 and v.shape[0] == p:
@@ -40,7 +42,7 @@ def concat_gbuffers(gbs: list):
     """One G-buffer holding the covered pixels of several (same-resolution) G-buffers."""
     first = gbs[0]
     p = _num_pixels(first)
-    changes = {}
+    changes: dict[str, Any] = {}
     for f in fields(first):
         v = getattr(first, f.name)
         if isinstance(v, torch.Tensor) and v.ndim >= 1 and v.shape[0] == p:
@@ -113,7 +115,7 @@ class RenderScene:
     mesh: object
     materials: list
     light: object
-    shade: object
+    shade: ModuleType  # pbrsr_core.render.shade
     rasterize: Callable
 
     def render(self, gb, textures) -> torch.Tensor:

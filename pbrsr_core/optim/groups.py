@@ -22,7 +22,8 @@ def map_groups(roles: set[str], channels: int, config: PbrsrConfig) -> list[MapG
     if "metallic_roughness" in roles:
         spec.append(("roughness", (1,), config.w_other))
         spec.append(("metallic", (2,), config.w_metallic))
-    out, taken = [], set()
+    out: list[MapGroup] = []
+    taken: set[int] = set()
     for name, ch, w in spec:
         ch = tuple(c for c in ch if c < channels and c not in taken)
         if ch:

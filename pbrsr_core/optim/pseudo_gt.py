@@ -32,8 +32,8 @@ from .. import runtime
 _Q = 65535.0
 
 
-def quantize(img: torch.Tensor) -> torch.Tensor:
-    """(H, W, 3) float in [0, 1] -> uint16 counterpart (as int32 storage-safe tensor)."""
+def quantize(img: torch.Tensor) -> np.ndarray:
+    """(H, W, 3) float in [0, 1] -> its uint16 counterpart (numpy, on the host)."""
     q = torch.round(torch.nan_to_num(img.detach().float(), nan=0.0).clamp(0, 1) * _Q)
     return q.to(torch.int32).cpu().numpy().astype(np.uint16)
 

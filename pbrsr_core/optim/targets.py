@@ -60,6 +60,7 @@ def pseudo_gt_view(k, c, gbs, tex0, scene: RenderScene, prior, scale, config):
         gb = gbs.get(k)
         hr_img = scene.shade.to_image(gb, scene.render(gb, tex0), bg)
     if config.lr_render == "supersample":
+        assert hr_img is not None  # rendered above
         lr_img = F.avg_pool2d(hr_img.permute(2, 0, 1)[None], scale)
         box = covered_box(gb.pix, (h, w), scale, PRIOR_CONTEXT)
     else:
@@ -76,6 +77,7 @@ def pseudo_gt_view(k, c, gbs, tex0, scene: RenderScene, prior, scale, config):
             prior, crop, scale, max_prior_scale=config.max_prior_scale
         )
     if config.target == "detail":
+        assert hr_img is not None  # rendered above
         up = hr_img.permute(2, 0, 1)[None] + up - base
     return up.clamp(0.0, 1.0)[0].permute(1, 2, 0)
 

@@ -23,10 +23,11 @@ import numba
 import numpy as np
 import torch
 
+from ..jit import JitOptions
 from .adam import FusedAdam
 from .losses import MapGroup
 
-_JIT = {"cache": True, "parallel": True}
+_JIT: JitOptions = {"cache": True, "parallel": True}
 NORMAL_Z_MIN = 1e-3
 
 
@@ -35,7 +36,8 @@ def _on_cpu(*ts: torch.Tensor) -> bool:
 
 
 def _threads() -> None:
-    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+    limit = numba.config.NUMBA_NUM_THREADS  # type: ignore[attr-defined]  # set at run time
+    numba.set_num_threads(max(1, min(torch.get_num_threads(), limit)))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -202,15 +204,15 @@ def accumulate_map_grad_(
         entry_ch = torch.arange(w * nc) % nc
         entry_texel = torch.arange(w * nc) // nc
         tables = (
-            (lambda_tv * wx).to(dt)[entry_ch],
-            (lambda_tv * wy).to(dt)[entry_ch],
-            wx[entry_ch],
-            wy[entry_ch],
+            (lambda_tv * wx).to(dt)[entry_ch].numpy(),
+            (lambda_tv * wy).to(dt)[entry_ch].numpy(),
+            wx[entry_ch].numpy(),
+            wy[entry_ch].numpy(),
         )
         return float(
             _step_grad_kernel(
                 x.numpy().reshape(h, w * nc),
-                *(a.numpy() for a in tables),
+                *tables,
                 grad.numpy().reshape(h, w * nc),
                 pg.to(dt).contiguous().numpy().reshape(pg.shape[0], -1),
                 int(scale),
@@ -429,7 +431,7 @@ def dilate_islands(map_: torch.Tensor | np.ndarray, covered_mask, pixels: int):
     ``covered_mask`` (H, W) bool. Covered texels and texels beyond the padding are unchanged.
     """
     is_np = isinstance(map_, np.ndarray)
-    t = torch.from_numpy(np.ascontiguousarray(map_)) if is_np else map_
+    t = torch.from_numpy(np.ascontiguousarray(map_)) if isinstance(map_, np.ndarray) else map_
     if t.ndim != 3:
         raise ValueError(f"map must be (H, W, C), got {tuple(t.shape)}")
     m = np.asarray(

@@ -44,7 +44,9 @@ def sphere_cameras(
     n: int, distance: float, fov_deg: float, resolution: int | tuple[int, int]
 ) -> list[cam.Camera]:
     """``n`` cameras on a Fibonacci sphere of radius ``distance`` looking at the origin."""
-    res = (resolution, resolution) if isinstance(resolution, int) else tuple(resolution)
+    res = (
+        (resolution, resolution) if isinstance(resolution, int) else (resolution[0], resolution[1])
+    )
     return [
         cam.look_at(distance * d, (0.0, 0.0, 0.0), (0.0, 1.0, 0.0), fov_deg, res)
         for d in fibonacci_directions(n)

@@ -18,6 +18,7 @@ training needs the package: trained networks are safetensors files
 from __future__ import annotations
 
 from pathlib import Path
+from typing import cast
 
 import torch
 import torch.nn.functional as F
@@ -66,20 +67,21 @@ class Compact(nn.Module):
         shuffle = [layer for layer in layers if layer.type == "PixelShuffle"]
         if len(convs) < 2 or len(prelus) != len(convs) - 1 or len(shuffle) != 1:
             raise PriorUnavailable("the ncnn model is not a compact SR graph")
-        feat, stride = int(convs[0].weight.shape[0]), shuffle[0].int_param(0)
+        feat, stride = int(convs[0].weights().shape[0]), shuffle[0].int_param(0)
         net = cls(feat, len(convs) - 2, stride)
-        if convs[-1].weight.shape[0] != 3 * stride * stride:
+        if convs[-1].weights().shape[0] != 3 * stride * stride:
             raise PriorUnavailable("the ncnn model's head does not match its pixel shuffle")
         with torch.no_grad():
             for mod, layer in zip([*net.body, net.head], convs, strict=True):
-                if layer.weight.shape != mod.weight.shape or layer.bias is None:
+                if layer.weights().shape != mod.weight.shape or layer.bias is None:
                     raise PriorUnavailable(f"layer {layer.name}: unexpected convolution")
-                mod.weight.copy_(layer.weight)
+                mod.weight.copy_(layer.weights())
                 mod.bias.copy_(layer.bias)
             for act, layer in zip(net.acts, prelus, strict=True):
-                if layer.weight.shape != act.weight.shape:
+                slopes = cast(nn.PReLU, act).weight
+                if layer.weights().shape != slopes.shape:
                     raise PriorUnavailable(f"layer {layer.name}: unexpected PReLU")
-                act.weight.copy_(layer.weight)
+                slopes.copy_(layer.weights())
         return net
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

@@ -217,7 +217,7 @@ def project_map(
     h = lr.shape[0]
     if hr.shape[0] != h * scale or h <= strip_rows + 2 * _STRIP_HALO:
         return _project_whole(hr, lr, scale, role)
-    out = None
+    out: np.ndarray | None = None
     for y0 in range(0, h, strip_rows):
         y1 = min(h, y0 + strip_rows)
         a, b = max(0, y0 - _STRIP_HALO), min(h, y1 + _STRIP_HALO)
@@ -225,6 +225,7 @@ def project_map(
         if out is None:  # (sH, sW, C) as the whole map's result, also for a 2-D input
             out = np.empty((hr.shape[0], *part.shape[1:]), dtype=np.float32)
         out[y0 * scale : y1 * scale] = part[(y0 - a) * scale : (y1 - a) * scale]
+    assert out is not None  # h > strip_rows: at least one strip
     return out
 
 

@@ -43,6 +43,12 @@ class Layer:
     def int_param(self, key: int, default: int = 0) -> int:
         return int(self.params.get(key, default))
 
+    def weights(self) -> torch.Tensor:
+        """``weight``, refusing a layer that has none."""
+        if self.weight is None:
+            raise PriorUnavailable(f"layer {self.name} has no weights")
+        return self.weight
+
 
 def read_param(path: Path) -> list[Layer]:
     """The layers of an ncnn ``.param`` file, in file order."""
@@ -76,7 +82,7 @@ def read_model(param: Path, weights: Path) -> list[Layer]:
 
     def take(count: int, tagged: bool) -> np.ndarray:
         nonlocal off
-        dtype = np.float32
+        dtype: type[np.floating] = np.float32
         if tagged:
             tag = int.from_bytes(buf[off : off + 4], "little")
             off += 4

@@ -58,12 +58,14 @@ def _standin_modules() -> dict[str, types.ModuleType]:
     tr = types.ModuleType("torchvision.transforms")
     tr.__path__ = []
     fn = types.ModuleType("torchvision.transforms.functional")
-    fn.InterpolationMode = _InterpolationMode
-    fn.__getattr__ = lambda name: (
-        _needs_torchvision(name) if not name.startswith("__") else _raise_attr(name)
+    vars(fn).update(
+        InterpolationMode=_InterpolationMode,
+        __getattr__=lambda name: (
+            _needs_torchvision(name) if not name.startswith("__") else _raise_attr(name)
+        ),
     )
-    tv.transforms = tr
-    tr.functional = fn
+    vars(tv)["transforms"] = tr
+    vars(tr)["functional"] = fn
     return {m.__name__: m for m in (tv, tr, fn)}
 
 

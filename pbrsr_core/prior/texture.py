@@ -113,7 +113,7 @@ class TexturePrior(Prior):
         for (kind, stride), f in self.files.items():
             if f not in loaded:
                 net = load_network(f).to(self.device)
-                loaded[f] = net.to(memory_format=torch.channels_last)
+                loaded[f] = net.to(memory_format=torch.channels_last)  # type: ignore[call-overload]  # torch's stubs omit memory_format
             self.nets.setdefault(kind, {})[stride] = loaded[f]
         self.fallback = fallback
         self._views: dict[str, Prior] = {}

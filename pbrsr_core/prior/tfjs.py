@@ -254,4 +254,4 @@ def load_converted(path: Path, device: torch.device | str = "cpu") -> TfjsGraphN
     net = TfjsGraphNet(ops, {k: (v[0], v[1], v[2]) for k, v in shapes.items()})
     net.convs.load_state_dict({k: v for k, v in state.items()}, strict=True)
     net = net.eval().requires_grad_(False).to(device)
-    return net.to(memory_format=torch.channels_last)
+    return net.to(memory_format=torch.channels_last)  # type: ignore[call-overload]  # torch's stubs omit memory_format

@@ -98,10 +98,10 @@ def run_tiled(
     th, ys = tile_layout(h, tile, overlap)
     tw, xs = tile_layout(w, tile, overlap)
     if len(ys) == 1 and len(xs) == 1:
-        out = fn(image)
+        whole = fn(image)
         if on_tile is not None:
             on_tile()
-        return out.to(image.device)
+        return whole.to(image.device)
     dev = image.device
     wy = axis_windows(h, ys, th, overlap, scale, dev)
     wx = axis_windows(w, xs, tw, overlap, scale, dev)

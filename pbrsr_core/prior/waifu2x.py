@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import threading
 from pathlib import Path
+from typing import cast
 
 import torch
 import torch.nn.functional as F
@@ -105,12 +106,13 @@ class UpConv7(nn.Module):
         if others or not convs or convs[-1].type != "Deconvolution":
             raise PriorUnavailable("the waifu2x model is not an UpConv7 graph")
         slopes = {_activation(layer) for layer in convs[:-1]}
+        slope = slopes.pop() if len(slopes) == 1 else None
         up = convs[-1]
-        if len(slopes) != 1 or None in slopes or _activation(up) is not None:
+        if slope is None or _activation(up) is not None:
             raise PriorUnavailable("the waifu2x model's activations are not UpConv7's")
         channels = 3
         for layer in convs:
-            w = layer.weight
+            w = layer.weights()
             stride = layer.int_param(3, 1)
             if layer.type == "Convolution" and (
                 w.shape[1] != channels
@@ -126,25 +128,30 @@ class UpConv7(nn.Module):
         if channels != 3:
             raise PriorUnavailable("the waifu2x model does not output RGB")
         net = cls(
-            tuple(int(layer.weight.shape[0]) for layer in convs[:-1]),
-            slope=slopes.pop(),
-            up_kernel=int(up.weight.shape[2]),
+            tuple(int(layer.weights().shape[0]) for layer in convs[:-1]),
+            slope=slope,
+            up_kernel=int(up.weights().shape[2]),
             up_pad=up.int_param(4, 0),
         )
         with torch.no_grad():
-            for mod, layer in zip(net.mods, convs, strict=True):
+            for mod, layer in zip(net.layers(), convs, strict=True):
                 # ncnn stores a deconvolution's kernel as (out, in, k, k); torch as (in, out).
-                w = layer.weight if layer.type == "Convolution" else layer.weight.transpose(0, 1)
-                mod.weight.copy_(w)
-                zeros = torch.zeros(mod.weight.shape[0 if layer.type == "Convolution" else 1])
-                mod.bias.copy_(layer.bias if layer.bias is not None else zeros)
+                w = layer.weights()
+                mod.weight.copy_(w if layer.type == "Convolution" else w.transpose(0, 1))
+                bias = mod.bias
+                assert bias is not None  # every layer is built with a bias
+                bias.copy_(layer.bias if layer.bias is not None else torch.zeros_like(bias))
         return net
 
+    def layers(self) -> list[nn.Conv2d | nn.ConvTranspose2d]:
+        """``mods``, typed: the 3x3 convolutions, then the transposed convolution."""
+        return [cast("nn.Conv2d | nn.ConvTranspose2d", m) for m in self.mods]
+
     def _out_size(self, n: int) -> int:
-        for mod in self.mods:
+        for mod in self.layers():
             k = mod.kernel_size[0]
             if isinstance(mod, nn.ConvTranspose2d):
-                n = (n - 1) * mod.stride[0] - 2 * mod.padding[0] + k
+                n = (n - 1) * mod.stride[0] - 2 * int(mod.padding[0]) + k
             else:
                 n = n - k + 1
         return n
@@ -185,7 +192,7 @@ class Waifu2xPrior(Prior):
         if files is None:
             raise PriorUnavailable(f"the prior '{NAME}' is not installed: {INSTALL_HINT}")
         self.net = UpConv7.from_ncnn(read_model(*files)).eval().to(self.device)
-        self.net = self.net.to(memory_format=torch.channels_last)
+        self.net = self.net.to(memory_format=torch.channels_last)  # type: ignore[call-overload]  # torch's stubs omit memory_format
         self._lock = threading.Lock()
 
     def num_parameters(self) -> int:

@@ -140,7 +140,9 @@ def orbit_cameras(
         raise ValueError("n_elev and n_azim must be positive")
     if distance <= 0:
         raise ValueError("distance must be positive")
-    res = (resolution, resolution) if isinstance(resolution, int) else tuple(resolution)
+    res = (
+        (resolution, resolution) if isinstance(resolution, int) else (resolution[0], resolution[1])
+    )
     lo, hi = elev_range_deg
     elevs = np.linspace(lo, hi, n_elev) if n_elev > 1 else np.array([(lo + hi) / 2.0])
     cams = []

@@ -247,6 +247,7 @@ def shade_terms(
     metal = m["metal"].clamp(0.0, 1.0)
     ao = m["ao"].clamp(0.0, 1.0)
     n = perturb_normal(gb, m["normal_ts"])
+    assert gb.view is not None, "shading needs the G-buffer's view directions"
     v = gb.view.to(dtype)
     n_dot_v_raw = (n * v).sum(-1, keepdim=True)
     n_dot_v = n_dot_v_raw.clamp(NDOTV_MIN, 1.0)

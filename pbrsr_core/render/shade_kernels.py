@@ -36,6 +36,8 @@ import numba
 import numpy as np
 import torch
 
+from ..jit import JitOptions
+
 NDOTV_MIN = 1e-4  # = shade.NDOTV_MIN
 NORMAL_MIN2 = 1e-12  # a mapped / tangent-space normal with |v|^2 <= this is degenerate
 NORM_EPS2 = 1e-24  # safe_normalize's clamp of |v|^2
@@ -45,8 +47,9 @@ ACOS_LIM = 1.0 - 1e-6
 INV_2PI = 1.0 / (2.0 * math.pi)
 INV_PI = 1.0 / math.pi
 
-_JIT = {"cache": True, "fastmath": False, "error_model": "numpy"}
-_INL = {**_JIT, "inline": "always"}
+_JIT: JitOptions = {"cache": True, "fastmath": False, "error_model": "numpy"}
+_INL: JitOptions = {**_JIT, "inline": "always"}
+_PAR: JitOptions = {**_JIT, "parallel": True}
 _f64 = np.float64  # (numba's float() keeps a float32 a float32)
 
 
@@ -297,7 +300,7 @@ def _combine(m, e0, e1, e2, x, p):
     return out, (km, f00, f01, f02, d0 + s0, d1 + s1, d2 + s2, sa0, sa1, sa2, la, lb)
 
 
-@numba.njit(parallel=True, **_JIT)
+@numba.njit(**_PAR)
 def _shade_fwd(base, rough, metal, ao, emis, nts, alpha, nrm, tng, view, diff, spec, lut, out, aux):
     """out (P, 4) = shaded RGB + alpha. aux (P, NAUX) receives the lookups and their
     derivatives for the backward; with fewer rows (no backward wanted) it is a scratch row
@@ -315,7 +318,7 @@ def _shade_fwd(base, rough, metal, ao, emis, nts, alpha, nrm, tng, view, diff, s
         out[p, 3] = m[12]
 
 
-@numba.njit(parallel=True, **_JIT)
+@numba.njit(**_PAR)
 def _shade_bwd(g, base, rough, metal, ao, emis, nts, alpha, nrm, tng, view, aux, grads):
     """Derivatives of sum(g * out) w.r.t. the seven inputs, written into ``grads``, from the
     inputs and the forward's aux rows (the lookups are not repeated)."""
@@ -396,14 +399,15 @@ INPUTS = (
 
 
 def _set_threads() -> None:
-    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+    limit = numba.config.NUMBA_NUM_THREADS  # type: ignore[attr-defined]  # set at run time
+    numba.set_num_threads(max(1, min(torch.get_num_threads(), limit)))
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
     return t.detach().contiguous().numpy()
 
 
-@numba.njit(parallel=True, **_JIT)
+@numba.njit(**_PAR)
 def _decode_fwd(t, sx, out):
     for p in numba.prange(t.shape[0]):
         v0 = (2.0 * _f64(t[p, 0]) - 1.0) * sx
@@ -417,7 +421,7 @@ def _decode_fwd(t, sx, out):
             out[p, 0], out[p, 1], out[p, 2] = 0.0, 0.0, 1.0
 
 
-@numba.njit(parallel=True, **_JIT)
+@numba.njit(**_PAR)
 def _decode_bwd(t, sx, g, gt):
     for p in numba.prange(t.shape[0]):
         v0 = (2.0 * _f64(t[p, 0]) - 1.0) * sx

@@ -182,7 +182,7 @@ class Validator:
         }
 
     @torch.no_grad()
-    def __call__(self, net: torch.nn.Module) -> dict[str, float]:
+    def __call__(self, net: weights.Network) -> dict[str, float]:
         out = {}
         for kind, (lr, hr) in self.sets.items():
             ups = [
