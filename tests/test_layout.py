@@ -175,3 +175,16 @@ def test_a_command_whose_extra_is_missing_says_what_to_install():
     assert result.exit_code == 2
     assert "pbrsr_no_such_module" in result.output
     assert "pip install 'pbrsr[service]'" in result.output
+
+
+def test_the_pre_commit_hooks_run_the_pinned_ruff_and_the_venv_mypy():
+    yaml = pytest.importorskip("yaml")
+    config = yaml.safe_load((ROOT / ".pre-commit-config.yaml").read_text())
+    repos = {repo["repo"]: repo for repo in config["repos"]}
+    dev = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    pins = dict(r.split("==", 1) for r in dev["dev"] if "==" in r and ";" not in r)
+    ruff = repos["https://github.com/astral-sh/ruff-pre-commit"]
+    assert ruff["rev"] == "v" + pins["ruff"]
+    assert [h["id"] for h in ruff["hooks"]] == ["ruff-check", "ruff-format"]
+    (mypy,) = repos["local"]["hooks"]
+    assert mypy["entry"] == ".venv/bin/mypy" and "mypy" in pins
