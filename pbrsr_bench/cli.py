@@ -8,6 +8,7 @@ from typing import Any, NoReturn
 
 import typer
 
+from pbrsr_core.cli.extras import require_extra
 from pbrsr_core.options import DEFAULT_PRIOR
 
 bench_app = typer.Typer(help="Benchmarks: print a table, write JSON and plots to bench-out/.")
@@ -62,6 +63,7 @@ def prior_cmd(
 ) -> None:
     """Prior speed (256² and tiled 1024² inputs), peak memory and PSNR gain over bicubic on
     skimage photos and on albedo crops of the shared assets (when present)."""
+    require_extra("bench prior", "bench", ("skimage",))
     from pbrsr_bench.prior import print_table, run
 
     _report(
@@ -251,6 +253,7 @@ def publish_cmd(
 
 
 def _load_report(out: Path, **options: Any) -> None:
+    require_extra("bench", "bench", ("httpx", "redis"))
     from pbrsr_bench.load import print_table, run
 
     written = [out / "load.json", out / "load.png"]

@@ -162,7 +162,7 @@ def test_a_command_whose_extra_is_missing_says_what_to_install():
     import typer
     from typer.testing import CliRunner
 
-    from pbrsr_core.cli.extras import needs_extra
+    from pbrsr_core.cli.extras import needs_extra, require_extra
 
     app = typer.Typer()
 
@@ -171,10 +171,16 @@ def test_a_command_whose_extra_is_missing_says_what_to_install():
         with needs_extra("serve", "service"):
             import pbrsr_no_such_module.sub  # noqa: F401
 
-    result = CliRunner().invoke(app, [])
-    assert result.exit_code == 2
-    assert "pbrsr_no_such_module" in result.output
-    assert "pip install 'pbrsr[service]'" in result.output
+    @app.command()
+    def bench() -> None:
+        require_extra("bench", "bench", ("typer", "pbrsr_no_such_module"))
+        raise AssertionError("not reached")
+
+    for command, extra in (("serve", "service"), ("bench", "bench")):
+        result = CliRunner().invoke(app, [command])
+        assert result.exit_code == 2
+        assert "'pbrsr_no_such_module'" in result.output
+        assert f"pip install 'pbrsr[{extra}]'" in result.output
 
 
 def test_the_pre_commit_hooks_run_the_pinned_ruff_and_the_venv_mypy():
