@@ -50,7 +50,8 @@ class LimitExceeded(PbrsrError):
 
 class UnprocessableAsset(PbrsrError):
     """A valid asset pbrsr cannot process as asked: no textures ("nothing to upscale"), no
-    UVs with unwrapping turned off, an unsupported scale for the chosen prior."""
+    UVs with unwrapping turned off, an unsupported scale for the chosen prior, a referenced
+    file the file system cannot open (a name too long for it, no permission)."""
 
     code = "unprocessable-asset"
     http_status = 422

@@ -142,6 +142,7 @@ def hostile_cases(folder: Path) -> list[HostileCase]:
     buffer_uri("uri_file_scheme", "file:///etc/passwd", says="file:///etc/passwd")
     buffer_uri("uri_http", "http://example.com/a.bin", says="http://example.com/a.bin")
     buffer_uri("uri_https", "https://example.com/a.bin", says="https://example.com/a.bin")
+    buffer_uri("uri_too_long", "a" * 5000, UnprocessableAsset, says="name is too long")
 
     d = case("short_buffer")
     (d / "quad.bin").write_bytes((src.parent / "quad.bin").read_bytes()[:10])

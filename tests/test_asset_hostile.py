@@ -10,6 +10,7 @@ from hostile import hostile_cases
 
 from pbrsr_core.asset import load_asset
 from pbrsr_core.asset.procedural import make_quad_asset
+from pbrsr_core.errors import UnprocessableAsset
 
 
 @pytest.fixture(scope="module")
@@ -49,3 +50,13 @@ def test_zero_area_triangles_are_kept_finite(tmp_path):
     for t in (a.mesh.v_nrm, a.mesh.v_tng):
         assert np.isfinite(t.numpy()).all()
     assert np.allclose(np.linalg.norm(a.mesh.v_nrm.numpy(), axis=1), 1.0, atol=1e-5)
+
+
+def test_a_uri_that_cannot_be_opened_is_unprocessable(tmp_path):
+    src = make_quad_asset(tmp_path / "q.gltf", size=8)
+    (tmp_path / "loop.bin").symlink_to("loop.bin")
+    doc = json.loads(src.read_text())
+    doc["buffers"][0]["uri"] = "loop.bin"
+    src.write_text(json.dumps(doc))
+    with pytest.raises(UnprocessableAsset, match="'loop.bin', which cannot be opened"):
+        load_asset(src)

@@ -118,3 +118,17 @@ def test_hostile_zips(tmp_path, label, entries, symlink, status):
         assert list((settings.storage_dir / "jobs").iterdir()) == []
     finally:
         cleanup_redis(settings)
+
+
+def test_over_long_uri_is_unprocessable(tmp_path):
+    case = next(c for c in hostile_cases(tmp_path / "corpus") if c.name == "uri_too_long")
+    settings = make_settings(tmp_path)
+    try:
+        with TestClient(create_app(settings), raise_server_exceptions=False) as c:
+            resp = post_asset(c, case.path.read_bytes(), filename="a.gltf")
+        _check_problem(resp, 422, "unprocessable-asset", case.name, settings.storage_dir)
+        assert "name is too long" in resp.json()["detail"]
+        assert len(resp.json()["detail"]) < 300  # the name is cut, its length said
+        assert list((settings.storage_dir / "jobs").iterdir()) == []
+    finally:
+        cleanup_redis(settings)

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import base64
 import binascii
+import errno
 import re
 import urllib.parse
 from pathlib import Path, PurePosixPath
 
-from ..errors import InvalidAsset, LimitExceeded
+from ..errors import InvalidAsset, LimitExceeded, UnprocessableAsset
 
 _SCHEME = re.compile(r"^[A-Za-z][A-Za-z0-9+.\-]*:")
 _SAFE_CHARS = re.compile(r"[^A-Za-z0-9._\-]+")
@@ -78,15 +79,39 @@ def resolve_inside(folder: Path, rel: PurePosixPath, what: str) -> Path:
 
 
 def read_resource(folder: Path, uri: str, max_bytes: int, what: str) -> bytes:
-    """The bytes of a relative ``uri`` inside ``folder``; InvalidAsset when missing/unsafe."""
+    """The bytes of a relative ``uri`` inside ``folder``: InvalidAsset when missing or unsafe,
+    UnprocessableAsset when the file system cannot open it (a name too long for it, no
+    permission, a link loop)."""
     rel = relative_path(uri, what)
-    path = resolve_inside(folder, rel, what)
-    if not path.is_file():
-        raise InvalidAsset(f"{what} refers to '{rel}', which is missing")
-    size = path.stat().st_size
-    if size > max_bytes:
-        raise LimitExceeded(f"{what}: the file '{rel}' is {size} bytes; the limit is {max_bytes}")
-    return path.read_bytes()
+    try:
+        path = resolve_inside(folder, rel, what)
+        if not path.is_file():
+            raise InvalidAsset(f"{what} refers to '{_quoted(rel)}', which is missing")
+        size = path.stat().st_size
+        if size > max_bytes:
+            raise LimitExceeded(
+                f"{what}: the file '{_quoted(rel)}' is {size} bytes; the limit is {max_bytes}"
+            )
+        return path.read_bytes()
+    except (OSError, RuntimeError) as exc:  # RuntimeError: Path.resolve on a link loop
+        raise UnprocessableAsset(_unopenable(rel, what, exc)) from None
+
+
+def _quoted(rel: PurePosixPath) -> str:
+    """``rel`` for a message: at most 80 characters, the length named when it is cut."""
+    text = str(rel)
+    return text if len(text) <= 80 else f"{text[:80]}... ({len(text)} characters)"
+
+
+def _unopenable(rel: PurePosixPath, what: str, exc: BaseException) -> str:
+    """Why the file ``rel`` cannot be opened, without server paths."""
+    if isinstance(exc, OSError) and exc.errno == errno.ENAMETOOLONG:
+        reason = "its name is too long for the file system"
+    elif isinstance(exc, OSError):
+        reason = (exc.strerror or type(exc).__name__).lower()
+    else:
+        reason = "a link loops"
+    return f"{what} refers to '{_quoted(rel)}', which cannot be opened: {reason}"
 
 
 def safe_stem(name: str, default: str = "image") -> str:
