@@ -16,7 +16,7 @@ from pbrsr_core import __version__
 from pbrsr_jobs.settings import Settings, get_settings
 
 from .problems import install_handlers
-from .routes import health, jobs, prometheus
+from .routes import events, health, jobs, prometheus
 
 STATIC_DIR = Path(__file__).parent / "static"
 log = logging.getLogger("pbrsr.service")
@@ -66,6 +66,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             expose_headers=["Location"],
         )
     app.include_router(jobs.router)
+    app.include_router(events.router)
     app.include_router(health.router)
     app.include_router(prometheus.router)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")

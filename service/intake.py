@@ -19,6 +19,7 @@ from typing import Any
 
 from pbrsr_core.errors import InvalidAsset, InvalidOptions, UnprocessableAsset
 from pbrsr_core.options import UpscaleOptions
+from pbrsr_jobs.events import JobEvents
 from pbrsr_jobs.settings import Settings
 from pbrsr_jobs.store import (
     JobIndex,
@@ -147,6 +148,8 @@ def create_job(
             "state": JobState.QUEUED.value,
         }
         index.add(job_id, owner, created)
+        events = JobEvents(index.redis, index.prefix)
+        events.publish(job_id, owner, "queued")  # before a worker can say "started"
         target = settings.queue_for(output_mpix)
         if target != queue.name:
             queue = type(queue)(target, connection=queue.connection)
@@ -164,6 +167,7 @@ def create_job(
             )
         except Exception:
             index.remove(job_id)
+            events.forget(job_id)
             raise
     except BaseException:
         if upload.path is not None:

@@ -1,6 +1,7 @@
 """The dashboard end to end in headless Chromium (Debian's /usr/bin/chromium, driven by
 Playwright): a real ``pbrsr serve`` and ``pbrsr worker`` on localhost; drop a procedural
-asset on the page, watch the progress bar move, see the job finish, download the bundle.
+asset on the page, watch the progress bar move (pushed by the event stream), see the job
+finish, download the bundle.
 The screenshot is kept as test-artifacts/dashboard.png."""
 
 from __future__ import annotations
@@ -66,8 +67,12 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
                 )
                 errors: list[str] = []
                 page.on("pageerror", lambda exc: errors.append(str(exc)))
+                requests: list[str] = []
+                page.on("request", lambda req: requests.append(req.url))
                 page.goto(base + "/")
                 assert page.title().startswith("pbrsr")
+                # the page follows the key's event stream instead of polling
+                page.wait_for_function("document.body.dataset.events === 'live'")
                 assert page.is_disabled("#submit")
 
                 # drag and drop the asset onto the drop zone, pick options, submit
@@ -96,6 +101,8 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
                         break
                     time.sleep(0.25)
                 assert statuses[-1] == "finished", (statuses[-5:], page.inner_text("#job-error"))
+                assert page.evaluate("document.body.dataset.events") == "live"
+                assert any(u.endswith("/v1/events") for u in requests)
                 assert "running" in statuses
                 assert any(0 < w < 100 for w in widths), widths  # it moved before the end
                 page.wait_for_function(

@@ -23,6 +23,7 @@ from redis.exceptions import TimeoutError as RedisTimeoutError
 
 from pbrsr_core.errors import Cancelled
 from pbrsr_core.progress import Progress
+from pbrsr_jobs.events import STATE_EVENTS, JobEvents
 from pbrsr_jobs.store import JobIndex, JobState
 
 # Share of the whole run each pipeline stage takes, per method, in the order the stages
@@ -107,6 +108,18 @@ class JobReporter:
         self.history: list[dict[str, Any]] = []
         self.fraction = 0.0
         self.saves = 0
+        self.events = JobEvents(index.redis, index.prefix)
+        self.owner = str(job.meta.get("owner", ""))
+
+    def _publish(self, type_: str, data: dict[str, Any], *, retry_s: float = 0.0) -> None:
+        """One job event (pbrsr_jobs.events); progress events are best effort, the others
+        are retried like the outcome."""
+        try:
+            _with_retries(
+                lambda: self.events.publish(self.job.id, self.owner, type_, data), retry_s
+            )
+        except REDIS_ERRORS as exc:
+            log.warning("job %s: %s event not published: %s", self.job.id, type_, exc)
 
     # -- lifecycle -------------------------------------------------------------------------
     def start(self, attempt: int, worker_name: str) -> None:
@@ -124,6 +137,7 @@ class JobReporter:
             updated_at=time.time(),
         )
         self.job.save_meta()
+        self._publish("started", {"attempt": attempt, "worker": worker_name}, retry_s=10.0)
 
     def finish(
         self,
@@ -160,6 +174,8 @@ class JobReporter:
             ),
             self.finish_retry_s,
         )
+        outcome = {k: meta[k] for k in ("error", "code", "summary") if k in meta}
+        self._publish(STATE_EVENTS[state], outcome, retry_s=self.finish_retry_s)
 
     def check_cancel(self) -> None:
         try:
@@ -253,3 +269,5 @@ class JobReporter:
             log.warning("job %s: progress not saved: %s", self.job.id, exc)
             return
         self.saves += 1
+        keys = ("stage", "step", "total", "fraction", "eta_s", "losses", "metrics")
+        self._publish("progress", {k: meta[k] for k in keys})

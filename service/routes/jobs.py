@@ -11,6 +11,7 @@ from fastapi.responses import FileResponse
 from rq.exceptions import InvalidJobOperation, NoSuchJobError
 from rq.job import Job
 
+from pbrsr_jobs.events import JobEvents
 from pbrsr_jobs.store import JobIndex, JobState, check_job_id, sweep_expired
 
 from ..deps import IndexDep, LayoutDep, OwnerDep, QueueDep, RedisDep, SettingsDep
@@ -162,12 +163,15 @@ def cancel_job(
             job.delete()
         layout.remove(job_id)
         index.remove(job_id)
+        JobEvents(redis, settings.key_prefix).forget(job_id)
         return Response(status_code=204)
     index.request_cancel(job_id, settings.job_timeout + 3600)
     if state == JobState.QUEUED:
         with contextlib.suppress(InvalidJobOperation):
             job.cancel()
         job.refresh()
+        if state_of(job) == JobState.CANCELED:  # a worker did not take it first
+            JobEvents(redis, settings.key_prefix).publish(job_id, owner, "cancelled")
     return detail_view(job, index, layout)
 
 

@@ -1,8 +1,11 @@
-// The pbrsr dashboard: upload, job list and job view, all by polling the REST API.
+// The pbrsr dashboard: upload, job list and job view. The REST API gives the state; the
+// key's event stream (/v1/events, Server-Sent Events read with fetch so the API key can go in
+// a header) says when to read it again. Polling takes over only while the stream is down.
 "use strict";
 
 const $ = (id) => document.getElementById(id);
-const POLL_MS = 1000;
+const POLL_MS = 1000; // only while the event stream is down
+const RECONNECT_MS = 2000;
 const TERMINAL = new Set(["finished", "failed", "canceled"]);
 
 const state = {
@@ -317,6 +320,69 @@ function poll() {
   if (state.selected && (!state.detail || !TERMINAL.has(state.detail.status))) refreshJob();
 }
 
+// Refreshes asked for by events: the selected job on each of its events, the list on a job's
+// state changes and at most every LIST_PROGRESS_MS for progress; one read of each in flight.
+const LIST_PROGRESS_MS = 2000;
+const pending = { list: false, job: false, timer: null, listAt: 0 };
+function onEvent(event) {
+  if (event.type !== "progress" || Date.now() - pending.listAt > LIST_PROGRESS_MS) pending.list = true;
+  if (event.job === state.selected) pending.job = true;
+  if (pending.timer) return;
+  pending.timer = setTimeout(() => {
+    pending.timer = null;
+    if (pending.list) { pending.list = false; pending.listAt = Date.now(); refreshList(); }
+    if (pending.job) { pending.job = false; refreshJob(); }
+  }, 100);
+}
+
+// One SSE message block -> {id, event, data}.
+function parseEvent(block) {
+  const msg = {};
+  for (const line of block.split("\n")) {
+    if (!line || line.startsWith(":")) continue;
+    const at = line.indexOf(":");
+    const field = at < 0 ? line : line.slice(0, at);
+    const value = at < 0 ? "" : line.slice(at + 1).replace(/^ /, "");
+    msg[field] = field === "data" && msg.data !== undefined ? `${msg.data}\n${value}` : value;
+  }
+  return msg;
+}
+
+const stream = { lastId: "", timer: null, live: false, abort: null };
+async function followEvents() {
+  stream.abort = new AbortController();
+  const init = {
+    signal: stream.abort.signal,
+    headers: { ...headers(), ...(stream.lastId ? { "Last-Event-ID": stream.lastId } : {}) },
+  };
+  try {
+    const resp = await fetch("/v1/events", init);
+    if (!resp.ok || !resp.body) throw new Error(`event stream: ${resp.status}`);
+    stream.live = true;
+    document.body.dataset.events = "live";
+    if (stream.timer) { clearInterval(stream.timer); stream.timer = null; }
+    poll(); // what happened while the stream was down
+    const reader = resp.body.pipeThrough(new TextDecoderStream()).getReader();
+    let buf = "";
+    for (;;) {
+      const { value, done } = await reader.read();
+      if (done) break;
+      buf += value;
+      const blocks = buf.split("\n\n");
+      buf = blocks.pop();
+      for (const block of blocks) {
+        const msg = parseEvent(block);
+        if (msg.id) stream.lastId = msg.id;
+        if (msg.event && msg.data) onEvent(JSON.parse(msg.data));
+      }
+    }
+  } catch (_) { /* down: poll until it is back */ }
+  stream.live = false;
+  document.body.dataset.events = "polling";
+  if (!stream.timer) stream.timer = setInterval(poll, POLL_MS);
+  setTimeout(followEvents, RECONNECT_MS);
+}
+
 function init() {
   $("api-key").value = state.key;
   if (state.key) $("auth").hidden = false;
@@ -324,6 +390,8 @@ function init() {
     state.key = $("api-key").value.trim();
     localStorage.setItem("pbrsr-api-key", state.key);
     state.blobUrls.clear();
+    stream.lastId = "";
+    if (stream.abort) stream.abort.abort(); // reconnects with the new key
     poll();
   });
   $("file-input").addEventListener("change", (e) => pickFile(e.target.files[0]));
@@ -338,7 +406,7 @@ function init() {
   $("download").addEventListener("click", download);
   $("opt-method").addEventListener("change", () => { $("opt-preset").disabled = $("opt-method").value !== "pbrsr"; });
   poll();
-  setInterval(poll, POLL_MS);
+  followEvents();
 }
 
 document.addEventListener("DOMContentLoaded", init);
