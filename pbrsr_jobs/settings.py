@@ -133,7 +133,15 @@ class Settings(BaseSettings):
     max_output_dim: int = Field(16384, ge=1, description="Largest output texture side (px).")
     max_data_uri_mb: float = Field(64, gt=0, description="Largest data: URI in a .gltf.")
     max_zip_entries: int = Field(1000, ge=1, description="Most entries in an uploaded zip.")
-    max_unpacked_mb: float = Field(1024, gt=0, description="Most bytes a zip may unpack to.")
+    max_unpacked_mb: float = Field(
+        1024, gt=0, description="Most bytes a zip may unpack to (the files the asset uses)."
+    )
+    max_compression_ratio: float = Field(
+        200,
+        ge=1,
+        description="Highest uncompressed/compressed size ratio of a zip entry the asset uses, "
+        "and of all of them against the zip's size.",
+    )
 
     # -- validation --------------------------------------------------------------------
     @field_validator("api_keys", "cors_origins", "preload_priors", mode="before")
@@ -198,6 +206,7 @@ class Settings(BaseSettings):
             max_data_uri_bytes=int(self.max_data_uri_mb * _MB),
             max_zip_entries=self.max_zip_entries,
             max_unpacked_bytes=int(self.max_unpacked_mb * _MB),
+            max_compression_ratio=self.max_compression_ratio,
         )
 
     @property

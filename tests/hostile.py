@@ -10,6 +10,7 @@ from __future__ import annotations
 import base64
 import json
 import struct
+import zipfile
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -67,6 +68,34 @@ def _edit(src: Path, dest: Path, fn) -> Path:
 def _glb_parts(glb: bytes) -> tuple[bytes, bytes]:
     jlen = struct.unpack("<I", glb[12:16])[0]
     return glb[20 : 20 + jlen], glb[20 + jlen :]
+
+
+def gltf_using(*uris: str) -> bytes:
+    """A bare .gltf whose buffers name ``uris`` (so a zip holding it unpacks those entries)."""
+    buffers = [{"uri": uri, "byteLength": 1} for uri in uris]
+    return json.dumps({"asset": {"version": "2.0"}, "buffers": buffers}).encode()
+
+
+def zip_with_zeros(folder: Path, size: int, used: bool) -> Path:
+    """``folder/asset.zip``: a quad .gltf with its files under ``model/``, and ``size`` zero
+    bytes deflated (about 1000:1) as ``model/zeros.bin``. With ``used`` a buffer of the .gltf
+    names that entry (URI-encoded: ``zero%73.bin``); otherwise nothing does."""
+    src = _quad(folder / "src")
+    if used:
+        _edit(
+            src,
+            src,
+            lambda doc: doc["buffers"].append({"uri": "zero%73.bin", "byteLength": size}),
+        )
+    path = folder / "asset.zip"
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zf:
+        for p in sorted(src.parent.iterdir()):
+            zf.write(p, f"model/{p.name}")
+        with zf.open("model/zeros.bin", "w") as out:
+            for _ in range(size // 2**20):
+                out.write(bytes(2**20))
+            out.write(bytes(size % 2**20))
+    return path
 
 
 def hostile_cases(folder: Path) -> list[HostileCase]:

@@ -1,15 +1,21 @@
-"""Zip extraction safety and kind detection by magic bytes."""
+"""Zip extraction safety (only the files the asset uses, compression ratios) and kind
+detection by magic bytes."""
 
 from __future__ import annotations
 
+import re
 import stat
+import struct
 import zipfile
 
 import pytest
+from hostile import gltf_using, zip_with_zeros
 
+from pbrsr_bench.fuzz import pack_glb
 from pbrsr_core.asset import detect_kind, extract_zip, load_asset
+from pbrsr_core.asset.gltf_read import parse_glb
 from pbrsr_core.asset.procedural import make_quad_asset, make_test_asset
-from pbrsr_core.errors import InvalidAsset, LimitExceeded, UnsupportedAsset
+from pbrsr_core.errors import InvalidAsset, LimitExceeded, UnprocessableAsset, UnsupportedAsset
 from pbrsr_core.limits import Limits
 
 
@@ -53,13 +59,75 @@ def test_symlink_entry_refused(tmp_path):
         extract_zip(z, tmp_path / "out")
 
 
-def test_zip_bomb_counts_real_bytes(tmp_path):
-    z = tmp_path / "bomb.zip"
-    with zipfile.ZipFile(z, "w", zipfile.ZIP_DEFLATED) as zf:
-        zf.writestr("a.gltf", b"{}")
-        zf.writestr("big.bin", b"\x00" * (4 * 2**20))
+def _files(folder):
+    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file())
+
+
+def test_unpacked_bytes_limit(tmp_path):
+    z = _zip(tmp_path / "big.zip", {"a.gltf": gltf_using("big.bin"), "big.bin": bytes(4 * 2**20)})
     with pytest.raises(LimitExceeded, match="unpacks"):
-        extract_zip(z, tmp_path / "out", Limits(max_unpacked_bytes=2**20))
+        extract_zip(
+            z, tmp_path / "out", Limits(max_unpacked_bytes=2**20, max_compression_ratio=1e4)
+        )
+    assert not (tmp_path / "out").exists()
+
+
+def test_only_the_files_the_asset_uses_are_unpacked(tmp_path):
+    # 64 MiB of zeros nothing references: skipped, even with a 1 MiB unpacked limit
+    z = zip_with_zeros(tmp_path, 64 * 2**20, used=False)
+    out = tmp_path / "out"
+    found = extract_zip(z, out, Limits(max_unpacked_bytes=2**20))
+    assert _files(out) == ["model/base_color.png", "model/quad.bin", "model/quad.gltf"]
+    assert load_asset(found).images[0].width == 8
+    # a model that cannot be parsed uses nothing (loading it says why)
+    z = _zip(tmp_path / "bad.zip", {"a.gltf": b"{}", "b.bin": b"x"})
+    assert _files(extract_zip(z, tmp_path / "out2").parent) == ["a.gltf"]
+
+
+def test_a_glb_unpacks_with_the_files_its_json_names(tmp_path):
+    doc, bin_chunk = parse_glb(make_quad_asset(tmp_path / "q.glb", size=8).read_bytes())
+    doc["images"].append({"uri": "ext%20a.png"})
+    z = _zip(
+        tmp_path / "a.zip",
+        {"m/q.glb": pack_glb(doc, bin_chunk), "m/ext a.png": b"png", "m/junk.bin": b"j"},
+    )
+    extract_zip(z, tmp_path / "out")
+    assert _files(tmp_path / "out") == ["m/ext a.png", "m/q.glb"]
+
+
+def test_an_entry_over_the_compression_ratio_is_refused_before_unpacking(tmp_path):
+    z = zip_with_zeros(tmp_path, 10 * 2**20, used=True)
+    with pytest.raises(LimitExceeded) as info:
+        extract_zip(z, tmp_path / "out")
+    ratio = re.search(
+        r"'model/zeros\.bin' unpacks \d+ bytes to 10485760 \((\d+):1\)", info.value.message
+    )
+    assert ratio and 500 < int(ratio[1]) < 1100, info.value.message
+    assert info.value.message.endswith("the limit is 200:1")
+    assert not (tmp_path / "out").exists()
+    # under a higher limit it unpacks
+    found = extract_zip(z, tmp_path / "out2", Limits(max_compression_ratio=2000))
+    assert (found.parent / "zeros.bin").stat().st_size == 10 * 2**20
+
+
+def test_the_zips_size_bounds_what_it_unpacks_whatever_the_entries_claim(tmp_path):
+    z = zip_with_zeros(tmp_path, 10 * 2**20, used=True)
+    data = bytearray(z.read_bytes())
+    cd = data.rfind(b"PK\x01\x02")  # the central directory record of model/zeros.bin (last)
+    assert data[cd + 46 : cd + 46 + 15] == b"model/zeros.bin"
+    struct.pack_into("<I", data, cd + 20, 10 * 2**20)  # claims to be stored: 1:1
+    z.write_bytes(bytes(data))
+    with pytest.raises(LimitExceeded, match=r"from a zip of \d+ bytes \(\d+:1\)"):
+        extract_zip(z, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_an_entry_name_too_long_for_the_file_system_is_unprocessable(tmp_path):
+    z = _zip(tmp_path / "a.zip", {"a.gltf": gltf_using("b" * 5000), "b" * 5000: b"x"})
+    with pytest.raises(
+        UnprocessableAsset, match=r"\(5000 characters\)' cannot be unpacked: its name"
+    ):
+        extract_zip(z, tmp_path / "out")
 
 
 def test_entry_count_and_model_count(tmp_path):

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import pytest
 from clirun import run_cli
-from hostile import hostile_cases
+from hostile import hostile_cases, zip_with_zeros
 
 from pbrsr_core.asset import make_quad_asset
-from pbrsr_core.errors import InvalidAsset, InvalidOptions
+from pbrsr_core.errors import InvalidAsset, InvalidOptions, LimitExceeded
 from pbrsr_core.limits import Limits
 
 REPO = Path(__file__).resolve().parents[1]
@@ -64,6 +64,25 @@ def test_every_hostile_case_exits_with_its_code(corpus, tmp_path, capfd):
 @pytest.fixture(scope="module")
 def quad(tmp_path_factory) -> Path:
     return make_quad_asset(tmp_path_factory.mktemp("quad") / "q.glb", size=8)
+
+
+def test_zip_entry_over_the_compression_ratio(tmp_path, capfd):
+    z = zip_with_zeros(tmp_path / "z", 10 * 2**20, used=True)
+    out = tmp_path / "o"
+    code, err = run_cli(["upscale", str(z), "-o", str(out), "--method", "bicubic", "-q"], capfd)
+    assert code == LimitExceeded.exit_code, err
+    assert_one_line(err, "the zip entry 'model/zeros.bin' unpacks")
+    assert "the limit is 200:1" in err
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_zip_entry_the_asset_does_not_use_is_accepted_and_left_out(tmp_path, capfd):
+    z = zip_with_zeros(tmp_path / "z", 64 * 2**20, used=False)
+    out = tmp_path / "o"
+    args = ["upscale", str(z), "-o", str(out), "--method", "bicubic", "--scale", "2", "-q"]
+    code, err = run_cli(args, capfd)
+    assert code == 0, err
+    assert not list(out.rglob("zeros.bin"))
 
 
 def test_missing_input_file(tmp_path, capfd):

@@ -16,6 +16,7 @@ import zipfile
 from pathlib import Path
 
 import pytest
+from hostile import gltf_using
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -211,16 +212,18 @@ def _zip(entries: list[tuple[str, bytes]]) -> bytes:
 
 def test_zip_file_and_folder_of_the_same_name(tmp_path):
     z = tmp_path / "a.zip"
-    z.write_bytes(_zip([("m/a.gltf", b"{}"), ("m/a.gltf/", b"")]))
+    z.write_bytes(_zip([("m/a.gltf", gltf_using("a.gltf/b.bin")), ("m/a.gltf/b.bin", b"")]))
     with pytest.raises(InvalidAsset, match="clashes|twice"):
         extract_zip(z, tmp_path / "out")
-    z.write_bytes(_zip([("m/a.gltf", b"{}"), ("m/x", b"1"), ("m/x/y.bin", b"2")]))
+    z.write_bytes(
+        _zip([("m/a.gltf", gltf_using("x", "x/y.bin")), ("m/x", b"1"), ("m/x/y.bin", b"2")])
+    )
     with pytest.raises(InvalidAsset, match="clashes"):
         extract_zip(z, tmp_path / "out2")
 
 
 def test_zip_with_lying_offsets_is_invalid(tmp_path):
-    data = bytearray(_zip([("m/a.gltf", b"{}" * 100), ("m/b.bin", b"x" * 100)]))
+    data = bytearray(_zip([("m/a.gltf", gltf_using("b.bin")), ("m/b.bin", b"x" * 100)]))
     # the central directory's "offset of local header" of the second entry: far past the end
     cd = data.rfind(b"PK\x01\x02")
     struct.pack_into("<I", data, cd + 42, 0x7FFFFFF0)

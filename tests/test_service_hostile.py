@@ -1,6 +1,7 @@
 """Every case of the hostile-input corpus (tests/hostile.py), uploaded through the API: each
 gets its typed error as a 4xx problem body, nothing is stored and nothing is queued.
-Also: zip uploads that are bombs or escape their folder."""
+Also: zip uploads that are bombs or escape their folder, and zip entries the asset does not use
+(never unpacked)."""
 
 from __future__ import annotations
 
@@ -10,11 +11,12 @@ from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
-from hostile import hostile_cases
+from hostile import gltf_using, hostile_cases, zip_with_zeros
 from rq import Queue
 from test_service_support import cleanup_redis, make_settings, post_asset, redis_client
 
 from pbrsr_core.limits import Limits
+from pbrsr_jobs.store import JobLayout
 from service.app import create_app
 
 MB = 1024 * 1024
@@ -30,6 +32,7 @@ def _settings_for(tmp_path: Path, limits: Limits):
         max_data_uri_mb=limits.max_data_uri_bytes / MB,
         max_zip_entries=limits.max_zip_entries,
         max_unpacked_mb=limits.max_unpacked_bytes / MB,
+        max_compression_ratio=limits.max_compression_ratio,
     )
 
 
@@ -104,7 +107,7 @@ def _zip(entries: dict[str, bytes], symlink: str | None = None) -> bytes:
         ("absolute entry", {"/abs/evil.gltf": b"{}"}, None, 400),
         ("symlink entry", {"a.gltf": b"{}"}, "link.png", 400),
         ("no asset inside", {"readme.txt": b"hello"}, None, 400),
-        ("zip bomb", {"a.gltf": b"{}", "pad.bin": b"\0" * (3 * MB)}, None, 413),
+        ("zip bomb", {"a.gltf": gltf_using("pad.bin"), "pad.bin": b"\0" * (3 * MB)}, None, 413),
     ],
 )
 def test_hostile_zips(tmp_path, label, entries, symlink, status):
@@ -130,5 +133,39 @@ def test_over_long_uri_is_unprocessable(tmp_path):
         assert "name is too long" in resp.json()["detail"]
         assert len(resp.json()["detail"]) < 300  # the name is cut, its length said
         assert list((settings.storage_dir / "jobs").iterdir()) == []
+    finally:
+        cleanup_redis(settings)
+
+
+def test_zip_entry_over_the_compression_ratio_is_413_and_leaves_nothing(tmp_path):
+    settings = make_settings(tmp_path)
+    try:
+        with TestClient(create_app(settings), raise_server_exceptions=False) as c:
+            z = zip_with_zeros(tmp_path / "z", 10 * MB, used=True)
+            resp = post_asset(c, z.read_bytes(), filename="asset.zip")
+        _check_problem(resp, 413, "limit-exceeded", "ratio", settings.storage_dir)
+        detail = resp.json()["detail"]
+        assert "'model/zeros.bin'" in detail and "the limit is 200:1" in detail, detail
+        assert list((settings.storage_dir / "jobs").iterdir()) == []
+        assert list((settings.storage_dir / "uploads").iterdir()) == []
+        assert Queue(settings.queue, connection=redis_client()).count == 0
+    finally:
+        cleanup_redis(settings)
+
+
+def test_zip_entry_the_asset_does_not_use_is_never_unpacked(tmp_path):
+    # 64 MiB of zeros that nothing references: accepted under a 1 MiB unpacked limit
+    settings = make_settings(tmp_path, max_unpacked_mb=1)
+    try:
+        with TestClient(create_app(settings), raise_server_exceptions=False) as c:
+            z = zip_with_zeros(tmp_path / "z", 64 * MB, used=False)
+            options = {"method": "bicubic"}
+            resp = post_asset(c, z.read_bytes(), filename="asset.zip", options=options)
+        assert resp.status_code == 202, resp.text
+        layout = JobLayout(settings.storage_dir)
+        input_dir = layout.input_dir(resp.json()["id"])
+        stored = sorted(p.relative_to(input_dir).as_posix() for p in input_dir.rglob("*"))
+        assert stored == ["model", "model/asset.gltf", "model/base_color.png", "model/quad.bin"]
+        assert not list(settings.storage_dir.rglob("zeros.bin"))
     finally:
         cleanup_redis(settings)

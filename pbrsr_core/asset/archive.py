@@ -2,16 +2,28 @@
 
 from __future__ import annotations
 
+import errno
+import math
 import os
 import stat
 import struct
 import zipfile
 import zlib
+from collections.abc import Iterator
 from pathlib import Path, PurePosixPath
 from typing import Literal
 
-from ..errors import InvalidAsset, LimitExceeded, StorageError, UnsupportedAsset
+from ..errors import (
+    InvalidAsset,
+    LimitExceeded,
+    PbrsrError,
+    StorageError,
+    UnprocessableAsset,
+    UnsupportedAsset,
+)
 from ..limits import Limits
+from .gltf_read import CHUNK_JSON, GLB_MAGIC, parse_json
+from .uris import is_data_uri, relative_path, short_name
 
 AssetKind = Literal["glb", "gltf", "zip"]
 
@@ -52,14 +64,22 @@ def _safe_member(name: str) -> PurePosixPath:
 
 
 def extract_zip(zip_path: Path, dest: Path, limits: Limits = Limits()) -> Path:
-    """Extract ``zip_path`` into ``dest`` (created) and return the one .gltf/.glb inside.
+    """Unpack the one .gltf/.glb inside ``zip_path``, and the files it uses, into ``dest``
+    (created); return the model's path.
 
-    Refused: entries with absolute paths, ``..``, backslashes or drive letters (InvalidAsset);
-    symlinks and other special files (InvalidAsset); more than ``limits.max_zip_entries``
-    entries, or more than ``limits.max_unpacked_bytes`` of *actually decompressed* data
-    (LimitExceeded: the bytes are counted while extracting, whatever the headers claim); no or
-    several .gltf/.glb files (InvalidAsset). macOS ``__MACOSX/`` metadata is skipped. Nothing
-    is written outside ``dest``.
+    Only the model and the entries its ``buffers[].uri`` and ``images[].uri`` name
+    (URI-decoded, relative to the model's folder) are written; every other entry is skipped
+    unread, and a model that cannot be parsed uses nothing (loading it then says why).
+
+    Refused before anything is written: entries with absolute paths, ``..``, backslashes or
+    drive letters, symlinks and other special files, encrypted entries, no or several
+    .gltf/.glb files (InvalidAsset); more than ``limits.max_zip_entries`` entries, an entry to
+    unpack whose size is more than ``limits.max_compression_ratio`` times its compressed size,
+    entries to unpack that together are more than ``limits.max_unpacked_bytes`` or more than
+    that ratio times the zip's size (entries sharing compressed bytes) (LimitExceeded).
+    While unpacking, the *actually decompressed* bytes are held to ``max_unpacked_bytes``
+    too, whatever the headers claim. macOS ``__MACOSX/`` metadata is skipped. Nothing is
+    written outside ``dest``.
     """
     zip_path, dest = Path(zip_path), Path(dest)
     try:
@@ -67,86 +87,205 @@ def extract_zip(zip_path: Path, dest: Path, limits: Limits = Limits()) -> Path:
     except _ZIP_READ_ERRORS as exc:
         raise InvalidAsset(f"the zip file cannot be read: {_short(exc)}") from None
     with zf:
-        infos = zf.infolist()
-        if len(infos) > limits.max_zip_entries:
-            raise LimitExceeded(
-                f"the zip has {len(infos)} entries; the limit is {limits.max_zip_entries}"
-            )
-        members: list[tuple[zipfile.ZipInfo, PurePosixPath]] = []
-        for info in infos:
-            rel = _safe_member(info.filename)
-            if rel.parts[0] == "__MACOSX":
-                continue
-            mode = (info.external_attr >> 16) & 0xFFFF
-            file_type = stat.S_IFMT(mode)
-            if info.create_system == 3 and file_type not in (0, stat.S_IFREG, stat.S_IFDIR):
-                raise InvalidAsset(f"the zip entry '{rel}' is a symlink or special file")
-            if info.flag_bits & 0x1:
-                raise InvalidAsset(f"the zip entry '{rel}' is encrypted")
-            members.append((info, rel))
-        models = [
-            rel
-            for info, rel in members
-            if not info.is_dir() and rel.suffix.lower() in (".gltf", ".glb")
-        ]
-        if not models:
-            raise InvalidAsset("the zip holds no .gltf or .glb file")
-        if len(models) > 1:
-            names = ", ".join(str(m) for m in models[:5])
-            raise InvalidAsset(f"the zip holds several .gltf/.glb files ({names}); send one")
+        members = _members(zf, limits)
+        model_info, model = _the_model(members)
+        zip_size = zip_path.stat().st_size
+        _check_sizes([(model_info, model)], zip_size, limits)
+        wanted = {model} | _referenced(zf, model_info, model, limits)
+        chosen = [(info, rel) for info, rel in members if rel in wanted and not info.is_dir()]
+        _check_sizes(chosen, zip_size, limits)
         dest.mkdir(parents=True, exist_ok=True)
         root = dest.resolve()
-        total = 0
-        for info, rel in members:
-            target = root.joinpath(*rel.parts)
-            if root not in target.parents:
-                raise InvalidAsset(f"the zip entry '{rel}' points outside the archive")
+        left = limits.max_unpacked_bytes
+        for info, rel in chosen:
+            left -= _unpack(zf, info, rel, root, left, limits)
+        return root.joinpath(*model.parts)
+
+
+def _members(zf: zipfile.ZipFile, limits: Limits) -> list[tuple[zipfile.ZipInfo, PurePosixPath]]:
+    """Every entry but macOS metadata, with its checked archive-relative path."""
+    infos = zf.infolist()
+    if len(infos) > limits.max_zip_entries:
+        raise LimitExceeded(
+            f"the zip has {len(infos)} entries; the limit is {limits.max_zip_entries}"
+        )
+    members: list[tuple[zipfile.ZipInfo, PurePosixPath]] = []
+    for info in infos:
+        rel = _safe_member(info.filename)
+        if rel.parts[0] == "__MACOSX":
+            continue
+        mode = (info.external_attr >> 16) & 0xFFFF
+        file_type = stat.S_IFMT(mode)
+        if info.create_system == 3 and file_type not in (0, stat.S_IFREG, stat.S_IFDIR):
+            raise InvalidAsset(f"the zip entry '{short_name(rel)}' is a symlink or special file")
+        if info.flag_bits & 0x1:
+            raise InvalidAsset(f"the zip entry '{short_name(rel)}' is encrypted")
+        members.append((info, rel))
+    return members
+
+
+def _the_model(
+    members: list[tuple[zipfile.ZipInfo, PurePosixPath]],
+) -> tuple[zipfile.ZipInfo, PurePosixPath]:
+    models = [
+        (info, rel)
+        for info, rel in members
+        if not info.is_dir() and rel.suffix.lower() in (".gltf", ".glb")
+    ]
+    if not models:
+        raise InvalidAsset("the zip holds no .gltf or .glb file")
+    if len(models) > 1:
+        names = ", ".join(str(rel) for _, rel in models[:5])
+        raise InvalidAsset(f"the zip holds several .gltf/.glb files ({names}); send one")
+    return models[0]
+
+
+def _ratio(size: int, packed: int) -> float:
+    return size / packed if packed else (math.inf if size else 0.0)
+
+
+def _check_sizes(
+    entries: list[tuple[zipfile.ZipInfo, PurePosixPath]], zip_size: int, limits: Limits
+) -> None:
+    """Refuse (LimitExceeded) ``entries`` whose sizes, as the zip declares them, are over the
+    limits: one entry's compression ratio, their total, or their total against the zip's
+    size (``zipfile`` never reads past a declared size, so these bound the real bytes)."""
+    limit = limits.max_compression_ratio
+    for info, rel in entries:
+        ratio = _ratio(info.file_size, info.compress_size)
+        if ratio > limit:
+            raise LimitExceeded(
+                f"the zip entry '{short_name(rel)}' unpacks {info.compress_size} bytes to "
+                f"{info.file_size} ({ratio:.0f}:1); the limit is {limit:g}:1"
+            )
+    total = sum(info.file_size for info, _ in entries)
+    if total > limits.max_unpacked_bytes:
+        raise _over_unpacked(limits)
+    ratio = _ratio(total, zip_size)
+    if ratio > limit:
+        raise LimitExceeded(
+            f"the zip's files the asset uses unpack to {total} bytes from a zip of {zip_size} "
+            f"bytes ({ratio:.0f}:1); the limit is {limit:g}:1"
+        )
+
+
+def _over_unpacked(limits: Limits) -> LimitExceeded:
+    return LimitExceeded(
+        f"the zip unpacks to more than {limits.max_unpacked_bytes} bytes (the limit)"
+    )
+
+
+def _referenced(
+    zf: zipfile.ZipFile, info: zipfile.ZipInfo, model: PurePosixPath, limits: Limits
+) -> set[PurePosixPath]:
+    """The archive-relative paths the model's buffer and image URIs name."""
+    if model.suffix.lower() == ".gltf":
+        raw = _read(zf, info, model, limits.max_unpacked_bytes + 1)
+        if len(raw) > limits.max_unpacked_bytes:
+            raise _over_unpacked(limits)
+    else:
+        head = _read(zf, info, model, 20)
+        if len(head) < 20:
+            return set()
+        magic, version, _, json_len, json_type = struct.unpack("<4sIIII", head)
+        if magic != GLB_MAGIC or version != 2 or json_type != CHUNK_JSON:
+            return set()
+        if json_len > limits.max_unpacked_bytes:
+            raise _over_unpacked(limits)
+        raw = _read(zf, info, model, 20 + json_len)[20:]
+    try:
+        doc = parse_json(raw)
+    except PbrsrError:
+        return set()
+    found: set[PurePosixPath] = set()
+    for key, what in (("buffers", "buffer"), ("images", "image")):
+        for i, item in enumerate(doc.get(key, [])):
+            uri = item.get("uri")
+            if not isinstance(uri, str) or is_data_uri(uri):
+                continue
             try:
-                if info.is_dir():
-                    target.mkdir(parents=True, exist_ok=True)
-                    continue
-                target.parent.mkdir(parents=True, exist_ok=True)
-            except (FileExistsError, NotADirectoryError):
+                found.add(model.parent / relative_path(uri, f"{what} {i}"))
+            except InvalidAsset:
+                continue  # loading the model refuses it
+    return found
+
+
+def _chunks(
+    zf: zipfile.ZipFile, info: zipfile.ZipInfo, rel: PurePosixPath, most: int
+) -> Iterator[bytes]:
+    """Up to ``most`` decompressed bytes of one entry, in pieces; InvalidAsset when corrupt."""
+    try:
+        src = zf.open(info)
+    except _ZIP_READ_ERRORS as exc:
+        raise InvalidAsset(f"the zip entry '{short_name(rel)}' is corrupt: {_short(exc)}") from None
+    with src:
+        while most > 0:
+            try:
+                chunk = src.read(min(_CHUNK, most))
+            except _ZIP_READ_ERRORS as exc:
                 raise InvalidAsset(
-                    f"the zip entry '{rel}' clashes with another entry (a file and a folder "
-                    "of the same name)"
+                    f"the zip entry '{short_name(rel)}' is corrupt: {_short(exc)}"
                 ) from None
-            if target.parent.resolve() != target.parent or os.path.islink(target):
-                raise InvalidAsset(f"the zip entry '{rel}' goes through a link")
+            if not chunk:
+                return
+            most -= len(chunk)
+            yield chunk
+
+
+def _read(zf: zipfile.ZipFile, info: zipfile.ZipInfo, rel: PurePosixPath, most: int) -> bytes:
+    return b"".join(_chunks(zf, info, rel, most))
+
+
+def _unpack(
+    zf: zipfile.ZipFile,
+    info: zipfile.ZipInfo,
+    rel: PurePosixPath,
+    root: Path,
+    left: int,
+    limits: Limits,
+) -> int:
+    """Write one entry under ``root``; return its size (refused past ``left`` bytes)."""
+    target = root.joinpath(*rel.parts)
+    if root not in target.parents:
+        raise InvalidAsset(f"the zip entry '{short_name(rel)}' points outside the archive")
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise InvalidAsset(
+            f"the zip entry '{short_name(rel)}' clashes with another entry (a file and a folder "
+            "of the same name)"
+        ) from None
+    except OSError as exc:
+        raise _unwritable(rel, exc) from None
+    if target.parent.resolve() != target.parent or os.path.islink(target):
+        raise InvalidAsset(f"the zip entry '{short_name(rel)}' goes through a link")
+    try:
+        out = open(target, "xb")  # noqa: SIM115 - closed below
+    except (FileExistsError, IsADirectoryError):
+        raise InvalidAsset(f"the zip has the entry '{short_name(rel)}' twice") from None
+    except OSError as exc:
+        raise _unwritable(rel, exc) from None
+    written = 0
+    with out:
+        for chunk in _chunks(zf, info, rel, left + 1):
+            written += len(chunk)
+            if written > left:
+                raise _over_unpacked(limits)
             try:
-                out = open(target, "xb")  # noqa: SIM115 - closed below
-            except (FileExistsError, IsADirectoryError):
-                raise InvalidAsset(f"the zip has the entry '{rel}' twice") from None
+                out.write(chunk)
             except OSError as exc:
-                raise StorageError(f"cannot unpack the zip: {exc.strerror or exc}") from None
-            with out:
-                try:
-                    src = zf.open(info)
-                except _ZIP_READ_ERRORS as exc:
-                    raise InvalidAsset(f"the zip entry '{rel}' is corrupt: {_short(exc)}") from None
-                with src:
-                    while True:
-                        try:
-                            chunk = src.read(_CHUNK)
-                        except _ZIP_READ_ERRORS as exc:
-                            raise InvalidAsset(
-                                f"the zip entry '{rel}' is corrupt: {_short(exc)}"
-                            ) from None
-                        if not chunk:
-                            break
-                        total += len(chunk)
-                        if total > limits.max_unpacked_bytes:
-                            raise LimitExceeded(
-                                "the zip unpacks to more than "
-                                f"{limits.max_unpacked_bytes} bytes (the limit)"
-                            )
-                        try:
-                            out.write(chunk)
-                        except OSError as exc:
-                            raise StorageError(
-                                f"cannot unpack the zip: {exc.strerror or exc}"
-                            ) from None
-        return root.joinpath(*models[0].parts)
+                raise _unwritable(rel, exc) from None
+    return written
+
+
+def _unwritable(rel: PurePosixPath, exc: OSError) -> PbrsrError:
+    """The asset's fault (a name too long for the file system) or the storage's."""
+    if exc.errno == errno.ENAMETOOLONG:
+        return UnprocessableAsset(
+            f"the zip entry '{short_name(rel)}' cannot be unpacked: its name is too long for "
+            "the file system"
+        )
+    return StorageError(f"cannot unpack the zip: {exc.strerror or exc}")
 
 
 # what zipfile raises on corrupt or hostile archives (reading side only: OSError here is a

@@ -86,19 +86,19 @@ def read_resource(folder: Path, uri: str, max_bytes: int, what: str) -> bytes:
     try:
         path = resolve_inside(folder, rel, what)
         if not path.is_file():
-            raise InvalidAsset(f"{what} refers to '{_quoted(rel)}', which is missing")
+            raise InvalidAsset(f"{what} refers to '{short_name(rel)}', which is missing")
         size = path.stat().st_size
         if size > max_bytes:
             raise LimitExceeded(
-                f"{what}: the file '{_quoted(rel)}' is {size} bytes; the limit is {max_bytes}"
+                f"{what}: the file '{short_name(rel)}' is {size} bytes; the limit is {max_bytes}"
             )
         return path.read_bytes()
     except (OSError, RuntimeError) as exc:  # RuntimeError: Path.resolve on a link loop
         raise UnprocessableAsset(_unopenable(rel, what, exc)) from None
 
 
-def _quoted(rel: PurePosixPath) -> str:
-    """``rel`` for a message: at most 80 characters, the length named when it is cut."""
+def short_name(rel: PurePosixPath) -> str:
+    """A file name for a message: at most 80 characters, the length named when it is cut."""
     text = str(rel)
     return text if len(text) <= 80 else f"{text[:80]}... ({len(text)} characters)"
 
@@ -111,7 +111,7 @@ def _unopenable(rel: PurePosixPath, what: str, exc: BaseException) -> str:
         reason = (exc.strerror or type(exc).__name__).lower()
     else:
         reason = "a link loops"
-    return f"{what} refers to '{_quoted(rel)}', which cannot be opened: {reason}"
+    return f"{what} refers to '{short_name(rel)}', which cannot be opened: {reason}"
 
 
 def safe_stem(name: str, default: str = "image") -> str:
