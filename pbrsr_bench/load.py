@@ -9,8 +9,9 @@ temporary storage folder. This module talks to them over HTTP only (httpx); it n
 
 Phases (each bounded in count and time; the run stops by itself):
 
-a. ``poll_only``: ``pollers`` clients alone loop on ``GET /v1/jobs/{id}`` and ``GET /v1/jobs``
-   for ``baseline`` seconds; then ``mixed``: the same pollers while ``uploaders`` clients loop
+a. ``poll_only``: ``pollers`` clients alone loop on ``GET /v1/jobs/{id}``, ``GET /v1/jobs``
+   and ``GET /healthz`` (the floor any request pays; the status reads' p50 are reported as
+   multiples of its p50 in the same phase, against ``RATIO_TARGETS``) for ``baseline`` seconds; then ``mixed``: the same pollers while ``uploaders`` clients loop
    on ``POST /v1/jobs`` with small procedural assets, for ``duration`` seconds (no worker
    runs: the API alone is measured). Every answer that is not the expected status (200, 202)
    and every transport error or timeout is an error.
@@ -49,7 +50,14 @@ import numpy as np
 
 from pbrsr_core.errors import PbrsrError
 
-OK_STATUS = {"get_job": 200, "list_jobs": 200, "upload": 202, "big_upload": 202}
+OK_STATUS = {"healthz": 200, "get_job": 200, "list_jobs": 200, "upload": 202, "big_upload": 202}
+# status reads against /healthz's p50 in the same phase: (request, phase) -> most allowed
+RATIO_TARGETS = {
+    ("get_job", "poll_only"): 2.0,
+    ("get_job", "mixed"): 4.0,
+    ("list_jobs", "poll_only"): 3.0,
+    ("list_jobs", "mixed"): 3.0,
+}
 _MB = 1024 * 1024
 _TERMINAL = ("finished", "failed", "canceled")
 
@@ -402,11 +410,13 @@ async def _mixed_phase(
         async def poller(i: int) -> None:
             n = i
             while time.monotonic() < t_end:
-                if n % 2 == 0:
+                if n % 3 == 0:
                     job_id = rng.choice(ids)
                     await _request(rec, "get_job", client.get(f"/v1/jobs/{job_id}"), 200)
-                else:
+                elif n % 3 == 1:
                     await _request(rec, "list_jobs", client.get("/v1/jobs?limit=20"), 200)
+                else:  # the floor a request pays on this server at this load
+                    await _request(rec, "healthz", client.get("/healthz"), 200)
                 n += 1
 
         async def uploader(i: int) -> None:
@@ -712,6 +722,7 @@ def run(
 
 
 def _passed(result: dict[str, Any]) -> bool:
+    result["ratios"] = _ratios(result)
     ok = result["mixed"]["errors"] == 0 and result["cleanup"]["errors"] == 0
     if "poll_only" in result:
         ok = ok and result["poll_only"]["errors"] == 0
@@ -768,6 +779,18 @@ def _plot(result: dict[str, Any], path: Path) -> None:
     plt.close(fig)
 
 
+def _ratios(result: dict[str, Any]) -> list[dict[str, Any]]:
+    """p50 of each status read over /healthz's p50 in the same phase, against its target."""
+    out = []
+    for (kind, phase), target in RATIO_TARGETS.items():
+        kinds = result.get(phase, {}).get("kinds", {})
+        if kind in kinds and "healthz" in kinds and kinds["healthz"]["p50_ms"]:
+            ratio = kinds[kind]["p50_ms"] / kinds["healthz"]["p50_ms"]
+            row = {"request": kind, "phase": phase, "ratio": round(ratio, 2), "target": target}
+            out.append({**row, "met": ratio <= target})
+    return out
+
+
 def print_table(result: dict[str, Any]) -> None:
     """The results as rich tables: one row per request kind, then the drain."""
     from rich.console import Console
@@ -800,6 +823,14 @@ def print_table(result: dict[str, Any]) -> None:
             )
     console = Console(width=max(Console().width, 110))
     console.print(table)
+    if result.get("ratios"):
+        t1 = Table(title="status reads against /healthz (p50 over p50, same phase)")
+        for col in ("request", "phase", "ratio", "target", "met"):
+            t1.add_column(col, justify="left" if col in ("request", "phase") else "right")
+        for r in result["ratios"]:
+            met = "[green]yes[/green]" if r["met"] else "[red]no[/red]"
+            t1.add_row(r["request"], r["phase"], f"{r['ratio']:.2f}x", f"{r['target']:.0f}x", met)
+        console.print(t1)
     drain = result.get("drain")
     if drain:
         t2 = Table(title="drain")

@@ -129,6 +129,9 @@ def safe_display_name(name: str | None, fallback: str = "asset") -> str:
     return base or fallback
 
 
+PREVIEW_MAIN = "preview.png"
+
+
 @dataclass(frozen=True)
 class JobLayout:
     """Paths of the storage root. ``root`` must exist (``Settings.prepare_storage``)."""
@@ -194,6 +197,15 @@ class JobLayout:
     def remove(self, job_id: str) -> None:
         """Delete everything stored for a job (missing is fine)."""
         _remove(self.job_dir(job_id))
+
+    def preview_names(self, job_id: str) -> list[str]:
+        """A finished job's before/after renders: ``preview.png`` and ``previews/*.png``."""
+        out = self.output_dir(job_id)
+        names = [PREVIEW_MAIN] if (out / PREVIEW_MAIN).is_file() else []
+        return names + self.list_files(out / "previews", (".png",))
+
+    def thumb_names(self, job_id: str) -> list[str]:
+        return self.list_files(self.thumbs_dir(job_id), (".png",))
 
     def list_files(self, folder: Path, suffixes: tuple[str, ...] = ()) -> list[str]:
         """Plain files directly in ``folder`` (sorted names), optionally by suffix."""
@@ -284,6 +296,22 @@ class JobIndex:
 
     def cancel_requested(self, job_id: str) -> bool:
         return bool(self.redis.exists(self._k("cancel", job_id)))
+
+    def cancel_key(self, job_id: str) -> str:
+        return self._k("cancel", job_id)
+
+    def owners_key(self) -> str:
+        return self._k("owners")
+
+    def cancel_flags(self, job_ids: list[str]) -> set[str]:
+        """The jobs of ``job_ids`` with a cancel request, in one round trip."""
+        if not job_ids:
+            return set()
+        with self.redis.pipeline(transaction=False) as pipe:
+            for job_id in job_ids:
+                pipe.exists(self._k("cancel", job_id))
+            flags = pipe.execute()
+        return {j for j, f in zip(job_ids, flags, strict=True) if f}
 
     # -- metrics -----------------------------------------------------------------------
     def record_outcome(self, state: JobState, duration_s: float | None) -> None:

@@ -33,6 +33,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         yield
         for client in app.state.redis_clients.values():
             client.close()
+        for aclient in app.state.async_redis_clients.values():
+            await aclient.aclose()
 
     app = FastAPI(
         title="pbrsr",
@@ -44,6 +46,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings
     app.state.redis_clients = {}
+    app.state.async_redis_clients = {}
 
     def metrics_redis() -> Redis:
         client = app.state.redis_clients.get(settings.redis_url)
@@ -53,7 +56,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return client
 
     app.state.metrics_redis = metrics_redis
-    app.dependency_overrides[get_settings] = lambda: settings
+
+    async def these_settings() -> Settings:  # async: no thread hop per request
+        return settings
+
+    app.dependency_overrides[get_settings] = these_settings
 
     install_handlers(app)
     prometheus.install_metrics(app)

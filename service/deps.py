@@ -8,6 +8,7 @@ from typing import Annotated
 from fastapi import Depends, Request, Security
 from fastapi.security import APIKeyHeader
 from redis import Redis
+from redis.asyncio import Redis as AsyncRedis
 from rq import Queue
 
 from pbrsr_jobs.settings import Settings, get_settings
@@ -24,7 +25,9 @@ _api_key = APIKeyHeader(
 )
 
 
-def get_redis(request: Request, settings: SettingsDep) -> Redis:
+# The dependencies below do no I/O: async, so FastAPI runs them on the event loop instead of
+# handing each to the thread pool.
+async def get_redis(request: Request, settings: SettingsDep) -> Redis:
     """One client (connection pool) per app and Redis URL."""
     clients: dict[str, Redis] = request.app.state.redis_clients
     client = clients.get(settings.redis_url)
@@ -42,19 +45,35 @@ def get_redis(request: Request, settings: SettingsDep) -> Redis:
 RedisDep = Annotated[Redis, Depends(get_redis)]
 
 
-def get_layout(settings: SettingsDep) -> JobLayout:
+async def get_async_redis(request: Request, settings: SettingsDep) -> AsyncRedis:
+    """An asyncio client (connection pool) per app and Redis URL, for reads on the event loop
+    (a job's status); closed with the app."""
+    clients: dict[str, AsyncRedis] = request.app.state.async_redis_clients
+    client = clients.get(settings.redis_url)
+    if client is None:
+        client = AsyncRedis.from_url(
+            settings.redis_url, socket_connect_timeout=2, socket_timeout=10
+        )
+        clients[settings.redis_url] = client
+    return client
+
+
+AsyncRedisDep = Annotated[AsyncRedis, Depends(get_async_redis)]
+
+
+async def get_layout(settings: SettingsDep) -> JobLayout:
     return JobLayout(settings.storage_dir.expanduser())
 
 
-def get_index(redis: RedisDep, settings: SettingsDep) -> JobIndex:
+async def get_index(redis: RedisDep, settings: SettingsDep) -> JobIndex:
     return JobIndex(redis, settings.key_prefix)
 
 
-def get_queue(redis: RedisDep, settings: SettingsDep) -> Queue:
+async def get_queue(redis: RedisDep, settings: SettingsDep) -> Queue:
     return Queue(settings.queue, connection=redis)
 
 
-def get_owner(settings: SettingsDep, key: Annotated[str | None, Security(_api_key)]) -> str:
+async def get_owner(settings: SettingsDep, key: Annotated[str | None, Security(_api_key)]) -> str:
     """The caller's owner tag; 401 when keys are configured and the key is missing/unknown."""
     if not settings.auth_enabled:
         return owner_of(None)

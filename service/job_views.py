@@ -5,11 +5,12 @@ from __future__ import annotations
 from datetime import UTC, datetime
 from typing import Any
 
+from pydantic import TypeAdapter, ValidationError
+
 from pbrsr_jobs.store import JobIndex, JobLayout, JobState, job_state
 
 from .schemas import HistoryPoint, JobDetail, JobLinks, JobSummary
 
-PREVIEW_MAIN = "preview.png"
 DIED_MESSAGE = (
     "the worker running this job stopped unexpectedly (killed or out of memory) on every "
     "attempt; try a smaller asset, a lower scale or a faster preset"
@@ -36,29 +37,31 @@ def state_of(job: Any) -> JobState:
     return job_state(rq_status(job), job.meta or {})
 
 
-def preview_names(layout: JobLayout, job_id: str) -> list[str]:
-    out = layout.output_dir(job_id)
-    names = [PREVIEW_MAIN] if (out / PREVIEW_MAIN).is_file() else []
-    return names + layout.list_files(out / "previews", (".png",))
-
-
-def thumb_names(layout: JobLayout, job_id: str) -> list[str]:
-    return layout.list_files(layout.thumbs_dir(job_id), (".png",))
-
-
-def links(job_id: str, state: JobState, layout: JobLayout | None = None) -> JobLinks:
+def links(
+    job_id: str, state: JobState, layout: JobLayout | None = None, files: dict | None = None
+) -> JobLinks:
+    """The job's URLs; a finished job's previews and thumbnails by the names its worker
+    recorded in ``files`` (``meta['files']``), else as listed in its folders."""
     base = f"/v1/jobs/{job_id}"
     result = previews = thumbs = None
-    if state == JobState.FINISHED and layout is not None:
+    if state == JobState.FINISHED and (layout is not None or files):
         result = f"{base}/result"
-        previews = {n: f"{base}/previews/{n}" for n in preview_names(layout, job_id)}
-        thumbs = {n: f"{base}/thumbs/{n}" for n in thumb_names(layout, job_id)}
+        if files:
+            preview_list, thumb_list = files.get("previews", []), files.get("thumbs", [])
+        else:
+            assert layout is not None
+            preview_list, thumb_list = layout.preview_names(job_id), layout.thumb_names(job_id)
+        previews = {n: f"{base}/previews/{n}" for n in preview_list}
+        thumbs = {n: f"{base}/thumbs/{n}" for n in thumb_list}
     return JobLinks(
         self=base, cancel=base, result=result, previews=previews or {}, thumbs=thumbs or {}
     )
 
 
-def _common(job: Any, index: JobIndex, layout: JobLayout | None) -> dict[str, Any]:
+def _common(
+    job: Any, index: JobIndex, layout: JobLayout | None, cancel: bool | None
+) -> dict[str, Any]:
+    """``cancel``: whether a cancel was requested, when the caller read it already."""
     meta = job.meta or {}
     state = state_of(job)
     error = meta.get("error")
@@ -75,24 +78,41 @@ def _common(job: Any, index: JobIndex, layout: JobLayout | None) -> dict[str, An
         "fraction": float(min(max(meta.get("fraction", 0.0) or 0.0, 0.0), 1.0)),
         "eta_s": meta.get("eta_s") if state == JobState.RUNNING else None,
         "error": error if state == JobState.FAILED else None,
-        "cancel_requested": (not state.is_terminal) and index.cancel_requested(job.id),
-        "links": links(job.id, state, layout),
+        "cancel_requested": (not state.is_terminal)
+        and (index.cancel_requested(job.id) if cancel is None else cancel),
+        "links": links(job.id, state, layout, meta.get("files")),
     }
 
 
-def summary_view(job: Any, index: JobIndex, layout: JobLayout | None = None) -> JobSummary:
-    return JobSummary(**_common(job, index, layout))
+def summary_view(
+    job: Any, index: JobIndex, layout: JobLayout | None = None, cancel: bool | None = None
+) -> JobSummary:
+    return JobSummary(**_common(job, index, layout, cancel))
 
 
-def detail_view(job: Any, index: JobIndex, layout: JobLayout) -> JobDetail:
+def _history(points: Any) -> list[HistoryPoint]:
+    """The worker's history points, validated in one pass; malformed ones left out."""
+    try:
+        return _HISTORY.validate_python(points or [])
+    except ValidationError:
+        out = []
+        for point in points if isinstance(points, list) else []:
+            try:
+                out.append(HistoryPoint.model_validate(point))
+            except ValidationError:
+                continue
+        return out
+
+
+_HISTORY = TypeAdapter(list[HistoryPoint])
+
+
+def detail_view(
+    job: Any, index: JobIndex, layout: JobLayout, cancel: bool | None = None
+) -> JobDetail:
     meta = job.meta or {}
-    data = _common(job, index, layout)
-    history = []
-    for point in meta.get("history") or []:
-        try:
-            history.append(HistoryPoint(**point))
-        except (TypeError, ValueError):
-            continue
+    data = _common(job, index, layout, cancel)
+    history = _history(meta.get("history"))
     return JobDetail(
         **data,
         step=int(meta.get("step", 0) or 0),

@@ -59,12 +59,19 @@ def test_short_load_run_has_no_errors_and_drains_every_job(tmp_path, capsys):
     assert result["config"]["private_redis"] is True
     mixed = result["mixed"]
     assert mixed["errors"] == 0, mixed["error_samples"]
-    for kind in ("get_job", "list_jobs", "upload"):
+    for kind in ("get_job", "list_jobs", "healthz", "upload"):
         row = mixed["kinds"][kind]
         assert row["requests"] > 0 and row["errors"] == 0
         assert 0 < row["p50_ms"] <= row["p99_ms"] <= row["max_ms"]
     assert result["poll_only"]["errors"] == 0
-    assert set(result["poll_only"]["kinds"]) == {"get_job", "list_jobs"}
+    assert set(result["poll_only"]["kinds"]) == {"get_job", "list_jobs", "healthz"}
+    # each status read as a multiple of /healthz's p50 in the same phase, with its target
+    ratios = {(r["request"], r["phase"]): r for r in result["ratios"]}
+    assert set(ratios) == {(k, p) for k in ("get_job", "list_jobs") for p in ("poll_only", "mixed")}
+    for (kind, phase), r in ratios.items():
+        kinds = result[phase]["kinds"]
+        assert r["ratio"] == pytest.approx(kinds[kind]["p50_ms"] / kinds["healthz"]["p50_ms"], 0.01)
+        assert r["met"] == (r["ratio"] <= r["target"])
     assert result["big"]["errors"] == 0 and result["big"]["kinds"]["big_upload"]["requests"] == 2
     assert result["cleanup"]["errors"] == 0
     drain = result["drain"]

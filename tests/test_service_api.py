@@ -333,3 +333,31 @@ def test_problem_body_for_internal_errors_hides_details(client, monkeypatch, tmp
     r = post_asset(client, asset_bytes(tmp_path))
     body = _problem_ok(r, 500, "internal-error")
     assert "secret" not in json.dumps(body) and "reference" in body["detail"]
+
+
+def test_status_of_a_finished_job_lists_no_folder_and_drops_bad_history_points(
+    client, settings, tmp_path, monkeypatch
+):
+    job_id = post_asset(client, asset_bytes(tmp_path)).json()["id"]
+    job = Job.fetch(job_id, connection=redis_client())
+    good = {"t": 1.0, "stage": "optimize", "step": 3, "losses": {"total": 0.5}, "metrics": {}}
+    job.meta.update(
+        state="finished",
+        files={"previews": ["preview.png"], "thumbs": ["00_albedo.png"]},
+        history=[good, {"t": "soon", "stage": "x"}, {**good, "step": 4}],
+    )
+    job.save_meta()
+    job.set_status("finished")
+
+    def no_listing(*args, **kwargs):
+        raise AssertionError("a status read listed a folder")
+
+    monkeypatch.setattr(JobLayout, "list_files", no_listing)
+    body = client.get(f"/v1/jobs/{job_id}").json()
+    assert body["status"] == "finished"
+    base = f"/v1/jobs/{job_id}"
+    assert body["links"]["thumbs"] == {"00_albedo.png": f"{base}/thumbs/00_albedo.png"}
+    assert body["links"]["previews"] == {"preview.png": f"{base}/previews/preview.png"}
+    assert [p["step"] for p in body["history"]] == [3, 4]  # the malformed point left out
+    listed = client.get("/v1/jobs").json()["items"]
+    assert listed[0]["links"]["thumbs"] == body["links"]["thumbs"]

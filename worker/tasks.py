@@ -132,6 +132,11 @@ def run_job(job_id: str) -> dict[str, Any]:
         publish(out_tmp, layout.output_dir(job_id))
         publish(bundle_tmp, layout.bundle_path(job_id))
         summary = _summary(report)
+        # the names the API links to, so that a status read lists no folder
+        job.meta["files"] = {
+            "previews": layout.preview_names(job_id),
+            "thumbs": layout.thumb_names(job_id),
+        }
         reporter.finish(JobState.FINISHED, summary=summary)
         log.info("job %s: finished", job_id)
         return {"state": JobState.FINISHED.value, **summary}
