@@ -11,9 +11,10 @@ Phases (each bounded in count and time; the run stops by itself):
 
 a. ``poll_only``: ``pollers`` clients alone loop on ``GET /v1/jobs/{id}``, ``GET /v1/jobs``
    and ``GET /healthz`` (the floor any request pays; the status reads' p50 are reported as
-   multiples of its p50 in the same phase, against ``RATIO_TARGETS``) for ``baseline`` seconds; then ``mixed``: the same pollers while ``uploaders`` clients loop
-   on ``POST /v1/jobs`` with small procedural assets, for ``duration`` seconds (no worker
-   runs: the API alone is measured). Every answer that is not the expected status (200, 202)
+   multiples of its p50 in the same phase, against ``RATIO_TARGETS``) for ``baseline``
+   seconds; then ``mixed``: the same pollers while ``uploaders`` clients loop on
+   ``POST /v1/jobs`` with small procedural assets, for ``duration`` seconds (no worker runs:
+   the API alone is measured). Every answer that is not the expected status (200, 202)
    and every transport error or timeout is an error.
 b. ``big uploads``: ``uploaders`` concurrent clients post ``big_uploads`` GLBs of about
    ``upload_mb`` MB (a valid asset whose base colour is a noise texture, so it passes intake);
