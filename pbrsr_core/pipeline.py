@@ -34,6 +34,7 @@ from .asset import (
 from .asset.model import Asset
 from .device import resolve_device
 from .errors import PbrsrError, StorageError, UnprocessableAsset
+from .footprint import check_memory, estimate_peak_bytes
 from .hostmem import reuse_large_blocks
 from .limits import Limits, check_output_size
 from .maps import (
@@ -78,6 +79,21 @@ def _resolve_input(input_path: Path, work_dir: Path, limits: Limits) -> Path:
     if kind == "zip":
         return extract_zip(input_path, work_dir / "unzipped", limits)
     return input_path
+
+
+def _check_footprint(images, options: UpscaleOptions, config, budget: int) -> None:
+    from .optim.presets import get_preset
+
+    if options.method == "pbrsr" and config is None:
+        config = get_preset(options.preset)
+    sizes = [(img.width, img.height, int(img.pixels.shape[2])) for img in images]
+    what = (
+        f"x{options.scale} of {len(images)} maps (largest {max(max(w, h) for w, h, _ in sizes)} px)"
+    )
+    if options.method == "pbrsr":
+        what += f" with the {options.preset} preset"
+    estimate = estimate_peak_bytes(sizes, options.scale, options.method, config)
+    check_memory(estimate, budget, what)
 
 
 def load_light(envmap: str | None) -> EnvLight:
@@ -324,13 +340,16 @@ def upscale_asset(
     work_dir: Path | None = None,
     snapshots: Snapshots | None = None,
     config: PbrsrConfig | None = None,
+    memory_budget: int | None = None,
 ) -> dict:
     """Upscale every texture of the asset at ``input_path`` into a bundle at ``out_dir``.
 
     ``out_dir`` must not exist or be empty. ``work_dir`` keeps per-job intermediates (unzipped
     input, cached pseudo-GT) so a retried job reuses them; by default a temporary folder.
     ``config``: PBR-SR numbers to run instead of the options' preset (``pbrsr bench paper``
-    runs a sample of the paper preset with it).
+    runs a sample of the paper preset with it). ``memory_budget``: bytes the run may use; a
+    run whose estimate (:mod:`pbrsr_core.footprint`, from the images' declared sizes) is
+    over it is refused before anything is upscaled.
     Returns the report (also written to ``out_dir/report.json``).
     """
     input_path, out_dir = Path(input_path), Path(out_dir)
@@ -354,6 +373,8 @@ def upscale_asset(
                     "nothing to upscale: no material of this asset uses a texture"
                 )
             check_output_size(images, options.scale, limits)
+            if memory_budget is not None:
+                _check_footprint(images, options, config, memory_budget)
         with reuse_large_blocks():
             hr, method_report = _upscale_maps(
                 asset, options, device, timer, progress, work, snapshots, config

@@ -143,6 +143,27 @@ def test_failing_job_keeps_a_clear_error(env):
     assert client.get("/v1/jobs?status=failed").json()["total"] == 1
 
 
+def test_a_job_larger_than_the_workers_memory_is_refused_not_killed(env):
+    """x8 of 2048² maps: an estimate of hundreds of GiB, refused by the worker before it
+    allocates the output (the worker lives on and takes the next job)."""
+    from pbrsr_core.footprint import available_bytes, estimate_peak_bytes
+
+    settings, client, proc, tmp = env
+    data = asset_bytes(tmp, size=2048)
+    need = estimate_peak_bytes([(2048, 2048, 3)] * 3, 8, "direct")
+    have = available_bytes()
+    if have is None or have > need:
+        pytest.skip(f"this machine has the memory for it ({have} bytes)")
+    job_id = post_asset(client, data, options={"method": "direct", "scale": 8}).json()["id"]
+    job = _wait_state(client, job_id, ("finished", "failed", "canceled"), 120)
+    assert job["status"] == "failed" and job["code"] == "limit-exceeded", job
+    assert "GiB of memory" in job["error"] and "x8 of" in job["error"]
+    assert job["attempt"] == 1 and proc.poll() is None  # no retry, no dead worker
+    small = post_asset(client, asset_bytes(tmp), options={"method": "bicubic", "scale": 2})
+    after = _wait_state(client, small.json()["id"], ("finished", "failed", "canceled"), 120)
+    assert after["status"] == "finished"
+
+
 def test_pbrsr_job_reports_losses_and_returns_valid_hr_maps(env):
     """The default method and preset (bicubic prior on a small asset: seconds): losses and
     consistency PSNR reach the status while it runs, and the bundle holds a valid asset at

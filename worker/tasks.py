@@ -108,6 +108,7 @@ def run_job(job_id: str) -> dict[str, Any]:
         input_path = layout.input_dir(job_id) / manifest.input
         out_tmp = layout.tmp_dir(job_id, "output")
         tmp_paths.append(out_tmp)
+        from pbrsr_core.footprint import available_bytes
         from pbrsr_core.pipeline import upscale_asset
 
         with CancelWatchdog(index, job_id):
@@ -118,6 +119,7 @@ def run_job(job_id: str) -> dict[str, Any]:
                 progress=reporter,
                 limits=ctx.settings.limits(),
                 work_dir=layout.work_dir(job_id),
+                memory_budget=available_bytes(),  # refused, not killed, when it cannot fit
             )
             reporter.check_cancel()
             reporter(_bundle_event())

@@ -1,0 +1,109 @@
+"""How much memory a run will need, from the sizes an asset declares, before anything is
+allocated for it; and how much this process may use.
+
+The estimate is deliberately above the peaks measured by ``pbrsr bench upscale`` (peak RSS of
+the method's own process; x4 on the shared assets, 2048² maps): bicubic 12 bytes per output
+value (texel x channel) over the process's base, the fast preset 31, the direct prior 58-78,
+balanced 67-101 (quality's larger renders add a fixed share). A worker refuses a job whose
+estimate exceeds its memory instead of being killed by the kernel half-way through it.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable
+from pathlib import Path
+
+from .errors import LimitExceeded
+
+MIB = 1024 * 1024
+BASE_BYTES = 600 * MIB
+"""The process before the run: torch, numba, the prior's weights."""
+BYTES_PER_VALUE = {"bicubic": 16, "prior_part": 40, "prior_full": 100}
+"""Per output value: bicubic; a prior run at part of the scale (the rest bicubic); a prior at
+the full scale (its tiles, the intermediate passes, the back-projection)."""
+RENDER_BYTES_PER_PIXEL = 48
+"""G-buffer bytes per rendered pixel of a training view (bounded by the G-buffer cache)."""
+STEP_BYTES_PER_PIXEL = 400
+"""Per pixel of a step's batch of views: shading forward and backward."""
+
+
+def estimate_peak_bytes(
+    sizes: Iterable[tuple[int, int, int]], scale: int, method: str, config=None
+) -> int:
+    """Peak memory of a run over images of ``sizes`` (width, height, channels) at ``scale``;
+    ``config``: the PBR-SR preset (``PbrsrConfig``) when ``method`` is pbrsr."""
+    values = sum(w * h * c for w, h, c in sizes) * scale * scale
+    if method == "bicubic":
+        return BASE_BYTES + BYTES_PER_VALUE["bicubic"] * values
+    part = config is not None and (config.max_prior_scale or scale) < scale
+    per_value = BYTES_PER_VALUE["prior_part" if part else "prior_full"]
+    total = BASE_BYTES + per_value * values
+    if method == "pbrsr" and config is not None and config.iterations > 0:
+        res = config.max_render_res
+        pixels = res * res
+        gbuffers = min(config.max_views * pixels * RENDER_BYTES_PER_PIXEL,
+                       config.gbuffer_cache_mb * MIB)  # fmt: skip
+        total += gbuffers + config.batch_views * pixels * STEP_BYTES_PER_PIXEL
+    return int(total)
+
+
+def _read_int(path: Path) -> int | None:
+    try:
+        text = path.read_text().strip()
+    except OSError:
+        return None
+    return int(text) if text.isdigit() else None
+
+
+def _meminfo(key: str) -> int | None:
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def _rss_bytes() -> int:
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0
+
+
+def available_bytes() -> int | None:
+    """What this process may grow to: its resident size plus the memory the machine has
+    available (``MemAvailable``), capped by the cgroup's limit when there is one; None where
+    the system does not say."""
+    free = _meminfo("MemAvailable")
+    if free is None:
+        return None
+    total = _rss_bytes() + free
+    limit = _read_int(Path("/sys/fs/cgroup/memory.max"))
+    used = _read_int(Path("/sys/fs/cgroup/memory.current"))
+    if limit is not None and used is not None:
+        total = min(total, _rss_bytes() + max(limit - used, 0))
+    return total
+
+
+def check_memory(estimate: int, budget: int | None, what: str) -> None:
+    """Refuse (LimitExceeded) a run whose ``estimate`` is over ``budget`` bytes (None: no
+    budget known, no check)."""
+    if budget is not None and estimate > budget:
+        raise LimitExceeded(
+            f"{what} needs about {estimate / 2**30:.1f} GiB of memory and this machine has "
+            f"{budget / 2**30:.1f} GiB for it: try a lower scale, the fast preset or a "
+            "machine with more memory"
+        )
+
+
+def memory_budget(setting_mib: int) -> int | None:
+    """A budget from a setting in MiB (0: what the machine has now, :func:`available_bytes`)."""
+    if setting_mib > 0:
+        return setting_mib * MIB
+    return available_bytes() if os.name == "posix" else None

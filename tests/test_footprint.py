@@ -1,0 +1,70 @@
+"""The memory estimate a worker checks a job against, before anything is allocated."""
+
+from __future__ import annotations
+
+import pytest
+
+from pbrsr_core.errors import LimitExceeded
+from pbrsr_core.footprint import (
+    MIB,
+    available_bytes,
+    check_memory,
+    estimate_peak_bytes,
+    memory_budget,
+)
+from pbrsr_core.optim.presets import get_preset
+
+# peak RSS (MiB) measured by `pbrsr bench upscale --methods bicubic,direct,fast,balanced,quality`
+# on Avocado: three 512² RGB maps upscaled x4
+AVOCADO = [(512, 512, 3)] * 3
+MEASURED = {"bicubic": 863, "fast": 1549, "direct": 3241, "balanced": 4082, "quality": 3678}
+
+
+def _estimate(method: str) -> int:
+    if method in ("bicubic", "direct"):
+        return estimate_peak_bytes(AVOCADO, 4, method)
+    return estimate_peak_bytes(AVOCADO, 4, "pbrsr", get_preset(method))
+
+
+@pytest.mark.parametrize("method", sorted(MEASURED))
+def test_the_estimate_is_above_the_measured_peak_and_not_far_above(method):
+    estimate = _estimate(method) / MIB
+    assert MEASURED[method] <= estimate <= 2.0 * MEASURED[method], estimate
+
+
+def test_more_output_costs_more():
+    sizes = [(256, 256, 3)]
+    for method in ("bicubic", "direct"):
+        x2, x4 = (estimate_peak_bytes(sizes, s, method) for s in (2, 4))
+        assert x2 < x4
+    assert _estimate("bicubic") < _estimate("fast") < _estimate("direct") < _estimate("balanced")
+
+
+def test_a_run_over_the_budget_is_refused_with_what_to_do():
+    check_memory(10 * MIB, None, "anything")  # no budget known: no check
+    check_memory(10 * MIB, 10 * MIB, "anything")
+    with pytest.raises(LimitExceeded, match=r"x8 of 3 maps needs about 1\.5 GiB .* has 1\.0 GiB"):
+        check_memory(1536 * MIB, 1024 * MIB, "x8 of 3 maps")
+
+
+def test_the_budget_is_the_setting_or_what_the_machine_has():
+    assert memory_budget(512) == 512 * MIB
+    have = available_bytes()
+    assert have is not None and 64 * MIB < have < 2**50
+    auto = memory_budget(0)
+    assert auto is not None and abs(auto - have) < 512 * MIB  # read again a moment later
+
+
+def test_the_pipeline_refuses_before_writing_anything(tmp_path):
+    from pbrsr_core.asset import make_demo_asset
+    from pbrsr_core.options import UpscaleOptions
+    from pbrsr_core.pipeline import upscale_asset
+
+    src = make_demo_asset(tmp_path / "demo.glb", size=32)
+    out = tmp_path / "out"
+    options = UpscaleOptions(scale=2, method="bicubic")
+    with pytest.raises(LimitExceeded, match="x2 of 3 maps"):
+        upscale_asset(src, out, options, memory_budget=100 * MIB)
+    assert not out.exists() or not any(out.iterdir())
+    report = upscale_asset(src, out, options, memory_budget=available_bytes())
+    assert report["images"]
