@@ -123,9 +123,10 @@ def _upscale_maps(
     if options.method == "direct":
         out = {}
         with timer("prior"):
-            for n, img in enumerate(images):
-                emit(progress, Progress(stage="prior", step=n, total=len(images)))
-                out[img.index] = upscale_map(prior, img.pixels, kind_of(img.roles), s)
+            tiles = MapProgress(progress, "prior", images)
+            for img in images:
+                kind = kind_of(img.roles)
+                out[img.index] = upscale_map(prior, img.pixels, kind, s, progress=tiles.on(img))
         return out, {}
 
     from .optim.presets import get_preset
@@ -149,6 +150,45 @@ def _upscale_maps(
         "prior_init": sorted(img.name for img in images if any(channels[img.index])),
         "jpeg_deblocked": deblocked,
     }
+
+
+class MapProgress:
+    """Progress of a stage that runs the prior over several maps, tile by tile: the fraction
+    of all the maps' pixels done (out of ``STEPS``), the map and tile in the message, and an
+    ETA from the time per pixel so far."""
+
+    STEPS = 1000
+
+    def __init__(self, progress: ProgressFn | None, stage: str, images) -> None:
+        self.progress, self.stage = progress, stage
+        self.pixels = {img.index: img.width * img.height for img in images}
+        self.before: dict[int, int] = {}
+        done = 0
+        for img in images:
+            self.before[img.index] = done
+            done += self.pixels[img.index]
+        self.total = max(done, 1)
+        self.t0 = time.perf_counter()
+        emit(progress, Progress(stage=stage, step=0, total=self.STEPS))
+
+    def on(self, img) -> Callable[[int, int], None]:
+        """The prior's tile callback for ``img``: ``(tiles done, tiles)``."""
+
+        def tile(done: int, total: int) -> None:
+            pixels = self.before[img.index] + self.pixels[img.index] * done / max(total, 1)
+            fraction = pixels / self.total
+            elapsed = time.perf_counter() - self.t0
+            eta = elapsed * (1 - fraction) / fraction if fraction > 0 else None
+            event = Progress(
+                stage=self.stage,
+                step=int(self.STEPS * fraction),
+                total=self.STEPS,
+                eta_s=eta,
+                message=f"{img.name}: tile {done}/{total}",
+            )
+            emit(self.progress, event)
+
+        return tile
 
 
 def _deblocked(images, config: PbrsrConfig, timer: StageTimer):
@@ -211,13 +251,15 @@ def _init_maps(images, prior, lr_pixels, channels, s, config, timer, progress):
     parameters, the LR maps as parameters)."""
     init_encoded, init, lr = {}, {}, {}
     with timer("init"):
-        for n, img in enumerate(images):
-            emit(progress, Progress(stage="init", step=n, total=len(images)))
+        tiles = MapProgress(progress, "init", images)
+        for img in images:
             kind = kind_of(img.roles)
             px = lr_pixels[img.index]
             hr = bicubic_map(px, kind, s)
+            tiles.on(img)(0, 1)
             if any(channels[img.index]):
-                up = upscale_map(prior, px, kind, s, max_prior_scale=config.max_prior_scale)
+                up = upscale_map(prior, px, kind, s, max_prior_scale=config.max_prior_scale,
+                                 progress=tiles.on(img))  # fmt: skip
                 hr = merge_channels(up, hr, channels[img.index])
             init_encoded[img.index] = hr
             init[img.index] = encoded_to_param(torch.from_numpy(hr), kind)

@@ -252,3 +252,23 @@ def test_normal_maps_come_out_at_the_inputs_length(tmp_path: Path, method: str):
     length = np.linalg.norm(img.pixels[..., :3] * 2 - 1, axis=-1)
     assert img.pixels.shape[:2] == (64, 64)
     assert abs(float(length.mean()) - 0.9) < 0.01 and float(np.abs(length - 0.9).max()) < 0.03
+
+
+def test_prior_stages_report_tiles_with_an_eta(tmp_path, set_runtime):
+    """direct and PBR-SR's init report progress per tile of the prior (the longest stages on
+    big maps), as a fraction of all the maps' pixels with an ETA."""
+    from pbrsr_core.progress import Progress
+
+    set_runtime(prior_tile=16)  # several tiles per 32² map
+    src = make_demo_asset(tmp_path / "demo.glb", size=32)
+    for method, stage in (("direct", "prior"), ("pbrsr", "init")):
+        events: list[Progress] = []
+        options = UpscaleOptions(scale=2, method=method, preset="fast", prior="pbr-upconv7")
+        upscale_asset(src, tmp_path / method, options, progress=events.append)
+        mine = [e for e in events if e.stage == stage]
+        steps = [e.step for e in mine]
+        assert steps == sorted(steps) and steps[0] == 0 and steps[-1] == 1000, steps
+        assert len({e.message.split(":")[0] for e in mine if e.message}) == 3  # three maps
+        assert sum("tile" in e.message for e in mine) > 6
+        assert all(e.total == 1000 for e in mine)
+        assert any(e.eta_s is not None and e.eta_s >= 0 for e in mine)
