@@ -8,14 +8,14 @@ import re
 import numpy as np
 import torch
 
-from .asset.model import SRGB_ROLES, Asset, ImageData
+from .asset.model import NORMAL_ROLES, SRGB_ROLES, Asset, ImageData
 from .colour import linear_to_srgb, srgb_to_linear
 
 
 def kind_of(roles: set[str]) -> str:
     """How an image is treated: ``normal``, ``colour`` (sRGB baseColor/emissive) or ``data``
     (metallicRoughness / occlusion, linear)."""
-    if "normal" in roles:
+    if roles & NORMAL_ROLES:
         return "normal"
     if roles & SRGB_ROLES:
         return "colour"

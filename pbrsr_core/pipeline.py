@@ -31,7 +31,7 @@ from .asset import (
     save_asset,
     write_image,
 )
-from .asset.model import Asset
+from .asset.model import MAP_ROLES, Asset
 from .device import resolve_device
 from .errors import PbrsrError, StorageError, UnprocessableAsset
 from .footprint import check_memory, estimate_peak_bytes
@@ -347,6 +347,11 @@ def prior_channels(img, config) -> list[bool]:
     from .optim.groups import map_groups
 
     n_colour = 3 if img.pixels.shape[2] >= 3 else 1
+    if not img.roles & set(MAP_ROLES):  # KHR_materials_* maps only: as the core map of its kind
+        like = {"colour": "base_color", "normal": "normal", "data": "roughness"}
+        return [like[kind_of(img.roles)] in config.prior_maps] * (
+            1 if kind_of(img.roles) != "data" else n_colour
+        )
     named = {
         c
         for g in map_groups(set(img.roles), n_colour, config)
@@ -483,6 +488,10 @@ def _write_bundle(
                     "index": img.index,
                     "name": img.name,
                     "roles": sorted(img.roles),
+                    "kind": kind_of(img.roles),
+                    # rendered: the renderer (previews, PBR-SR's losses) models one of its roles;
+                    # otherwise (KHR_materials_* textures) it is upscaled as a map only
+                    "rendered": bool(img.roles & set(MAP_ROLES)),
                     "label": role_label(img.roles),
                     "lr_size": [img.width, img.height],
                     "hr_size": [int(hr[img.index].shape[1]), int(hr[img.index].shape[0])],

@@ -95,9 +95,8 @@ def coverage_masks(
         material = asset.material(int(mi))
         tris = tris_all[mats == mi]
         seen: set[tuple] = set()
-        for role in ("base_color", "metallic_roughness", "normal", "occlusion", "emissive"):
-            ref = material.texture(role)
-            if ref is None or ref.image not in out or ref.texcoord not in mesh.v_uv:
+        for ref in material.textures().values():
+            if ref.image not in out or ref.texcoord not in mesh.v_uv:
                 continue
             key = (ref.image, ref.texcoord, ref.uv_transform)
             if key in seen:

@@ -33,7 +33,7 @@ from .gltf_write import encode_images, save_asset
 from .images import read_image
 from .jpeg import quant_tables
 from .model import (
-    MAP_ROLES,
+    EXTENSION_ROLES,
     REPEAT,
     Asset,
     ImageData,
@@ -186,7 +186,14 @@ def _material(doc: dict, i: int) -> Material:
         mat.normal_scale = float(m["normalTexture"].get("scale", 1.0))
     if "occlusionTexture" in m:
         mat.occlusion_strength = float(m["occlusionTexture"].get("strength", 1.0))
-    es = (m.get("extensions") or {}).get("KHR_materials_emissive_strength")
+    exts = m.get("extensions") or {}
+    for role, (ext, key, _) in EXTENSION_ROLES.items():
+        holder = exts.get(ext)
+        if isinstance(holder, dict) and isinstance(holder.get(key), dict):
+            ref = _texture_ref(doc, holder[key], f"{what}.{ext}.{key}")
+            if ref is not None:
+                mat.extension_textures[role] = ref
+    es = exts.get("KHR_materials_emissive_strength")
     if isinstance(es, dict):
         mat.emissive_strength = float(es.get("emissiveStrength", 1.0))
     mode = m.get("alphaMode", "OPAQUE")
@@ -542,18 +549,15 @@ def load_asset(path: Path, limits: Limits = Limits(), *, unwrap_missing_uvs: boo
     check_buffer_views(doc, buffers)
 
     materials = [_material(doc, i) for i in range(len(doc.get("materials", [])))]
-    used = {
-        ref.image for m in materials for role in MAP_ROLES if (ref := m.texture(role)) is not None
-    }
+    used = {ref.image for m in materials for ref in m.textures().values()}
     builder = _Builder(doc, buffers, limits, unwrap_missing_uvs)
     builder.walk(_scene_roots(doc))
     mesh = builder.build()
     images = _load_images(doc, folder, buffers, limits, resources, used)
     by_index = {im.index: im for im in images}
     for m in materials:
-        for role in MAP_ROLES:
-            ref = m.texture(role)
-            if ref is not None and ref.image in by_index:
+        for role, ref in m.textures().items():
+            if ref.image in by_index:
                 by_index[ref.image].roles.add(role)
     asset = Asset(
         document=doc,

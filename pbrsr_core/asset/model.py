@@ -32,7 +32,42 @@ MAP_ROLES: tuple[MapRole, ...] = (
     "occlusion",
     "emissive",
 )
-SRGB_ROLES: frozenset[str] = frozenset({"base_color", "emissive"})
+# Textures of the KHR_materials_* extensions: role -> (extension, key, what the data is).
+# The renderer models none of them; they are upscaled as maps of their kind and written back.
+EXTENSION_ROLES: dict[str, tuple[str, str, str]] = {
+    "clearcoat": ("KHR_materials_clearcoat", "clearcoatTexture", "data"),
+    "clearcoat_roughness": ("KHR_materials_clearcoat", "clearcoatRoughnessTexture", "data"),
+    "clearcoat_normal": ("KHR_materials_clearcoat", "clearcoatNormalTexture", "normal"),
+    "sheen_color": ("KHR_materials_sheen", "sheenColorTexture", "colour"),
+    "sheen_roughness": ("KHR_materials_sheen", "sheenRoughnessTexture", "data"),
+    "specular": ("KHR_materials_specular", "specularTexture", "data"),
+    "specular_color": ("KHR_materials_specular", "specularColorTexture", "colour"),
+    "transmission": ("KHR_materials_transmission", "transmissionTexture", "data"),
+    "thickness": ("KHR_materials_volume", "thicknessTexture", "data"),
+    "iridescence": ("KHR_materials_iridescence", "iridescenceTexture", "data"),
+    "iridescence_thickness": (
+        "KHR_materials_iridescence",
+        "iridescenceThicknessTexture",
+        "data",
+    ),
+    "anisotropy": ("KHR_materials_anisotropy", "anisotropyTexture", "data"),
+    "diffuse_transmission": (
+        "KHR_materials_diffuse_transmission",
+        "diffuseTransmissionTexture",
+        "data",
+    ),
+    "diffuse_transmission_color": (
+        "KHR_materials_diffuse_transmission",
+        "diffuseTransmissionColorTexture",
+        "colour",
+    ),
+}
+SRGB_ROLES: frozenset[str] = frozenset(
+    {"base_color", "emissive"} | {r for r, (_, _, k) in EXTENSION_ROLES.items() if k == "colour"}
+)
+NORMAL_ROLES: frozenset[str] = frozenset(
+    {"normal"} | {r for r, (_, _, k) in EXTENSION_ROLES.items() if k == "normal"}
+)
 
 REPEAT, CLAMP_TO_EDGE, MIRRORED_REPEAT = 10497, 33071, 33648
 
@@ -76,9 +111,20 @@ class Material:
     alpha_mode: Literal["OPAQUE", "MASK", "BLEND"] = "OPAQUE"
     alpha_cutoff: float = 0.5
     double_sided: bool = False
+    extension_textures: dict[str, TextureRef] = field(default_factory=dict)
+    """Textures of KHR_materials_* extensions by role (:data:`EXTENSION_ROLES`)."""
 
     def texture(self, role: MapRole) -> TextureRef | None:
         return getattr(self, role)
+
+    def textures(self) -> dict[str, TextureRef]:
+        """Every texture the material uses, by role (core and extension ones)."""
+        out: dict[str, TextureRef] = {}
+        for role in MAP_ROLES:
+            ref = self.texture(role)
+            if ref is not None:
+                out[role] = ref
+        return {**out, **self.extension_textures}
 
 
 DEFAULT_MATERIAL = Material(index=-1, name="default")

@@ -46,9 +46,12 @@ TEST_FEATURES: frozenset[str] = frozenset(
         "no_normals",  # the main mesh has no NORMAL (flat normals are generated)
         "tangents",  # the main mesh stores TANGENT (otherwise they are generated)
         "strip",  # a TRIANGLE_STRIP primitive
+        "khr_materials",  # clearcoat, sheen, specular, transmission, volume, iridescence maps
     }
 )
-DEFAULT_TEST_FEATURES = frozenset(TEST_FEATURES - {"data_uri", "exr", "no_normals", "jpeg"})
+DEFAULT_TEST_FEATURES = frozenset(
+    TEST_FEATURES - {"data_uri", "exr", "no_normals", "jpeg", "khr_materials"}
+)
 
 
 # ----------------------------------------------------------------------------- geometry
@@ -284,6 +287,50 @@ def make_quad_asset(
     return b.write(path, kind=kind, image_dir="")
 
 
+def _khr_material_extensions(b: GltfBuilder, size: int) -> dict:
+    """KHR_materials_* extensions with a texture of their own for each of their maps."""
+
+    def tex(seed: int, channels: int, name: str) -> dict:
+        return {"index": b.texture(b.image(_pattern(size // 2, seed, channels), name=name))}
+
+    nrm = _pattern(size // 2, 21) * 0.3 + np.array([0.35, 0.35, 0.7], dtype=np.float32)
+    exts = {
+        "KHR_materials_clearcoat": {
+            "clearcoatFactor": 1.0,
+            "clearcoatTexture": tex(11, 3, "clearcoat"),
+            "clearcoatRoughnessFactor": 0.5,
+            "clearcoatRoughnessTexture": tex(12, 3, "clearcoat_roughness"),
+            "clearcoatNormalTexture": {"index": b.texture(b.image(nrm, name="clearcoat_normal"))},
+        },
+        "KHR_materials_sheen": {
+            "sheenColorFactor": [1.0, 1.0, 1.0],
+            "sheenColorTexture": tex(13, 3, "sheen_color"),
+            "sheenRoughnessFactor": 0.5,
+            "sheenRoughnessTexture": tex(14, 4, "sheen_roughness"),
+        },
+        "KHR_materials_specular": {
+            "specularTexture": tex(15, 4, "specular"),
+            "specularColorTexture": tex(16, 3, "specular_color"),
+        },
+        "KHR_materials_transmission": {
+            "transmissionFactor": 0.5,
+            "transmissionTexture": tex(17, 3, "transmission"),
+        },
+        "KHR_materials_volume": {
+            "thicknessFactor": 1.0,
+            "thicknessTexture": tex(18, 3, "thickness"),
+        },
+        "KHR_materials_iridescence": {
+            "iridescenceFactor": 1.0,
+            "iridescenceTexture": tex(19, 3, "iridescence"),
+            "iridescenceThicknessTexture": tex(20, 3, "iridescence_thickness"),
+        },
+    }
+    for name in exts:
+        b.use_extension(name)
+    return exts
+
+
 def make_test_asset(
     path: Path,
     *,
@@ -385,6 +432,8 @@ def make_test_asset(
         b.use_extension("KHR_texture_transform")
     if f("extras"):
         main["extras"] = {"author": "pbrsr"}
+    if f("khr_materials"):
+        main.setdefault("extensions", {}).update(_khr_material_extensions(b, size))
     main_mat = b.add("materials", main)
 
     second_mat = None

@@ -24,7 +24,7 @@ from collections.abc import Iterable
 import numpy as np
 import torch
 
-from ..asset.model import MAP_ROLES, Material, Mesh, TextureRef
+from ..asset.model import Material, Mesh, TextureRef
 from ..render import camera as cam
 from ..uvmask import raster_uv_mask, transform_uv
 
@@ -71,9 +71,8 @@ def image_refs(materials: list[Material], image: int) -> list[tuple[int, Texture
     out: list[tuple[int, TextureRef]] = []
     seen: set[tuple] = set()
     for m in materials:
-        for role in MAP_ROLES:
-            ref = m.texture(role)
-            if ref is None or ref.image != image:
+        for ref in m.textures().values():
+            if ref.image != image:
                 continue
             key = (m.index, ref.texcoord, ref.uv_transform)
             if key not in seen:

@@ -1,0 +1,64 @@
+"""Every texture a material uses is upscaled: the KHR_materials_* maps (clearcoat, sheen,
+specular, transmission, volume, iridescence) by their kind, written back at the HR size and
+valid, and the report says which the renderer treats as maps only."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from pbrsr_core.asset import load_asset, make_test_asset, validate_gltf
+from pbrsr_core.asset.model import EXTENSION_ROLES
+from pbrsr_core.maps import kind_of, upscalable_images
+from pbrsr_core.options import UpscaleOptions
+from pbrsr_core.pipeline import upscale_asset
+
+FEATURES = {"orm", "khr_materials"}
+EXPECTED = {
+    "clearcoat", "clearcoat_roughness", "clearcoat_normal", "sheen_color", "sheen_roughness",
+    "specular", "specular_color", "transmission", "thickness", "iridescence",
+    "iridescence_thickness",
+}  # fmt: skip
+
+
+def test_the_loader_finds_every_extension_texture_with_its_kind(tmp_path):
+    asset = load_asset(make_test_asset(tmp_path / "a.glb", size=32, features=FEATURES))
+    roles = {r for img in upscalable_images(asset) for r in img.roles}
+    assert roles >= EXPECTED
+    by_role = {
+        next(iter(img.roles)): img for img in upscalable_images(asset) if len(img.roles) == 1
+    }
+    for role in EXPECTED:
+        assert kind_of(by_role[role].roles) == EXTENSION_ROLES[role][2], role
+    assert kind_of({"clearcoat_normal"}) == "normal" and kind_of({"sheen_color"}) == "colour"
+
+
+@pytest.mark.parametrize(
+    ("method", "preset"),
+    [("bicubic", "fast"), ("direct", "fast"), ("pbrsr", "fast"), ("pbrsr", "balanced")],
+)
+def test_extension_maps_come_back_upscaled_and_valid(tmp_path, method, preset):
+    src = make_test_asset(tmp_path / "a.glb", size=32, features=FEATURES)
+    options = UpscaleOptions(scale=2, method=method, preset=preset, prior="pbr-upconv7")
+    report = upscale_asset(src, tmp_path / "out", options)
+    out = load_asset(tmp_path / "out" / "a.glb")
+    assert validate_gltf(tmp_path / "out" / "a.glb")["numErrors"] == 0
+    lr = load_asset(src)
+    for img in upscalable_images(lr):
+        up = out.images[img.index]
+        assert (up.width, up.height) == (2 * img.width, 2 * img.height), img.roles
+    entries = {e["index"]: e for e in report["images"]}
+    for img in upscalable_images(lr):
+        assert entries[img.index]["rendered"] == bool(img.roles - EXPECTED)
+    maps_only = {r for e in report["images"] if not e["rendered"] for r in e["roles"]}
+    assert maps_only == EXPECTED
+    doc = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert {e["kind"] for e in doc["images"]} == {"colour", "data", "normal"}
+    # the extensions keep their factors and point at the same images
+    ext = out.document["materials"][0]["extensions"]
+    assert ext["KHR_materials_clearcoat"]["clearcoatFactor"] == 1.0
+    assert set(out.document["extensionsUsed"]) >= {e for e, _, _ in EXTENSION_ROLES.values()} - {
+        "KHR_materials_anisotropy",
+        "KHR_materials_diffuse_transmission",
+    }
