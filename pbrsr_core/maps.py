@@ -8,7 +8,7 @@ import re
 import numpy as np
 import torch
 
-from .asset.model import NORMAL_ROLES, SRGB_ROLES, Asset, ImageData
+from .asset.model import MIRRORED_REPEAT, NORMAL_ROLES, REPEAT, SRGB_ROLES, Asset, ImageData
 from .colour import linear_to_srgb, srgb_to_linear
 
 
@@ -27,6 +27,26 @@ def role_label(roles: set[str]) -> str:
     if {"metallic_roughness", "occlusion"} <= roles:
         return "orm"
     return "+".join(sorted(roles)) if roles else "unused"
+
+
+def image_wrap(asset: Asset, index: int) -> tuple[str | None, str | None] | None:
+    """How image ``index`` continues past its edges, from the samplers of the textures that
+    use it, per axis (wrapS, wrapT): "repeat" if one of them repeats, else "mirror" if one
+    mirrors, else None (clamped). None when no axis wraps."""
+    modes: list[set[int]] = [set(), set()]
+    for m in asset.materials:
+        for ref in m.textures().values():
+            if ref.image == index:
+                modes[0].add(ref.wrap_s)
+                modes[1].add(ref.wrap_t)
+
+    def axis(found: set[int]) -> str | None:
+        if REPEAT in found:
+            return "repeat"
+        return "mirror" if MIRRORED_REPEAT in found else None
+
+    wrap = (axis(modes[0]), axis(modes[1]))
+    return None if wrap == (None, None) else wrap
 
 
 def upscalable_images(asset: Asset) -> list[ImageData]:

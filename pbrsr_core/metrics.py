@@ -163,3 +163,20 @@ def evaluate(
     )
     out.update(evaluator(pred))
     return out
+
+
+def seam_ratio(pixels: np.ndarray) -> tuple[float, float]:
+    """(x, y): the mean absolute step across the map's wrap edge (last column to first; last
+    row to first) over the mean step between neighbouring columns (rows) inside it. About 1
+    for a map that tiles seamlessly; well above 1 where the repeat shows a seam."""
+    a = np.asarray(pixels, dtype=np.float64)
+    if a.ndim == 2:
+        a = a[..., None]
+    out = []
+    for axis in (1, 0):
+        inside = np.abs(np.diff(a, axis=axis)).mean()
+        first = np.take(a, 0, axis=axis)
+        last = np.take(a, -1, axis=axis)
+        across = np.abs(first - last).mean()
+        out.append(float(across / inside) if inside > 0 else (0.0 if across == 0 else np.inf))
+    return out[0], out[1]

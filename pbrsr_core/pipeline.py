@@ -39,12 +39,14 @@ from .hostmem import reuse_large_blocks
 from .limits import Limits, check_output_size
 from .maps import (
     encoded_to_param,
+    image_wrap,
     kind_of,
     map_file_stem,
     param_to_encoded,
     role_label,
     upscalable_images,
 )
+from .metrics import seam_ratio
 from .options import UpscaleOptions
 from .preview import write_previews
 from .prior import load_prior
@@ -113,9 +115,13 @@ def _upscale_maps(
     """HR maps (stored encoding) for every used image, and method-specific report fields."""
     images = upscalable_images(asset)
     s = options.scale
+    wraps = {img.index: image_wrap(asset, img.index) for img in images}  # tiling maps
     if options.method == "bicubic":
         with timer("upscale"):
-            return {img.index: bicubic_map(img.pixels, kind_of(img.roles), s) for img in images}, {}
+            return {
+                img.index: bicubic_map(img.pixels, kind_of(img.roles), s, wraps[img.index])
+                for img in images
+            }, {}
 
     with timer("load_prior"):
         emit(progress, Progress(stage="load_prior", message=options.prior))
@@ -126,7 +132,9 @@ def _upscale_maps(
             tiles = MapProgress(progress, "prior", images)
             for img in images:
                 kind = kind_of(img.roles)
-                out[img.index] = upscale_map(prior, img.pixels, kind, s, progress=tiles.on(img))
+                out[img.index] = upscale_map(
+                    prior, img.pixels, kind, s, progress=tiles.on(img), wrap=wraps[img.index]
+                )
         return out, {}
 
     from .optim.presets import get_preset
@@ -137,7 +145,7 @@ def _upscale_maps(
                                                progress)  # fmt: skip
     if checks is not None and not any(any(c) for c in channels.values()):
         prior = load_prior("bicubic", device)  # for the pseudo-GT
-    init_encoded, init, lr = _init_maps(images, prior, lr_pixels, channels, s, config, timer,
+    init_encoded, init, lr = _init_maps(images, prior, lr_pixels, channels, s, wraps, config, timer,
                                         progress)  # fmt: skip
     out, report = _optimise(
         asset, images, init_encoded, init, lr, lr_pixels, channels, prior, options, config,
@@ -245,7 +253,7 @@ def _prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, p
     return channels, checks
 
 
-def _init_maps(images, prior, lr_pixels, channels, s, config, timer, progress):
+def _init_maps(images, prior, lr_pixels, channels, s, wraps, config, timer, progress):
     """The optimiser's start: bicubic, with the prior's upscale in the channels it
     initialises. Returns ({image: HR map, stored encoding}, the same as optimisation
     parameters, the LR maps as parameters)."""
@@ -255,11 +263,11 @@ def _init_maps(images, prior, lr_pixels, channels, s, config, timer, progress):
         for img in images:
             kind = kind_of(img.roles)
             px = lr_pixels[img.index]
-            hr = bicubic_map(px, kind, s)
+            hr = bicubic_map(px, kind, s, wraps[img.index])
             tiles.on(img)(0, 1)
             if any(channels[img.index]):
                 up = upscale_map(prior, px, kind, s, max_prior_scale=config.max_prior_scale,
-                                 progress=tiles.on(img))  # fmt: skip
+                                 progress=tiles.on(img), wrap=wraps[img.index])  # fmt: skip
                 hr = merge_channels(up, hr, channels[img.index])
             init_encoded[img.index] = hr
             init[img.index] = encoded_to_param(torch.from_numpy(hr), kind)
@@ -497,6 +505,7 @@ def _write_bundle(
                     "hr_size": [int(hr[img.index].shape[1]), int(hr[img.index].shape[0])],
                     "bit_depth": img.bit_depth,
                     "file": map_files[img.index],
+                    **_seams(asset, img, hr[img.index]),
                 }
                 for img in asset.images
                 if img.index in hr
@@ -517,6 +526,16 @@ def _write_bundle(
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
         raise
+
+
+def _seams(asset: Asset, img, hr: np.ndarray) -> dict:
+    """For a tiling image: its seam ratio (x, y) before and after (metrics.seam_ratio)."""
+    wrap = image_wrap(asset, img.index)
+    if wrap is None:
+        return {}
+    before, after = seam_ratio(img.pixels), seam_ratio(hr)
+    return {"wrap": list(wrap), "seam": {"lr": [round(v, 3) for v in before],
+                                         "hr": [round(v, 3) for v in after]}}  # fmt: skip
 
 
 def _json_default(o):

@@ -131,6 +131,36 @@ def prior_factor(prior: Prior, scale: int, max_scale: int | None) -> int:
     return max(fits, default=scale)
 
 
+Wrap = tuple[str | None, str | None]
+"""How a map continues past its edges along x (glTF wrapS) and y (wrapT): "repeat",
+"mirror", or None (clamped: the edge is a border)."""
+WRAP_CONTEXT = 16
+"""LR texels of wrapped (or mirrored) context added at a tiling map's edges."""
+
+
+def with_wrap(fn, pixels: np.ndarray, scale: int, wrap: Wrap | None) -> np.ndarray:
+    """``fn(pixels) -> (s*H, s*W, C)`` with the map continued past its edges as ``wrap``
+    says, so that a tiling map upscales without a seam where it repeats."""
+    a = _as_hwc(pixels)
+    h, w = a.shape[:2]
+    if wrap is None or wrap == (None, None):
+        return fn(a)
+    padded = a
+    pad = [0, 0]  # x, y
+    for axis, how in ((0, wrap[1]), (1, wrap[0])):  # array axis 0 is y (wrapT), 1 is x
+        if how is None:
+            continue
+        n = min(WRAP_CONTEXT, a.shape[axis])
+        widths = [(0, 0)] * 3
+        widths[axis] = (n, n)
+        padded = np.pad(padded, widths, mode="wrap" if how == "repeat" else "symmetric")
+        pad[1 - axis] = n
+    pad_x, pad_y = pad
+    out = fn(np.ascontiguousarray(padded))
+    y0, x0 = pad_y * scale, pad_x * scale
+    return np.ascontiguousarray(out[y0 : y0 + h * scale, x0 : x0 + w * scale])
+
+
 def upscale_map(
     prior: Prior,
     pixels: np.ndarray,
@@ -139,6 +169,7 @@ def upscale_map(
     *,
     max_prior_scale: int | None = None,
     progress: TileProgress | None = None,
+    wrap: Wrap | None = None,
 ) -> np.ndarray:
     """Apply ``prior`` to one stored map. pixels (H, W, C) float32 in [0, 1], C in 1..4;
     ``role`` a material role or kind (see :func:`map_kind`). Returns (s*H, s*W, C) float32
@@ -147,7 +178,16 @@ def upscale_map(
     ``max_prior_scale``: the prior upscales by at most this factor (:func:`prior_factor`),
     bicubic interpolation does the rest, and a back-projecting prior's result is projected
     once more onto the map at the full scale. A network's cost grows with its output's
-    pixels: waifu2x-photo's x2 pass on a 512² map costs a sixth of its x4 (two passes)."""
+    pixels: waifu2x-photo's x2 pass on a 512² map costs a sixth of its x4 (two passes).
+    ``wrap``: a tiling map's continuation past its edges (:func:`with_wrap`)."""
+
+    def run(a: np.ndarray) -> np.ndarray:
+        return _upscale_map(prior, a, role, scale, max_prior_scale, progress)
+
+    return with_wrap(run, pixels, scale, wrap)
+
+
+def _upscale_map(prior, pixels, role, scale, max_prior_scale, progress) -> np.ndarray:
     kind = map_kind(role)
     a = _as_hwc(pixels)
     colour, alpha, n_colour = _split(a)
@@ -182,12 +222,16 @@ def upscale_rgb(
     return out
 
 
-def bicubic_map(pixels: np.ndarray, role: str, scale: int) -> np.ndarray:
+def bicubic_map(pixels: np.ndarray, role: str, scale: int, wrap: Wrap | None = None) -> np.ndarray:
     """Bicubic upscaling of one stored map with the same conventions as :func:`upscale_map`
-    (every channel interpolated, clamped; normal maps at the input's length). pixels (H, W, C) ->
-    (s*H, s*W, C) float32 in [0, 1]."""
+    (every channel interpolated, clamped; normal maps at the input's length; ``wrap``).
+    pixels (H, W, C) -> (s*H, s*W, C) float32 in [0, 1]."""
     if not isinstance(scale, int) or scale < 1:
         raise ValueError(f"scale must be a positive integer, got {scale!r}")
+    return with_wrap(lambda a: _bicubic_map(a, role, scale), pixels, scale, wrap)
+
+
+def _bicubic_map(pixels: np.ndarray, role: str, scale: int) -> np.ndarray:
     kind = map_kind(role)
     a = _as_hwc(pixels)
     colour, alpha, n_colour = _split(a)
