@@ -30,15 +30,28 @@ def role_label(roles: set[str]) -> str:
 
 
 def image_wrap(asset: Asset, index: int) -> tuple[str | None, str | None] | None:
-    """How image ``index`` continues past its edges, from the samplers of the textures that
-    use it, per axis (wrapS, wrapT): "repeat" if one of them repeats, else "mirror" if one
-    mirrors, else None (clamped). None when no axis wraps."""
+    """How image ``index`` continues past its edges where the scene shows it, per axis
+    (wrapS, wrapT): "repeat" or "mirror" when a texture using it has that sampler mode and
+    the mesh samples it beyond [0, 1] on that axis (its UVs, through any KHR_texture_transform,
+    leave the unit square: the texture visibly repeats); else None. None when no axis does
+    (an atlas inside the unit square needs no context)."""
+    from .uvmask import transform_uv
+
+    mesh = asset.mesh
+    tris, mats = mesh.t_pos_idx, mesh.t_mat
     modes: list[set[int]] = [set(), set()]
     for m in asset.materials:
         for ref in m.textures().values():
-            if ref.image == index:
-                modes[0].add(ref.wrap_s)
-                modes[1].add(ref.wrap_t)
+            if ref.image != index or ref.texcoord not in mesh.v_uv:
+                continue
+            corners = tris[mats == m.index].reshape(-1)
+            if corners.numel() == 0:
+                continue
+            uv = transform_uv(mesh.v_uv[ref.texcoord][corners].double(), ref)
+            low, high = uv.amin(0), uv.amax(0)
+            for axis, mode in ((0, ref.wrap_s), (1, ref.wrap_t)):
+                if low[axis] < -1e-3 or high[axis] > 1 + 1e-3:
+                    modes[axis].add(mode)
 
     def axis(found: set[int]) -> str | None:
         if REPEAT in found:

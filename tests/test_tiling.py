@@ -61,26 +61,33 @@ def test_mirrored_context_keeps_the_shape_and_one_axis_only():
     assert seam_ratio(only_x)[0] < seam_ratio(bicubic_map(lr, "base_color", 2))[0]
 
 
-def _asset_with_sampler(tmp_path, wrap_s, wrap_t):
+def _asset_with_sampler(tmp_path, wrap_s, wrap_t, repeats=2.0):
+    """The quad with its base colour a seamless tile, the samplers given, and the texture
+    repeated ``repeats`` times across the quad (KHR_texture_transform; 1: UVs in [0, 1])."""
     src = make_quad_asset(tmp_path / "q.glb", size=32)
     asset = load_asset(src)
     doc = asset.document
     doc["samplers"] = [{"wrapS": wrap_s, "wrapT": wrap_t}]
     for t in doc["textures"]:
         t["sampler"] = 0
+    if repeats != 1.0:
+        info = doc["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"]
+        info["extensions"] = {"KHR_texture_transform": {"scale": [repeats, repeats]}}
+        doc.setdefault("extensionsUsed", []).append("KHR_texture_transform")
     base = asset.materials[0].base_color.image
-    out = tmp_path / f"tiled-{wrap_s}-{wrap_t}.glb"
+    out = tmp_path / f"tiled-{wrap_s}-{wrap_t}-{repeats}.glb"
     save_asset(asset, out, new_images={base: tile(32)})
     return out, base
 
 
 def test_the_samplers_say_how_an_image_wraps(tmp_path):
-    for (s, t), want in [
-        ((REPEAT, REPEAT), ("repeat", "repeat")),
-        ((MIRRORED_REPEAT, CLAMP_TO_EDGE), ("mirror", None)),
-        ((CLAMP_TO_EDGE, CLAMP_TO_EDGE), None),
+    for (s, t), repeats, want in [
+        ((REPEAT, REPEAT), 2.0, ("repeat", "repeat")),
+        ((MIRRORED_REPEAT, CLAMP_TO_EDGE), 2.0, ("mirror", None)),
+        ((CLAMP_TO_EDGE, CLAMP_TO_EDGE), 2.0, None),
+        ((REPEAT, REPEAT), 1.0, None),  # repeats by its sampler, but the mesh never shows it
     ]:
-        path, base = _asset_with_sampler(tmp_path, s, t)
+        path, base = _asset_with_sampler(tmp_path, s, t, repeats)
         assert image_wrap(load_asset(path), base) == want
 
 
