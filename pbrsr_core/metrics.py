@@ -162,6 +162,25 @@ def evaluate(
         gt, cameras=eval_cameras(resolution, num_views), lights=lights, device=device
     )
     out.update(evaluator(pred))
+    out.update(seam_metrics(pred, gt))
+    return out
+
+
+def seam_metrics(pred: Asset, gt: Asset) -> dict[str, float]:
+    """``seam.<image>.x|y`` for every map the scene shows repeating (maps.image_wrap): the
+    predicted map's seam ratio over the ground truth's on that axis (1: the repeat is as
+    seamless as the original's)."""
+    from .maps import image_wrap
+
+    out: dict[str, float] = {}
+    for img in gt.images:
+        wrap = image_wrap(gt, img.index) if img.roles else None
+        if wrap is None or img.index >= len(pred.images):
+            continue
+        mine, ref = seam_ratio(pred.images[img.index].pixels), seam_ratio(img.pixels)
+        for axis, name in ((0, "x"), (1, "y")):
+            if wrap[axis] == "repeat" and ref[axis] > 0:
+                out[f"seam.{img.index}.{name}"] = mine[axis] / ref[axis]
     return out
 
 

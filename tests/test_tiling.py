@@ -103,3 +103,15 @@ def test_the_report_gives_a_tiling_maps_seam(tmp_path, method):
     clamped, _ = _asset_with_sampler(tmp_path, CLAMP_TO_EDGE, CLAMP_TO_EDGE)
     report = upscale_asset(clamped, tmp_path / f"{method}-clamped", options)
     assert "seam" not in next(e for e in report["images"] if e["index"] == base)
+
+
+def test_eval_reports_the_seam_against_the_ground_truths(tmp_path):
+    from pbrsr_core.degrade import degrade_asset
+    from pbrsr_core.metrics import evaluate
+
+    gt, base = _asset_with_sampler(tmp_path, REPEAT, REPEAT)
+    lr = degrade_asset(gt, tmp_path / "lr" / gt.name, 2)[0]
+    upscale_asset(lr, tmp_path / "up", UpscaleOptions(scale=2, method="bicubic"))
+    res = evaluate(tmp_path / "up" / gt.name, gt, resolution=32, num_views=2)
+    assert {f"seam.{base}.x", f"seam.{base}.y"} <= res.keys()
+    assert res[f"seam.{base}.x"] < 1.5 and res[f"seam.{base}.y"] < 1.5
