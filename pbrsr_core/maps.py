@@ -10,6 +10,7 @@ import torch
 
 from .asset.model import MIRRORED_REPEAT, NORMAL_ROLES, REPEAT, SRGB_ROLES, Asset, ImageData
 from .colour import linear_to_srgb, srgb_to_linear
+from .prior.direct import HIDDEN_ALPHA
 
 
 def kind_of(roles: set[str]) -> str:
@@ -53,13 +54,33 @@ def image_wrap(asset: Asset, index: int) -> tuple[str | None, str | None] | None
                 if low[axis] < -1e-3 or high[axis] > 1 + 1e-3:
                     modes[axis].add(mode)
 
-    def axis(found: set[int]) -> str | None:
+    def mode_of(found: set[int]) -> str | None:
         if REPEAT in found:
             return "repeat"
         return "mirror" if MIRRORED_REPEAT in found else None
 
-    wrap = (axis(modes[0]), axis(modes[1]))
+    wrap = (mode_of(modes[0]), mode_of(modes[1]))
     return None if wrap == (None, None) else wrap
+
+
+def image_cutout(asset: Asset, index: int) -> float | None:
+    """For a cutout's colour (an image with alpha that a material with alphaMode MASK or
+    BLEND reads as base colour): the alpha up to which its texels are never seen (MASK: its
+    alphaCutoff; BLEND: about 0); the lowest over the materials that use it. None otherwise."""
+    img = asset.images[index]
+    if img.pixels.ndim != 3 or img.pixels.shape[2] not in (2, 4):
+        return None
+    seen_from = [
+        m.alpha_cutoff if m.alpha_mode == "MASK" else HIDDEN_ALPHA
+        for m in asset.materials
+        if m.base_color is not None and m.base_color.image == index
+    ]
+    opaque = any(
+        m.alpha_mode == "OPAQUE"
+        for m in asset.materials
+        if m.base_color is not None and m.base_color.image == index
+    )
+    return None if opaque or not seen_from else min(seen_from)
 
 
 def upscalable_images(asset: Asset) -> list[ImageData]:

@@ -39,6 +39,7 @@ from .hostmem import reuse_large_blocks
 from .limits import Limits, check_output_size
 from .maps import (
     encoded_to_param,
+    image_cutout,
     image_wrap,
     kind_of,
     map_file_stem,
@@ -50,7 +51,14 @@ from .metrics import seam_ratio
 from .options import UpscaleOptions
 from .preview import write_previews
 from .prior import load_prior
-from .prior.direct import bicubic_map, keep_normal_length, project_map, upscale_map
+from .prior.direct import (
+    bicubic_map,
+    filled_cutout,
+    keep_normal_length,
+    project_map,
+    restore_hidden,
+    upscale_map,
+)
 from .prior.selfcheck import merge_channels, prior_self_check
 from .progress import Progress, ProgressFn, emit
 from .render.light import EnvLight
@@ -116,10 +124,13 @@ def _upscale_maps(
     images = upscalable_images(asset)
     s = options.scale
     wraps = {img.index: image_wrap(asset, img.index) for img in images}  # tiling maps
+    cutouts = {img.index: image_cutout(asset, img.index) for img in images}
     if options.method == "bicubic":
         with timer("upscale"):
             return {
-                img.index: bicubic_map(img.pixels, kind_of(img.roles), s, wraps[img.index])
+                img.index: bicubic_map(
+                    img.pixels, kind_of(img.roles), s, wraps[img.index], cutouts[img.index]
+                )
                 for img in images
             }, {}
 
@@ -133,24 +144,31 @@ def _upscale_maps(
             for img in images:
                 kind = kind_of(img.roles)
                 out[img.index] = upscale_map(
-                    prior, img.pixels, kind, s, progress=tiles.on(img), wrap=wraps[img.index]
-                )
+                    prior, img.pixels, kind, s, progress=tiles.on(img), wrap=wraps[img.index],
+                    cutout=cutouts[img.index],
+                )  # fmt: skip
         return out, {}
 
     from .optim.presets import get_preset
 
     config = config or get_preset(options.preset)
     lr_pixels, deblocked = _deblocked(images, config, timer)
+    for img in images:  # a cutout's hidden colour takes no part (init, losses, projection)
+        if (seen_from := cutouts[img.index]) is not None:
+            lr_pixels[img.index] = filled_cutout(lr_pixels[img.index], seen_from)
     channels, checks = _prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer,
                                                progress)  # fmt: skip
     if checks is not None and not any(any(c) for c in channels.values()):
         prior = load_prior("bicubic", device)  # for the pseudo-GT
-    init_encoded, init, lr = _init_maps(images, prior, lr_pixels, channels, s, wraps, config, timer,
-                                        progress)  # fmt: skip
+    init_encoded, init, lr = _init_maps(images, prior, lr_pixels, channels, s, wraps, config,
+                                        timer, progress)  # fmt: skip
     out, report = _optimise(
         asset, images, init_encoded, init, lr, lr_pixels, channels, prior, options, config,
         device, timer, progress, work_dir, snapshots,
     )  # fmt: skip
+    for img in images:
+        if cutouts[img.index] is not None:
+            out[img.index] = restore_hidden(out[img.index], img.pixels, s)
     return out, {
         **report,
         "prior_check": checks,
@@ -236,13 +254,20 @@ def _prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, p
                 note = {"use_prior": True, "note": f"{kind} maps are not checked"}
                 checks.append({"image": img.name, "index": img.index, **note})
                 continue
+            seen = covered.get(img.index)
+            hidden_to = image_cutout(asset, img.index)
+            if hidden_to is not None:  # score the texels a viewer can see
+                px = img.pixels
+                visible = px[..., px.shape[2] - 1] > hidden_to
+                seen = visible if seen is None else seen & visible
             c = prior_self_check(
                 prior,
                 lr_pixels[img.index],
                 s,
                 kind,
                 max_prior_scale=config.max_prior_scale,
-                covered=covered.get(img.index),
+                covered=seen,
+                cutout=hidden_to,
             )
             too_small = {"use_prior": True, "note": f"under {4 * s} texels a side"}
             if c is not None:
@@ -263,7 +288,7 @@ def _init_maps(images, prior, lr_pixels, channels, s, wraps, config, timer, prog
         for img in images:
             kind = kind_of(img.roles)
             px = lr_pixels[img.index]
-            hr = bicubic_map(px, kind, s, wraps[img.index])
+            hr = bicubic_map(px, kind, s, wraps[img.index])  # px: a cutout's already filled
             tiles.on(img)(0, 1)
             if any(channels[img.index]):
                 up = upscale_map(prior, px, kind, s, max_prior_scale=config.max_prior_scale,

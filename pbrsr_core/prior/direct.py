@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from .backproject import back_project
 from .base import Prior, TileProgress
@@ -161,6 +162,73 @@ def with_wrap(fn, pixels: np.ndarray, scale: int, wrap: Wrap | None) -> np.ndarr
     return np.ascontiguousarray(out[y0 : y0 + h * scale, x0 : x0 + w * scale])
 
 
+def fill_transparent(colour: np.ndarray, visible: np.ndarray) -> np.ndarray:
+    """Colour (H, W, C) with the texels ``visible`` (H, W) does not mark replaced by their
+    visible neighbours' (push-pull: an average pyramid of the visible texels, pulled back down
+    where a level has none), so that no filter or network smears the colour hidden under
+    alpha 0 (often black) into the visible edges."""
+    if visible.all() or not visible.any():
+        return colour
+    c = torch.from_numpy(np.ascontiguousarray(colour, dtype=np.float32)).permute(2, 0, 1)[None]
+    w = torch.from_numpy(visible.astype(np.float32))[None, None]
+    levels = [(c * w, w)]
+    while min(levels[-1][1].shape[-2:]) > 1:
+        cw, ww = levels[-1]
+        pad = (0, ww.shape[-1] % 2, 0, ww.shape[-2] % 2)
+        cw, ww = F.pad(cw, pad, mode="replicate"), F.pad(ww, pad, mode="replicate")
+        levels.append((F.avg_pool2d(cw, 2), F.avg_pool2d(ww, 2)))
+    cw, ww = levels[-1]
+    filled = cw / ww.clamp_min(1e-12)
+    for cw, ww in reversed(levels[:-1]):
+        up = F.interpolate(filled, size=cw.shape[-2:], mode="bilinear", align_corners=False)
+        filled = torch.where(ww > 0, cw / ww.clamp_min(1e-12), up)
+    return np.ascontiguousarray(filled[0].permute(1, 2, 0).numpy())
+
+
+HIDDEN_ALPHA = 0.5 / 255
+"""Alpha at or below which a texel is transparent whatever the material."""
+
+
+def filled_cutout(pixels: np.ndarray, seen_from: float = HIDDEN_ALPHA) -> np.ndarray:
+    """A cutout's map (colour + alpha) with the colour of its texels whose alpha is not above
+    ``seen_from`` (a MASK material's alphaCutoff: the renderer discards them) filled from the
+    ones that are (:func:`fill_transparent`); alpha as it was."""
+    a = _as_hwc(pixels)
+    n = a.shape[2] - 1
+    visible = a[..., n] > seen_from
+    if a.shape[2] not in (2, 4) or visible.all():
+        return a
+    filled = a.copy()
+    filled[..., :n] = fill_transparent(a[..., :n], visible)
+    return filled
+
+
+def restore_hidden(hr: np.ndarray, pixels: np.ndarray, scale: int) -> np.ndarray:
+    """``hr`` with the colour the input ``pixels`` had under alpha 0 put back (bicubic)
+    where ``hr`` is transparent: what no viewer sees stays what it was."""
+    a = _as_hwc(pixels)
+    if a.shape[2] not in (2, 4):
+        return hr
+    n = a.shape[2] - 1
+    hidden = hr[..., n] <= HIDDEN_ALPHA
+    if hidden.any():
+        plain = _bicubic_map(a, "colour" if n == 3 else "data", scale)
+        hr = hr.copy()
+        hr[hidden, :n] = plain[hidden, :n]
+    return hr
+
+
+def with_cutout(fn, pixels: np.ndarray, scale: int, cutout: float | None) -> np.ndarray:
+    """``fn`` on a cutout's map (colour + alpha, a material with alphaMode MASK or BLEND;
+    ``cutout``: the alpha up to which its texels are not seen, None: not a cutout) with
+    those texels filled first, and the colour under alpha 0 back afterwards
+    (:func:`filled_cutout`, :func:`restore_hidden`)."""
+    a = _as_hwc(pixels)
+    if cutout is None or a.shape[2] not in (2, 4):
+        return fn(a)
+    return restore_hidden(fn(filled_cutout(a, cutout)), a, scale)
+
+
 def upscale_map(
     prior: Prior,
     pixels: np.ndarray,
@@ -170,6 +238,7 @@ def upscale_map(
     max_prior_scale: int | None = None,
     progress: TileProgress | None = None,
     wrap: Wrap | None = None,
+    cutout: float | None = None,
 ) -> np.ndarray:
     """Apply ``prior`` to one stored map. pixels (H, W, C) float32 in [0, 1], C in 1..4;
     ``role`` a material role or kind (see :func:`map_kind`). Returns (s*H, s*W, C) float32
@@ -179,12 +248,13 @@ def upscale_map(
     bicubic interpolation does the rest, and a back-projecting prior's result is projected
     once more onto the map at the full scale. A network's cost grows with its output's
     pixels: waifu2x-photo's x2 pass on a 512² map costs a sixth of its x4 (two passes).
-    ``wrap``: a tiling map's continuation past its edges (:func:`with_wrap`)."""
+    ``wrap``: a tiling map's continuation past its edges (:func:`with_wrap`); ``cutout``: a
+    cutout's transparent texels filled first (:func:`with_cutout`)."""
 
     def run(a: np.ndarray) -> np.ndarray:
         return _upscale_map(prior, a, role, scale, max_prior_scale, progress)
 
-    return with_wrap(run, pixels, scale, wrap)
+    return with_cutout(lambda a: with_wrap(run, a, scale, wrap), pixels, scale, cutout)
 
 
 def _upscale_map(prior, pixels, role, scale, max_prior_scale, progress) -> np.ndarray:
@@ -222,13 +292,23 @@ def upscale_rgb(
     return out
 
 
-def bicubic_map(pixels: np.ndarray, role: str, scale: int, wrap: Wrap | None = None) -> np.ndarray:
+def bicubic_map(
+    pixels: np.ndarray,
+    role: str,
+    scale: int,
+    wrap: Wrap | None = None,
+    cutout: float | None = None,
+) -> np.ndarray:
     """Bicubic upscaling of one stored map with the same conventions as :func:`upscale_map`
-    (every channel interpolated, clamped; normal maps at the input's length; ``wrap``).
-    pixels (H, W, C) -> (s*H, s*W, C) float32 in [0, 1]."""
+    (every channel interpolated, clamped; normal maps at the input's length; ``wrap``,
+    ``cutout``). pixels (H, W, C) -> (s*H, s*W, C) float32 in [0, 1]."""
     if not isinstance(scale, int) or scale < 1:
         raise ValueError(f"scale must be a positive integer, got {scale!r}")
-    return with_wrap(lambda a: _bicubic_map(a, role, scale), pixels, scale, wrap)
+
+    def run(a: np.ndarray) -> np.ndarray:
+        return with_wrap(lambda b: _bicubic_map(b, role, scale), a, scale, wrap)
+
+    return with_cutout(run, pixels, scale, cutout)
 
 
 def _bicubic_map(pixels: np.ndarray, role: str, scale: int) -> np.ndarray:

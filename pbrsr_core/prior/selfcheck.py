@@ -45,6 +45,7 @@ def prior_self_check(
     *,
     max_prior_scale: int | None = None,
     covered: np.ndarray | None = None,
+    cutout: float | None = None,
 ) -> dict | None:
     """``{"prior_db", "bicubic_db", "texels", "use_prior", "channels"}`` for one map (H, W, C)
     as stored, or None when it is not at least ``4 * scale`` texels a side (nothing to check
@@ -57,7 +58,8 @@ def prior_self_check(
     ``use_prior`` is whether it initialises any. ``max_prior_scale`` as in
     :func:`~.direct.upscale_map`: the check scores the upscaling the init will use.
     ``covered`` (H, W) bool: the texels the mesh's UVs cover; only those are compared (all of
-    the crop when it covers fewer than ``4 * scale`` squared of them)."""
+    the crop when it covers fewer than ``4 * scale`` squared of them). ``cutout``: upscale as
+    a cutout's colour (:func:`~.direct.with_cutout`), as the init will."""
     a = np.asarray(lr_map, dtype=np.float32)
     n_colour = 3 if a.shape[2] >= 3 else 1
     crop = _centre(a, CROP)
@@ -66,8 +68,8 @@ def prior_self_check(
     if covered is not None and covered.shape != a.shape[:2]:
         raise ValueError(f"coverage mask {covered.shape} does not match the map {a.shape[:2]}")
     small = degrade_image(crop, scale, normal_map=kind == "normal")
-    up_p = upscale_map(prior, small, kind, scale, max_prior_scale=max_prior_scale)
-    up_b = bicubic_map(small, kind, scale)
+    up_p = upscale_map(prior, small, kind, scale, max_prior_scale=max_prior_scale, cutout=cutout)
+    up_b = bicubic_map(small, kind, scale, cutout=cutout)
     h = min(crop.shape[0], up_p.shape[0])
     w = min(crop.shape[1], up_p.shape[1])
     ref = crop[:h, :w, :n_colour]
