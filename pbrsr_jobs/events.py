@@ -75,14 +75,26 @@ class JobEvents:
     def owner_key(self, owner: str) -> str:
         return f"{self.prefix}:events:owner:{owner}"
 
-    def publish(self, job_id: str, owner: str, type_: str, data: dict[str, Any] | None = None):
-        """Append one event to the job's and the owner's streams; returns the job stream's id."""
+    def publish(
+        self,
+        job_id: str,
+        owner: str,
+        type_: str,
+        data: dict[str, Any] | None = None,
+        webhook: dict[str, Any] | None = None,
+    ) -> str:
+        """Append one event to the job's and the owner's streams, and a delivery task when the
+        job's ``webhook`` (``meta['webhook']``) asks for this type; returns the job stream's
+        id."""
+        from .webhooks import WebhookQueue
+
         if type_ not in EVENT_TYPES:
             raise ValueError(f"unknown job event type {type_!r}")
+        at = round(time.time(), 3)
         fields = {
             "type": type_,
             "job": job_id,
-            "time": f"{time.time():.3f}",
+            "time": f"{at:.3f}",
             "data": json.dumps(data or {}, allow_nan=False),
         }
         pipe = self.redis.pipeline(transaction=False)
@@ -90,6 +102,9 @@ class JobEvents:
         pipe.expire(self.job_key(job_id), self.ttl_s)
         pipe.xadd(self.owner_key(owner), fields, maxlen=self.owner_maxlen, approximate=True)
         pipe.expire(self.owner_key(owner), self.ttl_s)
+        if webhook and type_ in webhook.get("events", ()):
+            queue = WebhookQueue(self.redis, self.prefix)
+            queue.add(pipe, queue.task(job_id, owner, webhook, type_, data or {}, at))
         return _text(pipe.execute()[0])
 
     def forget(self, job_id: str) -> None:

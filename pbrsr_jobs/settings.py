@@ -126,6 +126,20 @@ class Settings(BaseSettings):
     )
     page_size_max: int = Field(100, ge=1, le=1000, description="Largest page of GET /v1/jobs.")
 
+    # -- webhooks (pbrsr_jobs.webhooks) -------------------------------------------------
+    webhook_secret: str | None = Field(
+        None,
+        description="Server secret each API key's webhook signing secret derives from; unset "
+        "= one made once and kept in Redis.",
+    )
+    webhook_timeout_s: float = Field(10.0, gt=0, le=120, description="Seconds per delivery.")
+    webhook_max_attempts: int = Field(
+        6, ge=1, le=20, description="Deliveries of one event before it is given up."
+    )
+    webhook_backoff_s: float = Field(
+        2.0, gt=0, description="Wait before the first retry; doubled for each next one."
+    )
+
     # -- input limits (pbrsr_core.limits.Limits) ------------------------------------------
     max_upload_mb: float = Field(512, gt=0, description="Largest upload (refused while streaming).")
     max_triangles: int = Field(2_000_000, ge=1, description="Most triangles in one asset.")

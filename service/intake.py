@@ -30,6 +30,7 @@ from pbrsr_jobs.store import (
     resolve_options,
     safe_display_name,
 )
+from pbrsr_jobs.webhooks import parse_webhook
 
 from .problems import ProblemError
 from .uploads import Upload
@@ -121,6 +122,9 @@ def create_job(
         if upload.size == 0:
             raise InvalidAsset("the uploaded file is empty")
         options = parse_options(upload.fields.get("options"), settings)
+        webhook = parse_webhook(
+            upload.fields.get("callback_url"), upload.fields.get("callback_events")
+        )
         from pbrsr_core.asset import detect_kind
 
         kind = detect_kind(upload.path)
@@ -147,9 +151,11 @@ def create_job(
             "options": options,
             "state": JobState.QUEUED.value,
         }
+        if webhook is not None:
+            meta["webhook"] = webhook
         index.add(job_id, owner, created)
         events = JobEvents(index.redis, index.prefix)
-        events.publish(job_id, owner, "queued")  # before a worker can say "started"
+        events.publish(job_id, owner, "queued", webhook=webhook)  # before a worker's "started"
         target = settings.queue_for(output_mpix)
         if target != queue.name:
             queue = type(queue)(target, connection=queue.connection)

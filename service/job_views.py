@@ -8,6 +8,7 @@ from typing import Any
 from pydantic import TypeAdapter, ValidationError
 
 from pbrsr_jobs.store import JobIndex, JobLayout, JobState, job_state
+from pbrsr_jobs.webhooks import WebhookQueue
 
 from .schemas import HistoryPoint, JobDetail, JobLinks, JobSummary
 
@@ -108,8 +109,13 @@ _HISTORY = TypeAdapter(list[HistoryPoint])
 
 
 def detail_view(
-    job: Any, index: JobIndex, layout: JobLayout, cancel: bool | None = None
+    job: Any,
+    index: JobIndex,
+    layout: JobLayout,
+    cancel: bool | None = None,
+    deliveries: list[dict] | None = None,
 ) -> JobDetail:
+    """``deliveries``: the webhook delivery log, when the caller read it already."""
     meta = job.meta or {}
     data = _common(job, index, layout, cancel)
     history = _history(meta.get("history"))
@@ -125,4 +131,12 @@ def detail_view(
         timings=meta.get("timings") or {},
         history=history,
         summary=meta.get("summary") or {},
+        webhook=meta.get("webhook"),
+        deliveries=deliveries if deliveries is not None else _deliveries(job, index),
     )
+
+
+def _deliveries(job: Any, index: JobIndex) -> list[dict]:
+    if not (job.meta or {}).get("webhook"):
+        return []
+    return WebhookQueue(index.redis, index.prefix).deliveries(job.id)

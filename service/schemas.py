@@ -69,6 +69,12 @@ class JobDetail(JobSummary):
         default_factory=list, description="Losses and metrics over time (for plots)."
     )
     summary: dict = Field(default_factory=dict, description="Report summary, once finished.")
+    webhook: dict | None = Field(None, description="callback_url and callback_events, if any.")
+    deliveries: list[dict] = Field(
+        default_factory=list,
+        description="Webhook delivery attempts, oldest first: delivery, event, attempt, at, "
+        "ms, status, ok, error, retry_in_s.",
+    )
 
 
 class JobPage(BaseModel):

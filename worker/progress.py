@@ -115,9 +115,9 @@ class JobReporter:
         """One job event (pbrsr_jobs.events); progress events are best effort, the others
         are retried like the outcome."""
         try:
-            _with_retries(
-                lambda: self.events.publish(self.job.id, self.owner, type_, data), retry_s
-            )
+            webhook = self.job.meta.get("webhook")
+            publish = self.events.publish
+            _with_retries(lambda: publish(self.job.id, self.owner, type_, data, webhook), retry_s)
         except REDIS_ERRORS as exc:
             log.warning("job %s: %s event not published: %s", self.job.id, type_, exc)
 

@@ -47,6 +47,7 @@ from pbrsr_jobs.settings import Settings
 from pbrsr_jobs.store import JobIndex, JobLayout, sweep_expired
 
 from .tasks import WorkerContext, set_context
+from .webhooks import WebhookDispatcher
 
 log = logging.getLogger("pbrsr.worker")
 
@@ -163,4 +164,17 @@ def run_worker(
     )
     worker = build_worker(settings, name=name)
     log.info("worker %s on queues %s", worker.name, ", ".join(settings.listen_queues()))
-    return worker.work(burst=burst, logging_level=settings.log_level, max_jobs=max_jobs)
+    dispatcher = WebhookDispatcher(
+        worker.connection,
+        settings.key_prefix,
+        name=worker.name,
+        secret=settings.webhook_secret,
+        timeout_s=settings.webhook_timeout_s,
+        max_attempts=settings.webhook_max_attempts,
+        backoff_s=settings.webhook_backoff_s,
+    )
+    dispatcher.start()  # beside the jobs, never in their way
+    try:
+        return worker.work(burst=burst, logging_level=settings.log_level, max_jobs=max_jobs)
+    finally:
+        dispatcher.stop()

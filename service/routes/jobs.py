@@ -14,6 +14,7 @@ from rq.job import Job
 
 from pbrsr_jobs.events import JobEvents
 from pbrsr_jobs.store import JobIndex, JobState, check_job_id, sweep_expired
+from pbrsr_jobs.webhooks import LOG_ENTRIES, WebhookQueue
 
 from ..deps import (
     AsyncRedisDep,
@@ -155,22 +156,25 @@ async def get_job(
     one pipeline); no file is read for it."""
     if not check_job_id(job_id):
         raise ProblemError(404, "not-found", "no such job")
+    hooks = WebhookQueue(None, index.prefix)
     async with aredis.pipeline(transaction=False) as pipe:
         pipe.hget(index.owners_key(), job_id)
         pipe.hgetall(Job.key_for(job_id))
         pipe.exists(index.cancel_key(job_id))
-        job_owner, raw, cancel = await pipe.execute()
+        pipe.lrange(hooks.log_key(job_id), 0, LOG_ENTRIES - 1)
+        job_owner, raw, cancel, log = await pipe.execute()
     if job_owner is None or job_owner.decode() != owner:
         raise ProblemError(404, "not-found", "no such job")
     if not raw:
         raise ProblemError(404, "not-found", "no such job (it may have expired)")
     job = Job(job_id, connection=redis)
     job.restore(raw)
+    sent = WebhookQueue.decode_log(log)
     if job.meta.get("state") == JobState.FINISHED.value and "files" not in job.meta:
         # finished before its worker recorded its files: list them off the event loop
-        detail = await run_in_threadpool(detail_view, job, index, layout, bool(cancel))
+        detail = await run_in_threadpool(detail_view, job, index, layout, bool(cancel), sent)
     else:
-        detail = detail_view(job, index, layout, bool(cancel))
+        detail = detail_view(job, index, layout, bool(cancel), sent)
     return _json(detail)
 
 
@@ -213,7 +217,8 @@ def cancel_job(
             job.cancel()
         job.refresh()
         if state_of(job) == JobState.CANCELED:  # a worker did not take it first
-            JobEvents(redis, settings.key_prefix).publish(job_id, owner, "cancelled")
+            webhook = (job.meta or {}).get("webhook")
+            JobEvents(redis, settings.key_prefix).publish(job_id, owner, "cancelled", {}, webhook)
     return detail_view(job, index, layout)
 
 
