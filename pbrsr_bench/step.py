@@ -25,13 +25,13 @@ from pathlib import Path
 
 import torch
 
-from pbrsr_core.hostmem import reuse_large_blocks
+from pbrsr_core.allocator import reuse_large_blocks
 from pbrsr_core.optim.groups import map_groups
 from pbrsr_core.optim.losses import ssim_target
 from pbrsr_core.optim.presets import get_preset
 from pbrsr_core.optim.schedule import channel_lr
 from pbrsr_core.optim.step import regularize_grads
-from pbrsr_core.optim.texel_ops import MapAdam
+from pbrsr_core.optim.whole_map import MapAdam
 
 FLOOR_ARRAYS = 8  # float32 arrays per texel channel a step must move (see the docstring)
 PASSES = ("regularize", "adam_project")

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from . import __version__
+from .allocator import reuse_large_blocks
 from .asset import (
     detect_kind,
     encode_images,
@@ -35,7 +36,6 @@ from .asset.model import MAP_ROLES, Asset
 from .device import resolve_device
 from .errors import PbrsrError, StorageError, UnprocessableAsset
 from .footprint import check_memory, estimate_peak_bytes
-from .hostmem import reuse_large_blocks
 from .limits import Limits, check_output_size
 from .maps import (
     encoded_to_param,
@@ -305,7 +305,7 @@ def _optimise(asset, images, init_encoded, init, lr, lr_pixels, channels, prior,
     """PBR-SR's optimisation from ``init_encoded``, then each map's export: back-projection
     onto its LR map where the preset says so, and island padding. Returns (HR maps, report)."""
     from .optim.pbrsr import optimize_pbrsr
-    from .optim.texel_ops import pad_update
+    from .optim.whole_map import pad_update
 
     s = options.scale
     kinds = {img.index: kind_of(img.roles) for img in images}

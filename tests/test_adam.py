@@ -60,7 +60,7 @@ def test_optimiser_run_does_not_import_dynamo():
     code = (
         "import sys, torch\n"
         "from pbrsr_core.optim.adam import FusedAdam\n"
-        "from pbrsr_core.optim.texel_ops import MapAdam\n"
+        "from pbrsr_core.optim.whole_map import MapAdam\n"
         "p = torch.rand(8, 8, 3, requires_grad=True); w = torch.ones(2, 4, 4, requires_grad=True)\n"
         "rate, owned = torch.full((3,), 1e-3), torch.ones(3, dtype=torch.bool)\n"
         "m = MapAdam({0: p}, {0: rate}, {0: False}, {0: owned})\n"

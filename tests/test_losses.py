@@ -20,7 +20,7 @@ from pbrsr_core.optim.losses import (
     upsample_weights,
 )
 from pbrsr_core.optim.ssim import ssim_per_channel, window_size_for
-from pbrsr_core.optim.texel_ops import tv_loss
+from pbrsr_core.optim.whole_map import tv_loss
 
 
 def _sk_ssim(a: np.ndarray, b: np.ndarray) -> float:

@@ -14,8 +14,8 @@ from pbrsr_core.optim import pseudo_gt
 from pbrsr_core.optim.groups import map_groups
 from pbrsr_core.optim.presets import MAP_NAMES, PRESETS, get_preset
 from pbrsr_core.optim.schedule import channel_lr
-from pbrsr_core.optim.texel_ops import dilate_islands, project_
 from pbrsr_core.optim.views import fibonacci_directions, texel_density_resolution
+from pbrsr_core.optim.whole_map import dilate_islands, project_
 
 
 def test_map_groups_follow_gltf_packing():
@@ -152,7 +152,7 @@ def test_fibonacci_and_texel_density_rule():
 
 
 def test_pad_update_keeps_the_inputs_padding_and_pads_the_change():
-    from pbrsr_core.optim.texel_ops import pad_update
+    from pbrsr_core.optim.whole_map import pad_update
 
     rng = np.random.default_rng(3)
     init = rng.random((12, 12, 3), dtype=np.float32) * 0.5 + 0.25

@@ -11,7 +11,7 @@ every lambda to the map resolution, so like ``torch.nn.L1Loss`` we use means):
 * ``L_pbr = sum_T w_T (mean|AvgPool_s(T) - T_lr| + lambda_ssim (1 - SSIM(AvgPool_s(T), T_lr)))``
   where a "map" T is a :class:`MapGroup`: some channels of one image (roughness = G of the
   metallicRoughness image, metallic = B, occlusion = R, albedo = RGB of baseColor, ...).
-* ``L_tv = sum_T (mean|grad_x T| + mean|grad_y T|)``: ``texel_ops.tv_loss`` (one fused pass).
+* ``L_tv = sum_T (mean|grad_x T| + mean|grad_y T|)``: ``whole_map.tv_loss`` (one fused pass).
 
 All functions accept float32 or float64 and never produce NaN/Inf for inputs in range
 (denominators are clamped, empty differences give 0).

@@ -37,8 +37,8 @@ from .result import PbrsrResult, consistency_metrics, optimised_result, unoptimi
 from .schedule import Snapshots, channel_lr, logged
 from .step import Optimisation
 from .targets import make_targets
-from .texel_ops import project_
 from .training_views import training_views
+from .whole_map import project_
 
 
 def optimize_pbrsr(

@@ -10,8 +10,8 @@ import torch
 
 from .losses import MapGroup, consistency_psnr
 from .presets import PbrsrConfig
-from .texel_ops import project_
 from .training_views import camera_dict
+from .whole_map import project_
 
 
 @dataclass

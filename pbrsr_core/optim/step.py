@@ -18,8 +18,8 @@ from .losses import MapGroup, avg_pool_map, pooled_consistency, ssim_target
 from .presets import PbrsrConfig
 from .schedule import ViewBatches
 from .ssim import SsimTarget
-from .texel_ops import MapAdam, accumulate_map_grad_
 from .training_views import TrainingViews
+from .whole_map import MapAdam, accumulate_map_grad_
 
 
 def grad_masks(
@@ -56,7 +56,7 @@ def regularize_grads(
 ) -> tuple[float, float]:
     """The step's whole-map part, after the pixel loss's backward: add the PBR-consistency
     gradient (differentiated at LR size, on the pooled map) and TV's to each map's gradient
-    and mask it, one pass per map (texel_ops). ``ssim_targets[i]``: ``ssim_target(lr_maps[i])``,
+    and mask it, one pass per map (whole_map). ``ssim_targets[i]``: ``ssim_target(lr_maps[i])``,
     made once per run; ``grad_masks[i]`` = ((H, W) texels, (C,) channels) that may change.
     Returns the values of ``L_pbr`` and ``L_tv``."""
     l_pbr_total, l_tv = 0.0, 0.0

@@ -15,7 +15,7 @@ import sys
 
 import pytest
 
-from pbrsr_core.hostmem import _libc
+from pbrsr_core.allocator import _libc
 
 pytestmark = pytest.mark.skipif(
     not sys.platform.startswith("linux") or _libc() is None, reason="glibc only"
@@ -25,7 +25,7 @@ SCRIPT = r"""
 import ctypes, json, resource
 ctypes.CDLL(None).prctl(41, 1, 0, 0, 0)  # PR_SET_THP_DISABLE: 4 KiB pages for this process
 import torch
-from pbrsr_core.hostmem import reuse_large_blocks
+from pbrsr_core.allocator import reuse_large_blocks
 
 def rss():
     for line in open("/proc/self/status"):

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from pbrsr_core.optim.losses import MapGroup
-from pbrsr_core.optim.texel_ops import (
+from pbrsr_core.optim.whole_map import (
     MapAdam,
     accumulate_map_grad_,
     dilate_islands,
