@@ -25,9 +25,9 @@ def warm_up() -> float:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="pbrsr-warmup-") as d:
         src = make_demo_asset(Path(d) / "in" / "demo.glb", size=16)
-        # balanced, not fast: fast runs no optimisation steps, so it would leave the
+        # quality, the preset with optimisation steps: the others would leave the
         # renderer's backward and the optimiser's kernels uncompiled
-        options = UpscaleOptions(method="pbrsr", preset="balanced", prior="bicubic", scale=2)
+        options = UpscaleOptions(method="pbrsr", preset="quality", prior="bicubic", scale=2)
         upscale_asset(src, Path(d) / "out", options)
     return time.perf_counter() - t0
 

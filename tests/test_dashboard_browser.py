@@ -79,10 +79,10 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
                 dt = page.evaluate_handle(DROP_FILE, [base64.b64encode(data).decode(), "chair.glb"])
                 page.dispatch_event("#drop-zone", "drop", {"dataTransfer": dt})
                 assert "chair.glb" in page.inner_text("#drop-text")
-                # PBR-SR's stages (prior, views, 25 steps) report progress for seconds; a
+                # quality's stages (prior, views, 25 steps) report progress for seconds; a
                 # bicubic job of this asset can start and end between two polls of the page
                 page.select_option("#opt-method", "pbrsr")
-                page.select_option("#opt-preset", "balanced")
+                page.select_option("#opt-preset", "quality")
                 page.select_option("#opt-scale", "2")
                 page.click("#submit")
                 page.wait_for_selector("#job-view:not([hidden])")

@@ -36,7 +36,7 @@ def test_the_loader_finds_every_extension_texture_with_its_kind(tmp_path):
 
 @pytest.mark.parametrize(
     ("method", "preset"),
-    [("bicubic", "fast"), ("direct", "fast"), ("pbrsr", "fast"), ("pbrsr", "balanced")],
+    [("bicubic", "fast"), ("direct", "fast"), ("pbrsr", "fast"), ("pbrsr", "quality")],
 )
 def test_extension_maps_come_back_upscaled_and_valid(tmp_path, method, preset):
     src = make_test_asset(tmp_path / "a.glb", size=32, features=FEATURES)

@@ -33,7 +33,7 @@ with tempfile.TemporaryDirectory() as d:
     src = make_test_asset(Path(d) / "in" / "a.gltf", size=24, kind="gltf")
     for i, opts in enumerate([
         UpscaleOptions(method="pbrsr", preset="fast", prior="bicubic", scale=4),
-        UpscaleOptions(method="pbrsr", preset="balanced", prior="bicubic", scale=4),
+        UpscaleOptions(method="pbrsr", preset="quality", prior="bicubic", scale=4),
         UpscaleOptions(method="bicubic", scale=2),
     ]):
         upscale_asset(src, Path(d) / f"out{i}", opts)

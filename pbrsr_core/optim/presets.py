@@ -209,7 +209,7 @@ PAPER = PbrsrConfig(
 # * iterations: render PSNR peaks within 10-25 steps and then the maps overfit the pseudo-GT
 #   (balanced, prior on the albedo only, 0 / 10 / 25 / 50 / 60 steps: ToyCar 34.00 / 34.09 /
 #   34.04 / 33.88 / 33.77; cabinet at 0 / 10 / 25 / 40 / 60: 30.39 / 30.48 / 30.47 / 30.44 /
-#   30.39), so balanced / quality run 25 / 40.
+#   30.39), so quality runs 25.
 # * map_lr normal 0.3: the render loss moves the normal maps more than their pseudo-GT
 #   supports. balanced (120 evaluation views, rrdn-thick), normal lr x1 / x0.3: render PSNR
 #   cabinet 28.98 / 29.08, tea set 31.75 / 31.75, table 31.30 / 31.29, ToyCar 33.55 / 33.62;
@@ -260,11 +260,18 @@ CHECK_PRIOR_CPU = ("colour", "data")
 #   numbers below are the ones those steps were measured with, and apply to
 #   ``FAST.with_(iterations=...)``. bfloat16 for the prior (2.1x faster on an AVX512-BF16 CPU)
 #   is not used: it cost the Avocado's roughness 0.67 dB of the prior's gain (x4, whole map).
-# * quality (`pbrsr bench upscale` with every CPU preset, 240 views): its 32 views, renders up
-#   to 768² and 40 steps gain what balanced gains (mean +1.71 dB over bicubic on the seven
-#   shared assets; per asset -0.019..+0.022 dB against balanced) in 1.36-1.99x its time. With
-#   waifu2x-photo the pseudo-GT adds nothing the init lacks; quality is for stronger priors,
-#   whose pseudo-GT can.
+# * balanced: the init and export of fast with the prior at the full scale, no optimisation
+#   steps. The steps move render PSNR by hundredths of a dB: `pbrsr bench upscale --methods
+#   balanced+iterations=0` against the same preset with its 25 steps over up to 16 views
+#   (pbr-upconv7, 40 evaluation views): procedural 27.44 / 27.44, Avocado 41.92 / 41.90,
+#   BoomBox 25.48 / 25.51, ToyCar 34.69 / 34.72, while the steps with their views, G-buffers
+#   and pseudo-GT took 41-67 % of the run (Avocado 44 of 106 s, BoomBox 71 of 157 s, ToyCar
+#   56 of 83 s). What balanced gains over fast (ToyCar +0.21, WaterBottle +0.32 dB) is the
+#   prior at the full scale, not the steps.
+# * quality: balanced plus the optimiser (25 steps over up to 16 views, renders up to 512²),
+#   for stronger priors (`spandrel:`, `diffusion:`) whose pseudo-GT carries detail the init
+#   lacks. With the built-in priors it buys nothing measurable (above); 40 steps over 32
+#   views at 768² gained -0.01..+0.01 dB more in 1.7-2.2x the time (Avocado, BoomBox, ToyCar).
 
 _CPU = PbrsrConfig(
     view_mode="coverage",
@@ -294,25 +301,16 @@ FAST = _CPU.with_(
     log_every=5,
 )
 
-BALANCED = _CPU.with_(
-    name="balanced",
+BALANCED = FAST.with_(name="balanced", max_prior_scale=None)
+
+QUALITY = _CPU.with_(
+    name="quality",
     iterations=25,
     n_candidates=64,
     max_views=16,
     max_render_res=512,  # 512: one pixel per texel on a 512 map seen face-on
     views_per_texel=3,
     batch_views=2,
-    log_every=10,
-)
-
-QUALITY = _CPU.with_(
-    name="quality",
-    iterations=40,
-    n_candidates=96,
-    max_views=32,
-    max_render_res=768,
-    views_per_texel=4,
-    batch_views=3,
     log_every=10,
 )
 
