@@ -110,6 +110,18 @@ class Settings(BaseSettings):
         default_factory=lambda: [DEFAULT_PRIOR],
         description="Priors a worker loads at start (comma-separated; empty = none).",
     )
+    worker_threads: int = Field(
+        0,
+        ge=0,
+        description="Threads of one worker (torch and numba); 0 = the cores this process may "
+        "use (CPU affinity, cgroup quota) divided among the workers on this host.",
+    )
+    workers_per_host: int = Field(
+        0,
+        ge=0,
+        description="Workers that share this host's cores when PBRSR_WORKER_THREADS is 0; "
+        "0 = count the live workers of this queue on this host in Redis.",
+    )
     log_level: str = Field("INFO", description="Logging level of API and workers.")
 
     # -- API -------------------------------------------------------------------------------

@@ -55,6 +55,7 @@ def make_settings(tmp_path: Path, **overrides: Any) -> Settings:
         "key_prefix": f"pbrsr-test-{tag}",
         "preload_priors": [],
         "device": "cpu",
+        "worker_threads": 1,  # workers under test stay on one thread, as OMP_NUM_THREADS=1
         "heartbeat_s": 1.0,
         "maintenance_s": 1,
         "progress_interval_s": 0.2,

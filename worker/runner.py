@@ -28,6 +28,13 @@ What ``SimpleWorker`` gives up, and how :class:`PbrsrWorker` makes up for it:
   worker (or the supervisor restarting this one: docker ``restart: unless-stopped``) recover.
 
 One worker per GPU on a farm: run ``PBRSR_DEVICE=cuda:N pbrsr worker`` once per device.
+
+Threads: before it loads anything, a worker sets torch's and numba's thread counts to
+``PBRSR_WORKER_THREADS``, or, when that is 0, to the cores it may use divided among the
+workers on its host (:mod:`worker.threads`), so that several workers on one machine do not
+each start a thread per core and slow one another down. Workers counted in Redis count again
+before each job, so workers started at the same moment, or started and stopped later, settle
+on their share (torch's inter-op threads keep their start-up value).
 """
 
 from __future__ import annotations
@@ -37,6 +44,8 @@ import math
 import socket
 import threading
 import uuid
+from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 from rq import Queue, SimpleWorker
@@ -47,6 +56,7 @@ from pbrsr_jobs.settings import Settings
 from pbrsr_jobs.store import JobIndex, JobLayout, sweep_expired
 
 from .tasks import WorkerContext, set_context
+from .threads import apply_threads, host_workers, process_cores, threads_per_worker
 from .webhooks import WebhookDispatcher
 
 log = logging.getLogger("pbrsr.worker")
@@ -55,16 +65,31 @@ log = logging.getLogger("pbrsr.worker")
 class PbrsrWorker(SimpleWorker):
     """``SimpleWorker`` with short job heartbeats from a thread and job expiry on maintenance."""
 
-    def __init__(self, *args: Any, heartbeat_s: float = 10.0, sweep: Any = None, **kwargs: Any):
+    def __init__(
+        self,
+        *args: Any,
+        heartbeat_s: float = 10.0,
+        sweep: Any = None,
+        threads: int = 0,
+        fit_threads: Callable[[int], int] | None = None,
+        **kwargs: Any,
+    ):
         super().__init__(*args, **kwargs)
         self.heartbeat_s = float(heartbeat_s)
         self._sweep = sweep
+        self.threads = threads  # torch/numba threads of this process (0: not set by pbrsr)
+        self._fit_threads = fit_threads
 
     def get_heartbeat_ttl(self, job: Any, working_time: float = 0.0) -> int:
         """Seconds a running job stays registered without a heartbeat: three periods."""
         return max(2, int(math.ceil(3 * self.heartbeat_s)))
 
     def execute_job(self, job: Any, queue: Any) -> None:
+        if self._fit_threads is not None:
+            try:  # workers may have started or stopped on this host since the last job
+                self.threads = self._fit_threads(self.threads)
+            except Exception as exc:  # noqa: BLE001 - keep the threads it has
+                log.warning("threads not re-fitted: %s", exc)
         execution = self.prepare_execution(job)
         stop = threading.Event()
         beat = threading.Thread(
@@ -112,6 +137,38 @@ def _preload(names: list[str], device: Any) -> None:
             log.warning("prior %s not preloaded: %s", name, exc.message)
 
 
+def _choose_threads(settings: Settings, redis: Any, name: str) -> tuple[int, str]:
+    """Threads for this worker and why: PBRSR_WORKER_THREADS, else this process's cores
+    divided among PBRSR_WORKERS_PER_HOST workers or, when that is 0, the host's workers in
+    Redis (this one included)."""
+    if settings.worker_threads > 0:
+        return settings.worker_threads, "PBRSR_WORKER_THREADS"
+    cores = process_cores()
+    if settings.workers_per_host > 0:
+        workers, source = settings.workers_per_host, "PBRSR_WORKERS_PER_HOST"
+    else:
+        workers, source = host_workers(redis, settings.listen_queues("all"), name), "in Redis"
+    threads = threads_per_worker(cores, workers)
+    return threads, f"{cores} usable cores / {workers} workers on this host ({source})"
+
+
+def _fit_threads(settings: Settings, redis: Any, name: str, current: int = 0) -> int:
+    """Choose this worker's threads and, when they are not ``current``, set them in torch
+    and numba and log the choice. Returns the threads."""
+    threads, why = _choose_threads(settings, redis, name)
+    if threads != current:
+        set_to = apply_threads(threads)
+        log.info(
+            "%d threads: %s; torch %d (inter-op %d), numba %d",
+            threads,
+            why,
+            set_to["torch"],
+            set_to["interop"],
+            set_to["numba"],
+        )
+    return threads
+
+
 def build_worker(settings: Settings, *, name: str | None = None) -> PbrsrWorker:
     """Connect, check storage and device, preload priors, and make the worker (not started)."""
     from redis import Redis
@@ -124,8 +181,11 @@ def build_worker(settings: Settings, *, name: str | None = None) -> PbrsrWorker:
     redis.ping()
     device = resolve_device(settings.device)
     index = JobIndex(redis, settings.key_prefix)
-    _preload(settings.preload_priors, device)
     name = name or f"pbrsr-{socket.gethostname()}-{uuid.uuid4().hex[:6]}"
+    # before any torch work: inter-op threads can be set only until parallel work has run
+    threads = _fit_threads(settings, redis, name)
+    counted = settings.worker_threads == 0 and settings.workers_per_host == 0
+    _preload(settings.preload_priors, device)
 
     def sweep() -> None:
         if index.try_sweep_lock(settings.maintenance_s):
@@ -142,6 +202,9 @@ def build_worker(settings: Settings, *, name: str | None = None) -> PbrsrWorker:
         job_monitoring_interval=max(1, int(settings.heartbeat_s)),
         heartbeat_s=settings.heartbeat_s,
         sweep=sweep,
+        threads=threads,
+        # workers counted in Redis: count again before each job (others may have started)
+        fit_threads=partial(_fit_threads, settings, redis, name) if counted else None,
     )
     set_context(
         WorkerContext(
@@ -163,7 +226,12 @@ def run_worker(
         level=settings.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s"
     )
     worker = build_worker(settings, name=name)
-    log.info("worker %s on queues %s", worker.name, ", ".join(settings.listen_queues()))
+    log.info(
+        "worker %s on queues %s, %d threads",
+        worker.name,
+        ", ".join(settings.listen_queues()),
+        worker.threads,
+    )
     dispatcher = WebhookDispatcher(
         worker.connection,
         settings.key_prefix,
