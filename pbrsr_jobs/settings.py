@@ -137,6 +137,11 @@ class Settings(BaseSettings):
         72.0, gt=0, description="Hours a finished, failed or canceled job is kept."
     )
     page_size_max: int = Field(100, ge=1, le=1000, description="Largest page of GET /v1/jobs.")
+    idempotency_ttl_s: int = Field(
+        86400,
+        ge=60,
+        description="Seconds an Idempotency-Key of POST /v1/jobs is remembered (per API key).",
+    )
 
     # -- webhooks (pbrsr_jobs.webhooks) -------------------------------------------------
     webhook_secret: str | None = Field(

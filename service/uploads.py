@@ -5,10 +5,12 @@ The ``file`` part goes straight to ``<storage>/uploads/<random>.part`` chunk by 
 held whole in memory); once it passes ``max_bytes`` reading stops and the request is answered
 413 without consuming the rest. A ``Content-Length`` already over the limit is refused before
 a byte is read. Small text fields (``options``) are collected up to ``MAX_FIELD_BYTES``.
+With ``digest=True`` the file part is hashed (SHA-256) as it streams, for idempotency keys.
 """
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,10 +26,12 @@ TEXT_FIELDS = ("options", "callback_url", "callback_events")
 
 @dataclass
 class Upload:
-    """What a POST /v1/jobs carried. ``path`` is None when no ``file`` part came."""
+    """What a POST /v1/jobs carried. ``path`` is None when no ``file`` part came; ``sha256``
+    is the file's hex digest when it was asked for."""
 
     path: Path | None = None
     size: int = 0
+    sha256: str | None = None
     filename: str | None = None
     fields: dict[str, str] = field(default_factory=dict)
 
@@ -42,7 +46,9 @@ def _too_large(max_bytes: int) -> ProblemError:
     )
 
 
-async def receive_upload(request: Request, dest: Path, max_bytes: int) -> Upload:
+async def receive_upload(
+    request: Request, dest: Path, max_bytes: int, *, digest: bool = False
+) -> Upload:
     """Parse the request body into ``dest`` (the file part) and small fields.
 
     Raises ProblemError 415 (not multipart), 413 (over ``max_bytes``), 400 (malformed).
@@ -63,6 +69,7 @@ async def receive_upload(request: Request, dest: Path, max_bytes: int) -> Upload
     state: dict = {"name": None, "filename": None, "headers": {}, "hname": b"", "hval": b""}
     text = bytearray()
     sink = {"fh": None}
+    hasher = hashlib.sha256() if digest else None
     errors: list[ProblemError] = []
 
     def on_header_field(data: bytes, start: int, end: int) -> None:
@@ -98,6 +105,8 @@ async def receive_upload(request: Request, dest: Path, max_bytes: int) -> Upload
                 errors.append(_too_large(max_bytes))
                 return
             sink["fh"].write(chunk)
+            if hasher is not None:
+                hasher.update(chunk)
         elif state["name"] in TEXT_FIELDS:
             if len(text) + len(chunk) > MAX_FIELD_BYTES:
                 errors.append(
@@ -110,6 +119,8 @@ async def receive_upload(request: Request, dest: Path, max_bytes: int) -> Upload
         if state["name"] == "file" and sink["fh"] is not None:
             sink["fh"].close()
             sink["fh"] = None
+            if hasher is not None:
+                upload.sha256 = hasher.hexdigest()
         elif state["name"] in TEXT_FIELDS:
             upload.fields[state["name"]] = text.decode("utf-8", "replace")
         state["name"] = None

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+from functools import partial
 from typing import Annotated, Any
 
 from fastapi import APIRouter, BackgroundTasks, Query, Request, Response
@@ -13,6 +14,7 @@ from rq.exceptions import InvalidJobOperation, NoSuchJobError
 from rq.job import Job
 
 from pbrsr_jobs.events import JobEvents
+from pbrsr_jobs.idempotency import IdempotencyKeys
 from pbrsr_jobs.store import JobIndex, JobState, check_job_id, sweep_expired
 from pbrsr_jobs.webhooks import LOG_ENTRIES, WebhookQueue
 
@@ -25,6 +27,7 @@ from ..deps import (
     RedisDep,
     SettingsDep,
 )
+from ..idempotency import IdempotencyKeyHeader, check_key, create_once
 from ..intake import create_job
 from ..job_views import detail_view, links, state_of, summary_view
 from ..problems import PROBLEM_RESPONSES, Problem, ProblemError
@@ -79,10 +82,16 @@ def fetch_job(job_id: str, owner: str, redis: Any, index: JobIndex) -> Job:
     response_model=JobCreated,
     openapi_extra=_UPLOAD_BODY,
     responses={
-        400: {"model": Problem, "description": "The file is not a readable asset."},
+        200: {"model": JobCreated, "description": "A retry: the Idempotency-Key's first job."},
+        400: {"model": Problem, "description": "Not a readable asset, or a bad Idempotency-Key."},
+        409: {"model": Problem, "description": "The Idempotency-Key's first request is running."},
         413: {"model": Problem, "description": "Over a size, triangle or texture limit."},
         415: {"model": Problem, "description": "Not a glTF/GLB/zip, or not multipart."},
-        422: {"model": Problem, "description": "Bad options, or nothing to upscale."},
+        422: {
+            "model": Problem,
+            "description": "Bad options, nothing to upscale, or an Idempotency-Key reused "
+            "with another file or options.",
+        },
     },
     summary="Submit an asset to upscale",
 )
@@ -94,12 +103,22 @@ async def submit_job(
     layout: LayoutDep,
     index: IndexDep,
     queue: QueueDep,
+    idempotency_key: IdempotencyKeyHeader = None,
 ) -> JobCreated:
-    """Stream the upload to storage, check it, and queue it. Answers 202 with the job's id."""
+    """Stream the upload to storage, check it, and queue it. Answers 202 with the job's id
+    (200 with the first job's id for a retry under the same ``Idempotency-Key``)."""
+    key = check_key(idempotency_key)
     limits = settings.limits()
     dest = layout.new_upload_path()
-    upload = await receive_upload(request, dest, limits.max_file_bytes)
-    job_id = await run_in_threadpool(create_job, upload, owner, settings, layout, index, queue)
+    upload = await receive_upload(request, dest, limits.max_file_bytes, digest=key is not None)
+    create = partial(create_job, upload, owner, settings, layout, index, queue)
+    if key is None:
+        job_id = await run_in_threadpool(create)
+    else:
+        keys = IdempotencyKeys(index.redis, settings.key_prefix, settings.idempotency_ttl_s)
+        job_id, created = await create_once(keys, owner, key, upload, create)
+        if not created:
+            response.status_code = 200
     response.headers["Location"] = f"/v1/jobs/{job_id}"
     return JobCreated(id=job_id, status=JobState.QUEUED, links=links(job_id, JobState.QUEUED))
 
