@@ -8,11 +8,11 @@ is still checking its asset waits up to ``WAIT_S`` for it, then answers 409
 
 from __future__ import annotations
 
-import asyncio
 import time
 from collections.abc import Callable
 from typing import Annotated
 
+import anyio
 from fastapi import Header
 from fastapi.concurrency import run_in_threadpool
 
@@ -71,7 +71,7 @@ async def claim(keys: IdempotencyKeys, owner: str, key: str, upload: Upload) -> 
                 "a request with this Idempotency-Key is still being processed; retry shortly",
                 headers={"Retry-After": "2"},
             )
-        await asyncio.sleep(POLL_S)
+        await anyio.sleep(POLL_S)
 
 
 async def create_once(
