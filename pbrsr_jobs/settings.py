@@ -24,6 +24,8 @@ from pbrsr_core.limits import Limits
 from pbrsr_core.options import DEFAULT_PRIOR
 
 _MB = 1024 * 1024
+PRIORITIES = ("high", "normal", "low")
+"""Job priorities, each its own set of RQ queues that workers drain in this order."""
 _DEVICE_RE = re.compile(r"^(auto|cpu|cuda|cuda:\d+)$")
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
@@ -245,20 +247,24 @@ class Settings(BaseSettings):
         """The queue of jobs at or over ``large_job_mpix``."""
         return f"{self.queue}-large"
 
-    def queue_for(self, output_mpix: float) -> str:
-        """The queue a job with ``output_mpix`` megapixels of output maps goes to."""
+    def queue_for(self, output_mpix: float, priority: str = "normal") -> str:
+        """The queue a job with ``output_mpix`` megapixels of output maps and ``priority``
+        (high, normal, low) goes to: ``<queue>[-large][-high|-low]``."""
+        base = self.queue
         if self.large_job_mpix > 0 and output_mpix >= self.large_job_mpix:
-            return self.large_queue
-        return self.queue
+            base = self.large_queue
+        return base if priority == "normal" else f"{base}-{priority}"
 
     def listen_queues(self, which: str | None = None) -> list[str]:
-        """Queue names a worker listens on, in priority order."""
+        """Queue names a worker listens on, in the order it takes jobs: every high-priority
+        queue first, then normal, then low; within one priority, small jobs first."""
         which = which or self.worker_queues
-        return {
+        bases = {
             "all": [self.queue, self.large_queue],
             "small": [self.queue],
             "large": [self.large_queue],
         }[which]
+        return [b if p == "normal" else f"{b}-{p}" for p in PRIORITIES for b in bases]
 
     @property
     def retention_s(self) -> int:

@@ -20,7 +20,7 @@ from typing import Any
 from pbrsr_core.errors import InvalidAsset, InvalidOptions, UnprocessableAsset
 from pbrsr_core.options import UpscaleOptions
 from pbrsr_jobs.events import JobEvents
-from pbrsr_jobs.settings import Settings
+from pbrsr_jobs.settings import PRIORITIES, Settings
 from pbrsr_jobs.store import (
     JobIndex,
     JobLayout,
@@ -125,6 +125,9 @@ def create_job(
         webhook = parse_webhook(
             upload.fields.get("callback_url"), upload.fields.get("callback_events")
         )
+        priority = (upload.fields.get("priority") or "normal").strip()
+        if priority not in PRIORITIES:
+            raise InvalidOptions(f"priority must be one of {', '.join(PRIORITIES)}")
         from pbrsr_core.asset import detect_kind
 
         kind = detect_kind(upload.path)
@@ -150,13 +153,14 @@ def create_job(
             "created_at": created,
             "options": options,
             "state": JobState.QUEUED.value,
+            "priority": priority,
         }
         if webhook is not None:
             meta["webhook"] = webhook
         index.add(job_id, owner, created)
         events = JobEvents(index.redis, index.prefix)
         events.publish(job_id, owner, "queued", webhook=webhook)  # before a worker's "started"
-        target = settings.queue_for(output_mpix)
+        target = settings.queue_for(output_mpix, priority)
         if target != queue.name:
             queue = type(queue)(target, connection=queue.connection)
         try:

@@ -21,7 +21,7 @@ from .problems import ProblemError
 
 MAX_FIELD_BYTES = 64 * 1024
 MULTIPART_OVERHEAD = 64 * 1024  # boundaries, part headers and the options field
-TEXT_FIELDS = ("options", "callback_url", "callback_events")
+TEXT_FIELDS = ("options", "callback_url", "callback_events", "priority")
 
 
 @dataclass

@@ -298,10 +298,42 @@ def test_large_jobs_go_to_the_large_queue(tmp_path):
         assert Job.fetch(job_id, connection=redis).origin == settings.large_queue
         assert Queue(settings.large_queue, connection=redis).count == 1
         assert Queue(settings.queue, connection=redis).count == 0
-        assert settings.listen_queues("small") == [settings.queue]
-        assert settings.listen_queues("all") == [settings.queue, settings.large_queue]
+        q, big = settings.queue, settings.large_queue
+        assert settings.listen_queues("small") == [f"{q}-high", q, f"{q}-low"]
+        assert settings.listen_queues("all") == [
+            f"{q}-high", f"{big}-high", q, big, f"{q}-low", f"{big}-low"
+        ]  # fmt: skip
+        assert settings.queue_for(0.0001, "high") == f"{q}-high"
+        assert settings.queue_for(1.0, "low") == f"{big}-low"
     finally:
         next(gen, None)
+
+
+def test_priority_picks_the_queue_and_a_bad_one_is_refused(client, settings, tmp_path):
+    redis = redis_client()
+    ids = {}
+    for priority in ("high", "normal", "low"):
+        r = client.post(
+            "/v1/jobs",
+            files={"file": ("a.glb", asset_bytes(tmp_path), "application/octet-stream")},
+            data={"priority": priority},
+        )
+        assert r.status_code == 202, r.text
+        ids[priority] = r.json()["id"]
+    q = settings.queue
+    want = {"high": f"{q}-high", "normal": q, "low": f"{q}-low"}
+    for priority, job_id in ids.items():
+        job = Job.fetch(job_id, connection=redis)
+        assert job.origin == want[priority] and job.meta["priority"] == priority
+    default = post_asset(client, asset_bytes(tmp_path)).json()["id"]
+    assert Job.fetch(default, connection=redis).origin == q
+    bad = client.post(
+        "/v1/jobs",
+        files={"file": ("a.glb", asset_bytes(tmp_path), "application/octet-stream")},
+        data={"priority": "urgent"},
+    )
+    body = _problem_ok(bad, 422)
+    assert "priority must be one of high, normal, low" in body["detail"]
 
 
 def test_sweep_expires_old_jobs_only(client, settings, tmp_path):

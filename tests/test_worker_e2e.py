@@ -190,3 +190,26 @@ def test_pbrsr_job_reports_losses_and_returns_valid_hr_maps(env):
             2 * img["lr_size"][0],
             2 * img["lr_size"][1],
         ]
+
+
+def test_a_worker_takes_high_priority_jobs_first(tmp_path):
+    """Jobs queued low, normal, high while no worker runs: one worker (burst) runs them
+    high first, then normal, then low."""
+    settings = make_settings(tmp_path)
+    try:
+        with TestClient(create_app(settings), raise_server_exceptions=False) as client:
+            ids = {}
+            for priority in ("low", "normal", "high"):
+                r = client.post(
+                    "/v1/jobs",
+                    files={"file": ("a.glb", asset_bytes(tmp_path), "application/octet-stream")},
+                    data={"priority": priority, "options": json.dumps({"method": "bicubic"})},
+                )
+                ids[priority] = r.json()["id"]
+            with worker_process(settings, tmp_path / "worker.log", extra=["--burst"]) as proc:
+                proc.wait(timeout=180)
+            started = {p: _status(client, i)["started_at"] for p, i in ids.items()}
+            assert all(_status(client, i)["status"] == "finished" for i in ids.values())
+            assert started["high"] < started["normal"] < started["low"], started
+    finally:
+        cleanup_redis(settings)
