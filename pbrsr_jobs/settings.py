@@ -144,6 +144,18 @@ class Settings(BaseSettings):
         ge=60,
         description="Seconds an Idempotency-Key of POST /v1/jobs is remembered (per API key).",
     )
+    max_active_jobs_per_key: int = Field(
+        0,
+        ge=0,
+        description="Queued and running jobs one API key may have; a submission over it is 429 "
+        "with Retry-After. 0 = no limit.",
+    )
+    max_queued_jobs: int = Field(
+        0,
+        ge=0,
+        description="Jobs waiting in all queues together; a submission over it is 503 with "
+        "Retry-After. 0 = no limit.",
+    )
 
     # -- webhooks (pbrsr_jobs.webhooks) -------------------------------------------------
     webhook_secret: str | None = Field(

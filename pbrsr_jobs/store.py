@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict
+from rq.registry import StartedJobRegistry
 
 log = logging.getLogger(__name__)
 
@@ -296,6 +297,24 @@ class JobIndex:
 
     def cancel_requested(self, job_id: str) -> bool:
         return bool(self.redis.exists(self._k("cancel", job_id)))
+
+    def active_jobs(self, queues: list[Any]) -> tuple[int, dict[str, int]]:
+        """Jobs waiting in ``queues`` (rq.Queue) in all, and queued or running per owner:
+        the queues' and their started registries' job ids, owners read in one round trip."""
+        waiting: list[str] = []
+        for q in queues:
+            waiting += q.get_job_ids()
+        running: list[str] = []
+        for q in queues:
+            running += StartedJobRegistry(queue=q).get_job_ids()
+        ids = list(dict.fromkeys(waiting + running))
+        owners = self.redis.hmget(self._k("owners"), ids) if ids else []
+        per_owner: dict[str, int] = {}
+        for owner in owners:
+            if owner is not None:
+                key = owner.decode() if isinstance(owner, bytes) else owner
+                per_owner[key] = per_owner.get(key, 0) + 1
+        return len(waiting), per_owner
 
     def cancel_key(self, job_id: str) -> str:
         return self._k("cancel", job_id)

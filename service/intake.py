@@ -101,6 +101,31 @@ def _place_input(upload_path: Path, kind: str, input_dir: Path, settings: Settin
     return renamed.relative_to(input_dir).as_posix()
 
 
+RETRY_AFTER_S = 30
+
+
+def check_capacity(owner: str, settings: Settings, index: JobIndex, queue: Any) -> None:
+    """Refuse a submission while the queues are full (503) or the key has as many queued and
+    running jobs as it may (429), both with Retry-After; before any work on the asset."""
+    if not (settings.max_queued_jobs or settings.max_active_jobs_per_key):
+        return
+    queues = [type(queue)(q, connection=queue.connection) for q in settings.listen_queues("all")]
+    waiting, per_owner = index.active_jobs(queues)
+    retry = {"Retry-After": str(RETRY_AFTER_S)}
+    if settings.max_queued_jobs and waiting >= settings.max_queued_jobs:
+        raise ProblemError(
+            503, "queue-full", f"the queue is full ({waiting} jobs waiting); retry later",
+            headers=retry,
+        )  # fmt: skip
+    mine = per_owner.get(owner, 0)
+    if settings.max_active_jobs_per_key and mine >= settings.max_active_jobs_per_key:
+        raise ProblemError(
+            429, "too-many-jobs",
+            f"this API key has {mine} jobs queued or running, the most it may have; retry "
+            "when one has ended", headers=retry,
+        )  # fmt: skip
+
+
 def create_job(
     upload: Upload,
     owner: str,
@@ -128,6 +153,7 @@ def create_job(
         priority = (upload.fields.get("priority") or "normal").strip()
         if priority not in PRIORITIES:
             raise InvalidOptions(f"priority must be one of {', '.join(PRIORITIES)}")
+        check_capacity(owner, settings, index, queue)
         from pbrsr_core.asset import detect_kind
 
         kind = detect_kind(upload.path)

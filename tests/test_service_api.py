@@ -393,3 +393,31 @@ def test_status_of_a_finished_job_lists_no_folder_and_drops_bad_history_points(
     assert [p["step"] for p in body["history"]] == [3, 4]  # the malformed point left out
     listed = client.get("/v1/jobs").json()["items"]
     assert listed[0]["links"]["thumbs"] == body["links"]["thumbs"]
+
+
+def test_a_key_over_its_active_jobs_gets_429_and_a_full_queue_503(tmp_path):
+    gen = settings_scope(
+        tmp_path, api_keys=[LONG_KEY_A, LONG_KEY_B], max_active_jobs_per_key=2, max_queued_jobs=3
+    )
+    settings = next(gen)
+    a, b = {"X-API-Key": LONG_KEY_A}, {"X-API-Key": LONG_KEY_B}
+    try:
+        with TestClient(create_app(settings), raise_server_exceptions=False) as c:
+            for _ in range(2):
+                assert post_asset(c, asset_bytes(tmp_path), headers=a).status_code == 202
+            over = post_asset(c, asset_bytes(tmp_path), headers=a)
+            body = _problem_ok(over, 429, "too-many-jobs")
+            assert (
+                over.headers["Retry-After"] == "30" and "2 jobs queued or running" in body["detail"]
+            )
+            assert post_asset(c, asset_bytes(tmp_path), headers=b).status_code == 202  # its own
+            full = post_asset(c, asset_bytes(tmp_path), headers=b)  # 3 waiting in all
+            _problem_ok(full, 503, "queue-full")
+            assert full.headers["Retry-After"] == "30"
+            # a canceled job frees its place
+            first = c.get("/v1/jobs", headers=a).json()["items"][0]["id"]
+            assert c.delete(f"/v1/jobs/{first}", headers=a).status_code == 202
+            assert post_asset(c, asset_bytes(tmp_path), headers=a).status_code == 202
+            assert len(list((settings.storage_dir / "uploads").iterdir())) == 0  # nothing kept
+    finally:
+        next(gen, None)
