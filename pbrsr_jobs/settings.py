@@ -90,6 +90,12 @@ class Settings(BaseSettings):
 
     # -- worker ----------------------------------------------------------------------------
     device: str = Field("auto", description="Worker device: auto, cpu, cuda or cuda:N.")
+    worker_memory_mb: int = Field(
+        0,
+        ge=0,
+        description="Memory one job may use (MiB); a job estimated above it is refused as "
+        "limit-exceeded before it starts. 0 = what the machine has free when the job starts.",
+    )
     job_timeout: int = Field(6 * 3600, ge=10, description="Seconds one job may run.")
     job_retries: int = Field(
         2, ge=0, le=10, description="Retries of a job whose worker died (killed, OOM)."

@@ -108,7 +108,7 @@ def run_job(job_id: str) -> dict[str, Any]:
         input_path = layout.input_dir(job_id) / manifest.input
         out_tmp = layout.tmp_dir(job_id, "output")
         tmp_paths.append(out_tmp)
-        from pbrsr_core.footprint import available_bytes
+        from pbrsr_core.footprint import memory_budget
         from pbrsr_core.pipeline import upscale_asset
 
         with CancelWatchdog(index, job_id):
@@ -119,7 +119,8 @@ def run_job(job_id: str) -> dict[str, Any]:
                 progress=reporter,
                 limits=ctx.settings.limits(),
                 work_dir=layout.work_dir(job_id),
-                memory_budget=available_bytes(),  # refused, not killed, when it cannot fit
+                # refused, not killed, when it cannot fit
+                memory_budget=memory_budget(ctx.settings.worker_memory_mb),
             )
             reporter.check_cancel()
             reporter(_bundle_event())
