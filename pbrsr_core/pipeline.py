@@ -164,7 +164,7 @@ def _upscale_maps(
                                         timer, progress)  # fmt: skip
     out, report = _optimise(
         asset, images, init_encoded, init, lr, lr_pixels, channels, prior, options, config,
-        device, timer, progress, work_dir, snapshots,
+        device, timer, progress, work_dir, snapshots, wraps,
     )  # fmt: skip
     for img in images:
         if cutouts[img.index] is not None:
@@ -301,9 +301,10 @@ def _init_maps(images, prior, lr_pixels, channels, s, wraps, config, timer, prog
 
 
 def _optimise(asset, images, init_encoded, init, lr, lr_pixels, channels, prior, options, config,
-              device, timer, progress, work_dir, snapshots):  # fmt: skip
+              device, timer, progress, work_dir, snapshots, wraps):  # fmt: skip
     """PBR-SR's optimisation from ``init_encoded``, then each map's export: back-projection
-    onto its LR map where the preset says so, and island padding. Returns (HR maps, report)."""
+    onto its LR map where the preset says so, and island padding. A map the scene repeats
+    (``wraps``) keeps its TV across the wrap edge. Returns (HR maps, report)."""
     from .optim.pbrsr import optimize_pbrsr
     from .optim.whole_map import pad_update
 
@@ -339,6 +340,7 @@ def _optimise(asset, images, init_encoded, init, lr, lr_pixels, channels, prior,
         progress=progress,
         cache_dir=work_dir / "pseudo_gt",
         seed=options.seed,
+        repeats={i: (w[0] == "repeat", w[1] == "repeat") for i, w in wraps.items() if w},
         **_snapshot_kwargs(snapshots, lambda maps: {i: export(i, t) for i, t in maps.items()}),
     )
     for k, v in result.timings.items():

@@ -18,19 +18,30 @@ from pbrsr_core.optim.whole_map import (
     tv_loss,
 )
 
+REPEATS = [(False, False), (True, False), (False, True), (True, True)]
 
-def _tv_reference(t: torch.Tensor, groups: list[MapGroup]) -> torch.Tensor:
+
+def _tv_reference(
+    t: torch.Tensor, groups: list[MapGroup], repeats: tuple[bool, bool] = (False, False)
+) -> torch.Tensor:
+    """Mean |difference| per axis and group; along a repeating axis the last texel's
+    neighbour is the first (torch.roll)."""
     total = t.new_zeros(())
     for g in groups:
         x = t[..., list(g.channels)]
-        if x.shape[1] > 1:
-            total = total + (x[:, 1:] - x[:, :-1]).abs().mean()
-        if x.shape[0] > 1:
-            total = total + (x[1:] - x[:-1]).abs().mean()
+        for dim, rep in ((1, repeats[0]), (0, repeats[1])):
+            if x.shape[dim] < 2:
+                continue
+            if rep:
+                total = total + (torch.roll(x, -1, dims=dim) - x).abs().mean()
+            else:
+                n = x.shape[dim]
+                total = total + (x.narrow(dim, 1, n - 1) - x.narrow(dim, 0, n - 1)).abs().mean()
     return total
 
 
-def test_tv_matches_torch_value_and_gradient():
+@pytest.mark.parametrize("repeats", REPEATS)
+def test_tv_matches_torch_value_and_gradient(repeats):
     g = torch.Generator().manual_seed(3)
     groups = [MapGroup("base_color", (0, 1, 2)), MapGroup("metallic", (3,), 0.1)]
     for shape in [(17, 23, 4), (1, 9, 4), (9, 1, 4), (1, 1, 4), (64, 48, 5)]:
@@ -39,7 +50,8 @@ def test_tv_matches_torch_value_and_gradient():
             t[:2, :2] = 0.5  # exact zeros among the differences (subgradient 0, as torch)
             a = t.clone().requires_grad_()
             b = t.clone().requires_grad_()
-            va, vb = tv_loss(a, groups), _tv_reference(b, groups) + 0.0 * b.sum()
+            va = tv_loss(a, groups, repeats)
+            vb = _tv_reference(b, groups, repeats) + 0.0 * b.sum()
             va.backward()
             vb.backward()
             tol = 1e-12 if dtype == torch.float64 else 1e-5
@@ -49,12 +61,27 @@ def test_tv_matches_torch_value_and_gradient():
             assert a.grad[..., 4:].abs().sum() == 0  # a channel no group reads gets nothing
 
 
-def test_tv_overlapping_groups_add_and_gradcheck():
+@pytest.mark.parametrize("repeats", REPEATS)
+def test_tv_overlapping_groups_add_and_gradcheck(repeats):
     g = torch.Generator().manual_seed(4)
     t = torch.rand(6, 7, 3, generator=g, dtype=torch.float64).requires_grad_()
     groups = [MapGroup("a", (0, 1)), MapGroup("b", (1, 2))]
-    assert torch.allclose(tv_loss(t, groups), _tv_reference(t, groups))
-    assert torch.autograd.gradcheck(lambda x: tv_loss(x, groups) * 3.0, (t,))
+    assert torch.allclose(tv_loss(t, groups, repeats), _tv_reference(t, groups, repeats))
+    assert torch.autograd.gradcheck(lambda x: tv_loss(x, groups, repeats) * 3.0, (t,))
+
+
+def test_tv_of_a_repeating_ramp_counts_the_wrap_edge():
+    """A ramp 0, 1/3, 2/3, 1 along x: without repeat mean |dx| = 1/3; repeating, the step from
+    1 back to 0 counts too: (3 * 1/3 + 1) / 4 = 1/2. Along y it is constant either way."""
+    t = torch.linspace(0, 1, 4, dtype=torch.float64).view(1, 4, 1).expand(3, 4, 1).contiguous()
+    r = [MapGroup("r", (0,))]
+    assert float(tv_loss(t, r)) == pytest.approx(1 / 3)
+    assert float(tv_loss(t, r, (True, False))) == pytest.approx(0.5)
+    assert float(tv_loss(t, r, (False, True))) == pytest.approx(1 / 3)
+    # a map that tiles seamlessly along x (0, 1, 1, 0) has no extra cost from repeating
+    seamless = torch.tensor([0.0, 1.0, 1.0, 0.0], dtype=torch.float64).view(1, 4, 1)
+    assert float(tv_loss(seamless, r)) == pytest.approx(2 / 3)
+    assert float(tv_loss(seamless, r, (True, False))) == pytest.approx(2 / 4)
 
 
 def test_project_matches_reference_and_sanitises():
@@ -187,7 +214,8 @@ def test_dilate_matches_ring_by_ring_reference():
     )
 
 
-def test_accumulate_map_grad_equals_autograd_of_tv_and_consistency():
+@pytest.mark.parametrize("repeats", REPEATS)
+def test_accumulate_map_grad_equals_autograd_of_tv_and_consistency(repeats):
     from pbrsr_core.optim.losses import avg_pool_map, pbr_consistency, pooled_consistency
 
     g = torch.Generator().manual_seed(9)
@@ -201,7 +229,7 @@ def test_accumulate_map_grad_equals_autograd_of_tv_and_consistency():
     channels = torch.tensor([True, False, True])
     # reference: autograd through the full-size losses
     x = t.clone().requires_grad_()
-    ref_tv = tv_loss(x, groups)
+    ref_tv = _tv_reference(x, groups, repeats)
     (10.0 * pbr_consistency(x, lr, s, groups, 10.0)[0] + 0.5 * ref_tv).backward()
     want = torch.nan_to_num(x.grad + render_grad, nan=0.0) * (texels[..., None] & channels)
     want[0, 0, 0] = 0.0
@@ -212,13 +240,14 @@ def test_accumulate_map_grad_equals_autograd_of_tv_and_consistency():
         grad = render_grad.clone()
         if not contiguous:  # the torch path (other devices) must give the same numbers
             grad = grad.permute(1, 0, 2).contiguous().permute(1, 0, 2)
-        tv = accumulate_map_grad_(t, grad, groups, 0.5, pooled.grad, s, texels, channels)
+        tv = accumulate_map_grad_(t, grad, groups, 0.5, pooled.grad, s, texels, channels, repeats)
         assert abs(tv - float(ref_tv.detach())) < 1e-12
         assert torch.allclose(grad, want, atol=1e-12)
 
 
+@pytest.mark.parametrize("repeats", REPEATS)
 @pytest.mark.parametrize("shape", [(1, 5, 3), (5, 1, 1), (1, 1, 2), (7, 9, 4), (16, 12, 3)])
-def test_accumulate_map_grad_kernel_matches_torch_path_on_edges_float32(shape):
+def test_accumulate_map_grad_kernel_matches_torch_path_on_edges_float32(shape, repeats):
     """The fused kernel (contiguous CPU gradient) against the plain torch path (the same call
     with a non-contiguous gradient) on maps one texel wide or high and several channel counts,
     scale 1 for odd sizes."""
@@ -236,8 +265,8 @@ def test_accumulate_map_grad_kernel_matches_torch_path_on_edges_float32(shape):
     channels[-1] = c == 1
     fused = render_grad.clone()
     plain = render_grad.clone().permute(1, 0, 2).contiguous().permute(1, 0, 2)
-    tv_f = accumulate_map_grad_(t, fused, groups, 0.5, pool_grad, s, texels, channels)
-    tv_p = accumulate_map_grad_(t, plain, groups, 0.5, pool_grad, s, texels, channels)
+    tv_f = accumulate_map_grad_(t, fused, groups, 0.5, pool_grad, s, texels, channels, repeats)
+    tv_p = accumulate_map_grad_(t, plain, groups, 0.5, pool_grad, s, texels, channels, repeats)
     assert abs(tv_f - tv_p) <= 1e-6 * max(1.0, abs(tv_p))
     assert torch.isfinite(fused).all()
     assert torch.allclose(fused, plain, atol=1e-6)

@@ -38,7 +38,7 @@ from .schedule import Snapshots, channel_lr, logged
 from .step import Optimisation
 from .targets import make_targets
 from .training_views import training_views
-from .whole_map import project_
+from .whole_map import Repeats, project_
 
 
 def optimize_pbrsr(
@@ -58,6 +58,7 @@ def optimize_pbrsr(
     seed: int = 0,
     cameras: list[cam.Camera] | None = None,
     reference_maps: dict[int, torch.Tensor] | None = None,
+    repeats: dict[int, Repeats] | None = None,
     snapshot_at: Collection[int] = (),
     on_snapshot: Callable[[int, dict[int, torch.Tensor]], None] | None = None,
 ) -> PbrsrResult:
@@ -67,7 +68,9 @@ def optimize_pbrsr(
     stored, normals encoded in [0, 1]; ``lr_maps`` (H, W, C), ``init_maps`` (sH, sW, C).
     ``mesh`` is normalised to unit size. ``prior.upscale((N, 3, h, w) sRGB, scale)`` makes the
     pseudo-GT. Test/benchmark hooks: ``cameras`` replaces view selection (their resolution is
-    the HR render resolution, a multiple of ``scale``); ``reference_maps`` replaces the
+    the HR render resolution, a multiple of ``scale``); ``repeats[i]``: whether map ``i``
+    tiles along x and y (sampler REPEAT where the scene repeats it), so its TV wraps around;
+    ``reference_maps`` replaces the
     pseudo-GT by renders of those maps at the HR resolution (an oracle target, no prior);
     ``on_snapshot(it, maps)`` sees the maps before each iteration in ``snapshot_at`` (and
     after the last one, ``it == iterations``), for speed-against-error curves.
@@ -121,7 +124,7 @@ def optimize_pbrsr(
     normal = {i: "normal" in roles[i] for i in images}
     run = Optimisation(
         params, fixed, static, lr_dev, groups, rates, normal, views, targets, scene, config,
-        scale, gen, device,
+        scale, gen, device, repeats,
     )  # fmt: skip
     snapshot = Snapshots(snapshot_at, on_snapshot, run.maps)
     history = _iterate(run, lr_dev, groups, config, scale, snapshot, progress, t0)

@@ -19,7 +19,7 @@ from .presets import PbrsrConfig
 from .schedule import ViewBatches
 from .ssim import SsimTarget
 from .training_views import TrainingViews
-from .whole_map import MapAdam, accumulate_map_grad_
+from .whole_map import MapAdam, Repeats, accumulate_map_grad_
 
 
 def grad_masks(
@@ -53,12 +53,15 @@ def regularize_grads(
     grad_masks: dict[int, tuple[torch.Tensor, torch.Tensor]],
     config: PbrsrConfig,
     scale: int,
+    repeats: dict[int, Repeats] | None = None,
 ) -> tuple[float, float]:
     """The step's whole-map part, after the pixel loss's backward: add the PBR-consistency
     gradient (differentiated at LR size, on the pooled map) and TV's to each map's gradient
     and mask it, one pass per map (whole_map). ``ssim_targets[i]``: ``ssim_target(lr_maps[i])``,
-    made once per run; ``grad_masks[i]`` = ((H, W) texels, (C,) channels) that may change.
+    made once per run; ``grad_masks[i]`` = ((H, W) texels, (C,) channels) that may change;
+    ``repeats[i]``: whether map i tiles along x and y (its TV wraps around; default no).
     Returns the values of ``L_pbr`` and ``L_tv``."""
+    repeats = repeats or {}
     l_pbr_total, l_tv = 0.0, 0.0
     for i, p in params.items():
         if p.grad is None:  # no view of this batch samples the image
@@ -72,8 +75,9 @@ def regularize_grads(
             (pool_grad,) = torch.autograd.grad(config.lambda_pbr * l_pbr, pooled)
         l_pbr_total += float(l_pbr.detach())
         l_tv += accumulate_map_grad_(
-            p, p.grad, groups[i], config.lambda_tv, pool_grad, scale, *grad_masks[i]
-        )
+            p, p.grad, groups[i], config.lambda_tv, pool_grad, scale, *grad_masks[i],
+            repeats.get(i, (False, False)),
+        )  # fmt: skip
     return l_pbr_total, l_tv
 
 
@@ -106,7 +110,7 @@ class Optimisation:
     """The state a run's steps share: the HR map parameters (``params``; ``fixed`` and
     ``static`` maps are rendered, never differentiated), the weight maps (one per view, init
     1) and their optimisers. ``rates[i]``: (C,) learning rates; ``normal[i]``: whether map
-    ``i`` is a normal map."""
+    ``i`` is a normal map; ``repeats[i]``: whether it tiles along x and y."""
 
     def __init__(
         self,
@@ -124,8 +128,10 @@ class Optimisation:
         scale: int,
         gen: torch.Generator,
         device,
+        repeats: dict[int, Repeats] | None = None,
     ):
         self.params, self.fixed, self.static = params, fixed, static
+        self.repeats = repeats or {}
         self.lr_maps, self.groups, self.views, self.targets = lr_maps, groups, views, targets
         self.scene = scene
         self.config, self.scale, self.gen, self.device = config, scale, gen, device
@@ -190,6 +196,7 @@ class Optimisation:
             self.grad_masks,
             cfg,
             self.scale,
+            self.repeats,
         )
         wmaps = self.wmaps
         if wmaps.grad is None:

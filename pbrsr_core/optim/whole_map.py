@@ -46,37 +46,38 @@ def _threads() -> None:
 
 
 @numba.njit(cache=True, inline="always")
-def _tv_at(t, wx, wy, i, j, c, h, w):
+def _tv_at(t, wx, wy, i, j, c, h, w, rx, ry):
     """TV of texel (i, j, c): its share of the value (differences to the right and below) and
-    d TV / d t[i, j, c]."""
+    d TV / d t[i, j, c]. ``rx``/``ry``: the map repeats along x/y, so the last column's right
+    neighbour is the first column (and the last row's lower one the first row)."""
     ax, ay = wx[c], wy[c]
     v = t[i, j, c]
     val = 0.0
     g = 0.0
-    if j + 1 < w:
-        d = t[i, j + 1, c] - v
+    if j + 1 < w or rx:
+        d = t[i, (j + 1) % w, c] - v
         val += ax * abs(d)
         g -= ax * np.sign(d)
-    if j > 0:
-        g += ax * np.sign(v - t[i, j - 1, c])
-    if i + 1 < h:
-        d = t[i + 1, j, c] - v
+    if j > 0 or rx:
+        g += ax * np.sign(v - t[i, (j - 1) % w, c])
+    if i + 1 < h or ry:
+        d = t[(i + 1) % h, j, c] - v
         val += ay * abs(d)
         g -= ay * np.sign(d)
-    if i > 0:
-        g += ay * np.sign(v - t[i - 1, j, c])
+    if i > 0 or ry:
+        g += ay * np.sign(v - t[(i - 1) % h, j, c])
     return val, g
 
 
 @numba.njit(**_JIT)
-def _tv_kernel(t, wx, wy, grad):
+def _tv_kernel(t, wx, wy, grad, rx, ry):
     h, w, nc = t.shape
     rows = np.zeros(h)
     for i in numba.prange(h):
         acc = 0.0
         for j in range(w):
             for c in range(nc):
-                val, g = _tv_at(t, wx, wy, i, j, c, h, w)
+                val, g = _tv_at(t, wx, wy, i, j, c, h, w, rx, ry)
                 acc += val
                 grad[i, j, c] = g
         rows[i] = acc
@@ -86,7 +87,8 @@ def _tv_kernel(t, wx, wy, grad):
 @numba.njit(cache=True, inline="always")
 def _step_texel(row, up, dn, g, prow, keep, gx, gy, vx, vy, chmask, pidx, tidx, k, kl, kr):
     """One entry k of a row (flattened (W*C,)) in :func:`_step_grad_kernel`; ``kl``/``kr`` are
-    the left/right neighbours' entries (k itself at the map's edge: a zero difference)."""
+    the left/right neighbours' entries (k itself at the edge of a map that does not repeat: a
+    zero difference)."""
     v = row[k]
     dr = row[kr] - v
     dd = dn[k] - v
@@ -98,32 +100,51 @@ def _step_texel(row, up, dn, g, prow, keep, gx, gy, vx, vy, chmask, pidx, tidx, 
 
 
 @numba.njit(cache=True, parallel=True, fastmath={"reassoc"})
-def _step_grad_kernel(t, gx, gy, vx, vy, grad, pg, s, texels, chmask, pidx, tidx, nc):
+def _step_grad_kernel(t, gx, gy, vx, vy, grad, pg, s, texels, chmask, pidx, tidx, nc, rx, ry):
     """Rows of t and grad flattened to (H, W*C), pg to (H/s, W/s*C); the per-entry tables
     (length W*C) hold lambda_tv-scaled TV weights (gx, gy), TV value weights (vx, vy), the
     channel mask, the pooled entry and the texel of each entry. Rows above and below the map
-    and entries left and right of it are the texel itself (a zero difference), so the interior
-    loop has no bounds branches. On three 2048² x 3 maps (`pbrsr bench step`) the regularize
-    pass took 317 ms against 378 ms with the per-texel, per-channel branches it replaced."""
+    and entries left and right of it are the texel itself (a zero difference), or with
+    ``rx``/``ry`` (the map repeats along x/y) the opposite edge's, so the interior loop has no
+    bounds branches. On three 2048² x 3 maps (`pbrsr bench step`) the regularize pass took
+    317 ms against 378 ms with per-texel, per-channel bounds branches."""
     h, n = t.shape
     rows = np.zeros(h)
+    wrap_left = n - nc if rx else 0  # first texel's left neighbour, as an offset
     for i in numba.prange(h):
-        row, up, dn = t[i], t[max(i - 1, 0)], t[min(i + 1, h - 1)]
+        above = i - 1 if i > 0 else (h - 1 if ry else 0)
+        below = i + 1 if i + 1 < h else (0 if ry else h - 1)
+        row, up, dn = t[i], t[above], t[below]
         g, prow, keep = grad[i], pg[i // s], texels[i]
         acc = 0.0
         edge = min(nc, n)
-        for k in range(edge):  # first texel: no left neighbour
+        for k in range(edge):  # first texel: its left neighbour is the last one or itself
             kr = k + nc if k + nc < n else k
             acc += _step_texel(
-                row, up, dn, g, prow, keep, gx, gy, vx, vy, chmask, pidx, tidx, k, k, kr
+                row, up, dn, g, prow, keep, gx, gy, vx, vy, chmask, pidx, tidx, k, k + wrap_left, kr
             )
         for k in range(nc, n - nc):
             acc += _step_texel(
                 row, up, dn, g, prow, keep, gx, gy, vx, vy, chmask, pidx, tidx, k, k - nc, k + nc
             )
-        for k in range(max(n - nc, edge), n):  # last texel: no right neighbour
+        for k in range(max(n - nc, edge), n):  # last texel: the first one or itself on its right
             acc += _step_texel(
-                row, up, dn, g, prow, keep, gx, gy, vx, vy, chmask, pidx, tidx, k, k - nc, k
+                row,
+                up,
+                dn,
+                g,
+                prow,
+                keep,
+                gx,
+                gy,
+                vx,
+                vy,
+                chmask,
+                pidx,
+                tidx,
+                k,
+                k - nc,
+                k - wrap_left,
             )
         rows[i] = acc
     return rows.sum()
@@ -131,52 +152,72 @@ def _step_grad_kernel(t, gx, gy, vx, vy, grad, pg, s, texels, chmask, pidx, tidx
 
 class _TV(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, t, wx, wy):
+    def forward(ctx, t, wx, wy, rx, ry):
         x = t.detach().contiguous()
         grad = torch.empty_like(x)
         _threads()
-        val = _tv_kernel(x.numpy(), wx.numpy(), wy.numpy(), grad.numpy())
+        val = _tv_kernel(x.numpy(), wx.numpy(), wy.numpy(), grad.numpy(), rx, ry)
         ctx.save_for_backward(grad)
         return t.new_tensor(val)
 
     @staticmethod
     def backward(ctx, g):
         (grad,) = ctx.saved_tensors
-        return grad * g, None, None
+        return grad * g, None, None, None, None
 
 
-def _tv_weights(shape, groups: list[MapGroup]) -> tuple[torch.Tensor, torch.Tensor]:
+Repeats = tuple[bool, bool]
+"""Whether a map repeats along x and y (sampler REPEAT where the scene shows it repeating): its
+TV then counts the differences across the wrap edge too, so the optimiser keeps the tile
+seamless. A mirrored repeat needs nothing: past the edge is the edge texel itself."""
+
+
+def _tv_weights(
+    shape, groups: list[MapGroup], repeats: Repeats = (False, False)
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-channel weights of |dx| and |dy| so that the weighted sums are the groups' means."""
     h, w, c = shape
+    nx = h * w if repeats[0] else h * (w - 1)  # differences along x
+    ny = h * w if repeats[1] else (h - 1) * w
     wx, wy = torch.zeros(c, dtype=torch.float64), torch.zeros(c, dtype=torch.float64)
     for g in groups:
         ch = [k for k in g.channels if k < c]
         if not ch:
             continue
-        if w > 1:
-            wx[ch] += 1.0 / (h * (w - 1) * len(ch))
-        if h > 1:
-            wy[ch] += 1.0 / ((h - 1) * w * len(ch))
+        if nx:
+            wx[ch] += 1.0 / (nx * len(ch))
+        if ny:
+            wy[ch] += 1.0 / (ny * len(ch))
     return wx, wy
 
 
-def tv_loss(t: torch.Tensor, groups: list[MapGroup]) -> torch.Tensor:
-    """``sum_T mean|grad_x T| + mean|grad_y T|`` over the groups of an (H, W, C) map.
+def _differences(x: torch.Tensor, dim: int, repeats: bool) -> torch.Tensor:
+    if repeats:
+        return x.roll(-1, dims=dim) - x
+    return x.narrow(dim, 1, x.shape[dim] - 1) - x.narrow(dim, 0, x.shape[dim] - 1)
+
+
+def tv_loss(
+    t: torch.Tensor, groups: list[MapGroup], repeats: Repeats = (False, False)
+) -> torch.Tensor:
+    """``sum_T mean|grad_x T| + mean|grad_y T|`` over the groups of an (H, W, C) map; along an
+    axis that ``repeats``, the difference from the last texel to the first counts too.
 
     A 1-pixel-wide map has no differences along that axis and contributes 0 there.
     """
     if t.ndim != 3:
         raise ValueError(f"map must be (H, W, C), got {tuple(t.shape)}")
+    rx, ry = bool(repeats[0]), bool(repeats[1])
     if _on_cpu(t):
-        wx, wy = _tv_weights(tuple(t.shape), groups)
-        return _TV.apply(t, wx.to(t.dtype), wy.to(t.dtype))
+        wx, wy = _tv_weights(tuple(t.shape), groups, (rx, ry))
+        return _TV.apply(t, wx.to(t.dtype), wy.to(t.dtype), rx, ry)
     total = t.new_zeros(())
     for g in groups:
         x = t[..., list(g.channels)]
         if x.shape[1] > 1:
-            total = total + (x[:, 1:] - x[:, :-1]).abs().mean()
+            total = total + _differences(x, 1, rx).abs().mean()
         if x.shape[0] > 1:
-            total = total + (x[1:] - x[:-1]).abs().mean()
+            total = total + _differences(x, 0, ry).abs().mean()
     return total
 
 
@@ -189,12 +230,14 @@ def accumulate_map_grad_(
     scale: int,
     texels: torch.Tensor,
     channels: torch.Tensor,
+    repeats: Repeats = (False, False),
 ) -> float:
     """The optimiser's whole-map gradient pass, in place on ``grad`` (H, W, C) of map ``t``:
-    ``grad += lambda_tv * d tv_loss(t, groups) / dt + d L / d AvgPool_s(t)`` (``pool_grad``
-    (H/s, W/s, C), the gradient at the pooled map, spread over each s x s block as AvgPool's
-    backward does), then :func:`mask_grad_`. Returns ``tv_loss(t, groups)``."""
-    wx, wy = _tv_weights(tuple(t.shape), groups)
+    ``grad += lambda_tv * d tv_loss(t, groups, repeats) / dt + d L / d AvgPool_s(t)``
+    (``pool_grad`` (H/s, W/s, C), the gradient at the pooled map, spread over each s x s block
+    as AvgPool's backward does), then :func:`mask_grad_`. Returns the TV."""
+    rx, ry = bool(repeats[0]), bool(repeats[1])
+    wx, wy = _tv_weights(tuple(t.shape), groups, (rx, ry))
     pg = pool_grad.detach() / float(scale * scale)
     if _on_cpu(t, grad, pg) and grad.is_contiguous():
         _threads()
@@ -221,11 +264,13 @@ def accumulate_map_grad_(
                 ((entry_texel // scale) * nc + entry_ch).numpy(),
                 entry_texel.numpy(),
                 nc,
+                rx,
+                ry,
             )
         )
     x = t.detach().requires_grad_(True)
     with torch.enable_grad():
-        tv = tv_loss(x, groups)
+        tv = tv_loss(x, groups, (rx, ry))
         (g_tv,) = torch.autograd.grad(lambda_tv * tv, x, allow_unused=True)
     if g_tv is not None:
         grad.add_(g_tv)
@@ -489,5 +534,6 @@ __all__ = [
     "mask_grad_",
     "pad_update",
     "project_",
+    "Repeats",
     "tv_loss",
 ]
