@@ -3,15 +3,19 @@
 The checks run before anything is queued, so a bad asset is answered 4xx at once rather than
 failing later on a worker: options (422), file kind by magic bytes (415), zip safety and
 size (400/413), that the asset parses and every resource resolves (400), triangle and texture
-limits (413), and that there is something to upscale (422). Stored names are generated
-(``input/asset.glb``; a zip's ``.gltf`` is renamed ``asset.gltf`` beside its resources).
+limits (413), and that there is something to upscale (422). The input is unpacked and
+checked in a temporary folder of this machine, then stored as the job's objects
+(:class:`~pbrsr_jobs.store.JobFiles`). Stored names are generated (``input/asset.glb``; a
+zip's ``.gltf`` is renamed ``asset.gltf`` beside its resources).
 """
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import json
 import os
+import shutil
 import threading
 import time
 from pathlib import Path
@@ -20,8 +24,10 @@ from typing import Any
 from pbrsr_core.errors import InvalidAsset, InvalidOptions, UnprocessableAsset
 from pbrsr_core.options import UpscaleOptions
 from pbrsr_jobs.events import JobEvents
+from pbrsr_jobs.objstore import StoreUnavailable
 from pbrsr_jobs.settings import PRIORITIES, Settings
 from pbrsr_jobs.store import (
+    JobFiles,
     JobIndex,
     JobLayout,
     JobManifest,
@@ -131,12 +137,14 @@ def create_job(
     owner: str,
     settings: Settings,
     layout: JobLayout,
+    files: JobFiles,
     index: JobIndex,
     queue: Any,
 ) -> str:
     """Validate ``upload``, store it as a new job and enqueue it. Returns the job id.
 
-    On any error nothing is left behind (upload, job folder) and nothing is queued.
+    On any error nothing is left behind (upload, job objects, working folder) and nothing is
+    queued; a store that cannot be reached is StoreUnavailable (503).
     """
     from rq import Retry
 
@@ -157,11 +165,13 @@ def create_job(
         from pbrsr_core.asset import detect_kind
 
         kind = detect_kind(upload.path)
-        rel = _place_input(upload.path, kind, layout.input_dir(job_id), settings)
-        output_mpix = check_asset(layout.input_dir(job_id) / rel, options, settings)
+        staging = layout.tmp_dir(job_id, "input")
+        rel = _place_input(upload.path, kind, staging, settings)
+        output_mpix = check_asset(staging / rel, options, settings)
         name = safe_display_name(upload.filename, fallback=f"asset.{kind}")
         created = time.time()
-        layout.write_manifest(
+        files.put_input(job_id, staging)
+        files.write_manifest(
             JobManifest(
                 id=job_id,
                 owner=owner,
@@ -209,5 +219,9 @@ def create_job(
         if upload.path is not None:
             upload.path.unlink(missing_ok=True)
         layout.remove(job_id)
+        with contextlib.suppress(StoreUnavailable):  # unreachable: nothing was stored
+            files.remove(job_id)
         raise
+    shutil.rmtree(staging, ignore_errors=True)
+    layout.release(job_id)  # the filesystem backend's objects stay
     return job_id

@@ -66,7 +66,7 @@ def test_unwritable_storage_is_refused(tmp_path):
 
 def test_docs_table_lists_every_setting():
     text = (REPO / "docs" / "SERVICE.md").read_text()
-    documented = set(re.findall(r"^\| `(PBRSR_[A-Z_]+)` \|", text, flags=re.M))
+    documented = set(re.findall(r"^\| `(PBRSR_[A-Z0-9_]+)` \|", text, flags=re.M))
     assert documented == ENV_NAMES
 
 

@@ -8,18 +8,19 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, BackgroundTasks, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import FileResponse
+from fastapi.responses import FileResponse, RedirectResponse
 from pydantic import BaseModel
 from rq.exceptions import InvalidJobOperation, NoSuchJobError
 from rq.job import Job
 
 from pbrsr_jobs.events import JobEvents
 from pbrsr_jobs.idempotency import IdempotencyKeys
-from pbrsr_jobs.store import JobIndex, JobState, check_job_id, sweep_expired
+from pbrsr_jobs.store import JobFiles, JobIndex, JobState, check_job_id, sweep_expired
 from pbrsr_jobs.webhooks import LOG_ENTRIES, WebhookQueue
 
 from ..deps import (
     AsyncRedisDep,
+    FilesDep,
     IndexDep,
     LayoutDep,
     OwnerDep,
@@ -101,6 +102,7 @@ async def submit_job(
     settings: SettingsDep,
     owner: OwnerDep,
     layout: LayoutDep,
+    files: FilesDep,
     index: IndexDep,
     queue: QueueDep,
     idempotency_key: IdempotencyKeyHeader = None,
@@ -111,7 +113,7 @@ async def submit_job(
     limits = settings.limits()
     dest = layout.new_upload_path()
     upload = await receive_upload(request, dest, limits.max_file_bytes, digest=key is not None)
-    create = partial(create_job, upload, owner, settings, layout, index, queue)
+    create = partial(create_job, upload, owner, settings, layout, files, index, queue)
     if key is None:
         job_id = await run_in_threadpool(create)
     else:
@@ -129,6 +131,7 @@ def list_jobs(
     settings: SettingsDep,
     owner: OwnerDep,
     layout: LayoutDep,
+    files: FilesDep,
     index: IndexDep,
     background: BackgroundTasks,
     status: Annotated[JobState | None, Query(description="Only jobs in this state.")] = None,
@@ -138,7 +141,7 @@ def list_jobs(
     """Newest first; ``offset``/``limit`` pagination; optional ``status`` filter."""
     limit = min(limit, settings.page_size_max)
     if index.try_sweep_lock(settings.maintenance_s):
-        background.add_task(sweep_expired, redis, index, layout, settings.retention_s)
+        background.add_task(sweep_expired, redis, index, layout, files, settings.retention_s)
     if status is None:
         ids, total = index.page(owner, offset, limit)
         jobs = [j for j in Job.fetch_many(ids, connection=redis) if j is not None]
@@ -151,7 +154,7 @@ def list_jobs(
         total = len(matching)
         jobs = matching[offset : offset + limit]
     cancels = index.cancel_flags([j.id for j in jobs if not state_of(j).is_terminal])
-    items = [summary_view(j, index, layout, j.id in cancels) for j in jobs]
+    items = [summary_view(j, index, files, j.id in cancels) for j in jobs]
     nxt = None
     if offset + limit < total:
         nxt = f"/v1/jobs?offset={offset + limit}&limit={limit}"
@@ -166,7 +169,7 @@ async def get_job(
     aredis: AsyncRedisDep,
     redis: RedisDep,
     owner: OwnerDep,
-    layout: LayoutDep,
+    files: FilesDep,
     index: IndexDep,
 ) -> Response:
     """Status, stage, progress, ETA, latest losses/metrics, timings, history, error, links.
@@ -191,9 +194,9 @@ async def get_job(
     sent = WebhookQueue.decode_log(log)
     if job.meta.get("state") == JobState.FINISHED.value and "files" not in job.meta:
         # finished before its worker recorded its files: list them off the event loop
-        detail = await run_in_threadpool(detail_view, job, index, layout, bool(cancel), sent)
+        detail = await run_in_threadpool(detail_view, job, index, files, bool(cancel), sent)
     else:
-        detail = detail_view(job, index, layout, bool(cancel), sent)
+        detail = detail_view(job, index, files, bool(cancel), sent)
     return _json(detail)
 
 
@@ -217,6 +220,7 @@ def cancel_job(
     settings: SettingsDep,
     owner: OwnerDep,
     layout: LayoutDep,
+    files: FilesDep,
     index: IndexDep,
 ) -> Any:
     """Queued: canceled at once. Running: the worker stops within about 2 s (poll the job).
@@ -224,9 +228,10 @@ def cancel_job(
     job = fetch_job(job_id, owner, redis, index)
     state = state_of(job)
     if state.is_terminal:
+        files.remove(job_id)  # first: a store that is down answers 503, the job kept
+        layout.remove(job_id)
         with contextlib.suppress(NoSuchJobError):
             job.delete()
-        layout.remove(job_id)
         index.remove(job_id)
         JobEvents(redis, settings.key_prefix).forget(job_id)
         return Response(status_code=204)
@@ -238,7 +243,24 @@ def cancel_job(
         if state_of(job) == JobState.CANCELED:  # a worker did not take it first
             webhook = (job.meta or {}).get("webhook")
             JobEvents(redis, settings.key_prefix).publish(job_id, owner, "cancelled", {}, webhook)
-    return detail_view(job, index, layout)
+    return detail_view(job, index, files)
+
+
+_DOWNLOAD = {
+    307: {"description": "With the s3 storage backend: a presigned URL of the file."},
+}
+
+
+def _download(files: JobFiles, key: str, media_type: str, filename: str | None = None) -> Response:
+    """The object ``key``: a 307 to a presigned URL when the store gives one (s3), else the
+    file itself."""
+    url = files.store.url(key, filename=filename, media_type=media_type)
+    if url is not None:
+        return RedirectResponse(url, status_code=307)
+    path = files.store.local_path(key)
+    if path is None:
+        raise ProblemError(404, "not-found", "this file is gone (the job may have expired)")
+    return FileResponse(path, media_type=media_type, filename=filename)
 
 
 @router.get(
@@ -246,37 +268,37 @@ def cancel_job(
     response_class=FileResponse,
     responses={
         **_NOT_FOUND,
+        **_DOWNLOAD,
         200: {"content": {"application/zip": {}}, "description": "The bundle."},
         409: {"model": Problem, "description": "The job has not finished."},
     },
     summary="Download the bundle",
 )
 def get_result(
-    job_id: str, redis: RedisDep, owner: OwnerDep, layout: LayoutDep, index: IndexDep
-) -> FileResponse:
+    job_id: str, redis: RedisDep, owner: OwnerDep, files: FilesDep, index: IndexDep
+) -> Response:
     """A zip: the upscaled asset in the input's form, every HR map, report.json, previews."""
     job = fetch_job(job_id, owner, redis, index)
     state = state_of(job)
-    path = layout.bundle_path(job_id)
-    if state != JobState.FINISHED or not path.is_file():
+    key = files.bundle_key(job_id)
+    if state != JobState.FINISHED or not files.store.exists(key):
         raise ProblemError(
             409, "not-finished", f"the job is {state.value}; the result exists once it finished"
         )
     name = (job.meta or {}).get("name", "asset").rsplit(".", 1)[0] or "asset"
     scale = ((job.meta or {}).get("options") or {}).get("scale", "")
-    return FileResponse(path, media_type="application/zip", filename=f"{name}-pbrsr-x{scale}.zip")
+    return _download(files, key, "application/zip", f"{name}-pbrsr-x{scale}.zip")
 
 
-def _file_in(job_id: str, name: str, names: list[str], folder: Any) -> FileResponse:
-    if name not in names:  # only names that exist in the folder: never a path from the URL
+def _named(name: str, names: list[str]) -> None:
+    if name not in names:  # only names the store lists: never a path from the URL
         raise ProblemError(404, "not-found", f"no file '{name[:64]}' for this job")
-    return FileResponse(folder / name, media_type="image/png")
 
 
 @router.get(
     "/{job_id}/previews/{name}",
     response_class=FileResponse,
-    responses={**_NOT_FOUND, 200: {"content": {"image/png": {}}}},
+    responses={**_NOT_FOUND, **_DOWNLOAD, 200: {"content": {"image/png": {}}}},
     summary="A before/after render",
 )
 def get_preview(
@@ -284,21 +306,19 @@ def get_preview(
     name: str,
     redis: RedisDep,
     owner: OwnerDep,
-    layout: LayoutDep,
+    files: FilesDep,
     index: IndexDep,
-) -> FileResponse:
+) -> Response:
     """``preview.png`` (side by side) or ``before_<env>.png`` / ``after_<env>.png``."""
     fetch_job(job_id, owner, redis, index)
-    names = layout.preview_names(job_id)
-    out = layout.output_dir(job_id)
-    folder = out if name == "preview.png" else out / "previews"
-    return _file_in(job_id, name, names, folder)
+    _named(name, files.preview_names(job_id))
+    return _download(files, files.preview_key(job_id, name), "image/png")
 
 
 @router.get(
     "/{job_id}/thumbs/{name}",
     response_class=FileResponse,
-    responses={**_NOT_FOUND, 200: {"content": {"image/png": {}}}},
+    responses={**_NOT_FOUND, **_DOWNLOAD, 200: {"content": {"image/png": {}}}},
     summary="A thumbnail of one HR map",
 )
 def get_thumb(
@@ -306,8 +326,9 @@ def get_thumb(
     name: str,
     redis: RedisDep,
     owner: OwnerDep,
-    layout: LayoutDep,
+    files: FilesDep,
     index: IndexDep,
-) -> FileResponse:
+) -> Response:
     fetch_job(job_id, owner, redis, index)
-    return _file_in(job_id, name, layout.thumb_names(job_id), layout.thumbs_dir(job_id))
+    _named(name, files.thumb_names(job_id))
+    return _download(files, files.thumb_key(job_id, name), "image/png")
