@@ -256,9 +256,7 @@ class S3Store:
             if exc.code in ("NoSuchKey", "ResourceNotFound"):
                 raise FileNotFoundError(what) from None
             raise self._unavailable(exc.code) from None
-        except (MinioException, HTTPError, OSError) as exc:
-            if isinstance(exc, FileNotFoundError):
-                raise
+        except (MinioException, HTTPError) as exc:  # a local file's OSError passes through
             raise StoreUnavailable(
                 f"cannot reach the S3 endpoint PBRSR_S3_ENDPOINT_URL={self.endpoint_url} "
                 f"({type(exc).__name__})"
