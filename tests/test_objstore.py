@@ -307,3 +307,44 @@ def test_a_job_through_s3_with_nothing_shared_but_the_bucket(s3_endpoint, bucket
             assert client.get(f"/v1/jobs/{job_id}").status_code == 404
     finally:
         cleanup_redis(api)
+
+
+def test_a_worker_refused_by_the_store_fails_the_job_clearly(
+    s3_endpoint, bucket, tmp_path, monkeypatch
+):
+    from redis import Redis
+    from rq import SimpleWorker
+
+    from pbrsr_jobs.store import JobFiles, JobIndex, JobLayout
+    from worker import tasks
+
+    api = _s3_settings(tmp_path / "api", s3_endpoint, bucket)
+    worker = api.model_copy(update={"storage_dir": tmp_path / "worker" / "storage"})
+    try:
+        with TestClient(create_app(api), raise_server_exceptions=False) as client:
+            r = post_asset(client, asset_bytes(tmp_path), options={"method": "bicubic"})
+            job_id = r.json()["id"]
+            redis = Redis.from_url(worker.redis_url)
+            context = tasks.WorkerContext(
+                settings=worker,
+                layout=JobLayout(worker.prepare_storage()),
+                files=JobFiles(open_store(worker)),
+                index=JobIndex(redis, worker.key_prefix),
+                device="cpu",
+            )
+            monkeypatch.setattr(tasks, "_CONTEXT", context)
+            # the store turns the worker's key down between start-up and the job
+            httpx.post(f"{s3_endpoint}/moto-api/reset-auth", content=b"0", timeout=10)
+            try:
+                queue = Queue(worker.queue, connection=redis)
+                SimpleWorker([queue], connection=redis).work(burst=True)
+            finally:
+                httpx.post(f"{s3_endpoint}/moto-api/reset-auth", content=b"inf", timeout=10)
+            job = client.get(f"/v1/jobs/{job_id}").json()
+            assert job["status"] == "failed" and job["code"] == "storage-error", job
+            assert "job storage was unavailable" in job["error"]
+            assert s3_endpoint not in job["error"] and SECRET not in job["error"]
+            assert list((worker.storage_dir / "jobs").iterdir()) == []  # nothing left
+            assert client.get(f"/v1/jobs/{job_id}/result").status_code == 409
+    finally:
+        cleanup_redis(api)
