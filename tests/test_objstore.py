@@ -291,6 +291,9 @@ def test_a_job_through_s3_with_nothing_shared_but_the_bucket(s3_endpoint, bucket
             assert got.status_code == 200
             stored = raw.get_object(bucket, prefix + "result.zip").read()
             assert got.content == stored
+            link = client.get(f"/v1/jobs/{job_id}/result?redirect=false")  # for keyed fetches
+            assert link.status_code == 200 and link.json()["expires_in_s"] == 900
+            assert httpx.get(link.json()["url"], timeout=30).content == stored
             names = zipfile.ZipFile(io.BytesIO(got.content)).namelist()
             assert "asset.glb" in names and "report.json" in names
             links = job["links"]

@@ -32,7 +32,7 @@ from ..idempotency import IdempotencyKeyHeader, check_key, create_once
 from ..intake import create_job
 from ..job_views import detail_view, links, state_of, summary_view
 from ..problems import PROBLEM_RESPONSES, Problem, ProblemError
-from ..schemas import JobCreated, JobDetail, JobPage
+from ..schemas import DownloadLink, JobCreated, JobDetail, JobPage
 from ..uploads import receive_upload
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=PROBLEM_RESPONSES)
@@ -249,12 +249,28 @@ def cancel_job(
 _DOWNLOAD = {
     307: {"description": "With the s3 storage backend: a presigned URL of the file."},
 }
+RedirectQuery = Annotated[
+    bool,
+    Query(
+        description="false: with the s3 backend, answer the presigned URL as JSON "
+        "(DownloadLink) instead of redirecting to it (a browser's fetch with X-API-Key, which "
+        "must not follow the key to the bucket). The filesystem backend serves the file."
+    ),
+]
 
 
-def _download(files: JobFiles, key: str, media_type: str, filename: str | None = None) -> Response:
-    """The object ``key``: a 307 to a presigned URL when the store gives one (s3), else the
-    file itself."""
+def _download(
+    files: JobFiles,
+    key: str,
+    media_type: str,
+    filename: str | None,
+    link_expiry_s: int | None,
+) -> Response:
+    """The object ``key``: a 307 to a presigned URL when the store gives one (s3), or that
+    URL as JSON when ``link_expiry_s`` (its validity) is given; else the file itself."""
     url = files.store.url(key, filename=filename, media_type=media_type)
+    if url is not None and link_expiry_s is not None:
+        return _json(DownloadLink(url=url, expires_in_s=link_expiry_s))
     if url is not None:
         return RedirectResponse(url, status_code=307)
     path = files.store.local_path(key)
@@ -275,9 +291,16 @@ def _download(files: JobFiles, key: str, media_type: str, filename: str | None =
     summary="Download the bundle",
 )
 def get_result(
-    job_id: str, redis: RedisDep, owner: OwnerDep, files: FilesDep, index: IndexDep
+    job_id: str,
+    redis: RedisDep,
+    owner: OwnerDep,
+    settings: SettingsDep,
+    files: FilesDep,
+    index: IndexDep,
+    redirect: RedirectQuery = True,
 ) -> Response:
     """A zip: the upscaled asset in the input's form, every HR map, report.json, previews."""
+    link = None if redirect else settings.s3_presign_expiry_s
     job = fetch_job(job_id, owner, redis, index)
     state = state_of(job)
     key = files.bundle_key(job_id)
@@ -287,7 +310,7 @@ def get_result(
         )
     name = (job.meta or {}).get("name", "asset").rsplit(".", 1)[0] or "asset"
     scale = ((job.meta or {}).get("options") or {}).get("scale", "")
-    return _download(files, key, "application/zip", f"{name}-pbrsr-x{scale}.zip")
+    return _download(files, key, "application/zip", f"{name}-pbrsr-x{scale}.zip", link)
 
 
 def _named(name: str, names: list[str]) -> None:
@@ -306,13 +329,16 @@ def get_preview(
     name: str,
     redis: RedisDep,
     owner: OwnerDep,
+    settings: SettingsDep,
     files: FilesDep,
     index: IndexDep,
+    redirect: RedirectQuery = True,
 ) -> Response:
     """``preview.png`` (side by side) or ``before_<env>.png`` / ``after_<env>.png``."""
+    link = None if redirect else settings.s3_presign_expiry_s
     fetch_job(job_id, owner, redis, index)
     _named(name, files.preview_names(job_id))
-    return _download(files, files.preview_key(job_id, name), "image/png")
+    return _download(files, files.preview_key(job_id, name), "image/png", None, link)
 
 
 @router.get(
@@ -326,9 +352,12 @@ def get_thumb(
     name: str,
     redis: RedisDep,
     owner: OwnerDep,
+    settings: SettingsDep,
     files: FilesDep,
     index: IndexDep,
+    redirect: RedirectQuery = True,
 ) -> Response:
+    link = None if redirect else settings.s3_presign_expiry_s
     fetch_job(job_id, owner, redis, index)
     _named(name, files.thumb_names(job_id))
-    return _download(files, files.thumb_key(job_id, name), "image/png")
+    return _download(files, files.thumb_key(job_id, name), "image/png", None, link)
