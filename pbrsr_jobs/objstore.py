@@ -206,6 +206,7 @@ class S3Store:
         key_prefix: str = "",
         presign_expiry_s: int = 900,
         path_style: bool = True,
+        public_url: str | None = None,
         connect_timeout_s: float = 5.0,
         read_timeout_s: float = 120.0,
         retries: int = 2,
@@ -214,7 +215,6 @@ class S3Store:
         import urllib3
         from minio import Minio
 
-        parts = urlsplit(endpoint_url)
         self.endpoint_url = endpoint_url
         self.bucket = bucket
         self.key_prefix = key_prefix.strip("/") + "/" if key_prefix.strip("/") else ""
@@ -228,18 +228,26 @@ class S3Store:
                 total=retries, backoff_factor=0.2, status_forcelist=[500, 502, 503, 504]
             ),
         )
-        self.client = Minio(
-            parts.netloc,
-            access_key=access_key,
-            secret_key=secret_key,
-            secure=parts.scheme == "https",
-            region=region,  # known: presigning needs no request, no bucket-location lookup
-            http_client=http,
-        )
-        if path_style:
-            self.client.disable_virtual_style_endpoint()
-        else:
-            self.client.enable_virtual_style_endpoint()
+
+        def client(url: str) -> Minio:
+            where = urlsplit(url)
+            made = Minio(
+                where.netloc,
+                access_key=access_key,
+                secret_key=secret_key,
+                secure=where.scheme == "https",
+                region=region,  # known: presigning needs no request, no location lookup
+                http_client=http,
+            )
+            if path_style:
+                made.disable_virtual_style_endpoint()
+            else:
+                made.enable_virtual_style_endpoint()
+            return made
+
+        self.client = client(endpoint_url)
+        # presigned URLs are signed for the host clients use (signing sends no request)
+        self.signer = client(public_url) if public_url else self.client
 
     def _name(self, key: str) -> str:
         return self.key_prefix + _check_key(key)
@@ -348,7 +356,7 @@ class S3Store:
             headers["response-content-disposition"] = f'attachment; filename="{filename}"'
         return self._call(
             key,
-            self.client.presigned_get_object,
+            self.signer.presigned_get_object,
             self.bucket,
             self._name(key),
             expires=self.expiry,
@@ -382,6 +390,7 @@ def open_store(settings: Settings) -> ObjectStore:
         key_prefix=settings.s3_key_prefix,
         presign_expiry_s=settings.s3_presign_expiry_s,
         path_style=settings.s3_path_style,
+        public_url=settings.s3_public_url,
     )
 
 

@@ -69,6 +69,12 @@ class Settings(BaseSettings):
         None, description="S3 endpoint, http(s)://host[:port] (e.g. https://s3.eu-west-1."
         "amazonaws.com, http://minio:9000); required with the s3 backend."
     )  # fmt: skip
+    s3_public_url: str | None = Field(
+        None,
+        description="The endpoint as clients reach it, when not PBRSR_S3_ENDPOINT_URL (e.g. "
+        "the API and workers use http://minio:9000 inside a cluster, clients "
+        "https://files.example.com): presigned URLs are made for it. Unset = the endpoint.",
+    )
     s3_bucket: str | None = Field(
         None, description="Bucket of the job files; must exist. Required with the s3 backend."
     )
@@ -247,7 +253,7 @@ class Settings(BaseSettings):
             raise ValueError("must start with redis://, rediss:// or unix://")
         return value
 
-    @field_validator("s3_endpoint_url")
+    @field_validator("s3_endpoint_url", "s3_public_url")
     @classmethod
     def _endpoint(cls, value: str | None) -> str | None:
         if value is None or not value.strip():

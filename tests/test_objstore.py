@@ -167,11 +167,25 @@ def test_a_result_is_stored_whole_or_not_at_all(store, tmp_path):
     assert store.list(f"jobs/{job_id}/") == []
 
 
+def test_presigned_urls_name_the_public_endpoint(s3_endpoint, bucket, tmp_path):
+    port = s3_endpoint.rsplit(":", 1)[1]
+    public = f"http://localhost:{port}"  # another name of the same server, as clients see it
+    store = open_store(_s3_settings(tmp_path, s3_endpoint, bucket, s3_public_url=public))
+    store.put_bytes("jobs/p/result.zip", b"PK public")
+    url = store.url("jobs/p/result.zip", filename="r.zip", media_type="application/zip")
+    assert url.startswith(f"{public}/{bucket}/farm-a/jobs/p/result.zip?")
+    got = httpx.get(url, timeout=10)
+    assert got.content == b"PK public"
+    assert got.headers["content-disposition"] == 'attachment; filename="r.zip"'
+
+
 def test_settings_for_s3_are_checked(tmp_path):
     with pytest.raises(ValidationError, match="PBRSR_S3_ENDPOINT_URL and PBRSR_S3_BUCKET"):
         Settings(_env_file=None, storage_backend="s3", s3_endpoint_url="http://h:9000")
     with pytest.raises(ValidationError, match="without a path"):
         Settings(_env_file=None, s3_endpoint_url="http://h:9000/bucket")
+    with pytest.raises(ValidationError, match="without a path"):
+        Settings(_env_file=None, s3_public_url="https://files.example.test/x?y=1")
     with pytest.raises(ValidationError, match="http"):
         Settings(_env_file=None, s3_endpoint_url="ftp://h")
     with pytest.raises(ValidationError):
