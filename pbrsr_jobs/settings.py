@@ -57,7 +57,8 @@ class Settings(BaseSettings):
     storage_dir: Path = Field(
         default_factory=_default_storage,
         description="Root of job storage (jobs/<id>/input, output, result.zip); a shared "
-        "NFS path when API and workers run on different machines.",
+        "NFS path when API and workers run on different machines. With the s3 backend: "
+        "this machine's scratch space (uploads while they stream, a job's working folder).",
     )
     storage_backend: Literal["filesystem", "s3"] = Field(
         "filesystem",
