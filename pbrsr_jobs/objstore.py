@@ -88,7 +88,7 @@ def _check_prefix(prefix: str) -> str:
     return prefix
 
 
-def media_type_of(key: str) -> str:
+def _media_type(key: str) -> str:
     return mimetypes.guess_type(key)[0] or "application/octet-stream"
 
 
@@ -286,7 +286,7 @@ class S3Store:
 
     def put_file(self, key: str, src: Path) -> None:
         name = self._name(key)
-        self._call(key, self.client.fput_object, self.bucket, name, str(src), media_type_of(key))
+        self._call(key, self.client.fput_object, self.bucket, name, str(src), _media_type(key))
 
     def put_bytes(self, key: str, data: bytes) -> None:
         name = self._name(key)
@@ -297,7 +297,7 @@ class S3Store:
             name,
             io.BytesIO(data),
             len(data),
-            media_type_of(key),
+            _media_type(key),
         )
 
     def get_file(self, key: str, dest: Path) -> None:
