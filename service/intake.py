@@ -182,12 +182,11 @@ def stage_job(
     layout: JobLayout,
     batch_id: str | None = None,
 ) -> StagedJob:
-    """Check ``upload`` and store it as a new job's input and manifest (the upload is moved
-    away). On any error the upload and the job's folder are removed."""
+    """Check ``upload`` (a file part came) and store it as a new job's input and manifest
+    (the upload is moved away). On any error the upload and the job's folder are removed."""
+    assert upload.path is not None
     job_id = new_job_id()
     try:
-        if upload.path is None:
-            raise ProblemError(400, "bad-request", "the request has no 'file' part")
         if upload.size == 0:
             raise InvalidAsset("the uploaded file is empty")
         from pbrsr_core.asset import detect_kind

@@ -242,3 +242,16 @@ def test_a_burst_worker_runs_a_batch_to_finished(client, settings, tmp_path):
     for job in batch["jobs"]:
         assert job["links"]["result"] == f"/v1/jobs/{job['id']}/result"
         assert client.get(job["links"]["result"], headers=A).status_code == 200
+
+
+def test_the_batch_endpoints_are_documented_and_a_job_still_takes_one_file(client, tmp_path):
+    spec = client.get("/openapi.json").json()
+    assert {"/v1/batches", "/v1/batches/{batch_id}"} <= spec["paths"].keys()
+    form = spec["paths"]["/v1/batches"]["post"]["requestBody"]["content"]["multipart/form-data"]
+    assert form["schema"]["properties"]["file"]["type"] == "array"
+    assert "batch" in [p["name"] for p in spec["paths"]["/v1/jobs"]["get"]["parameters"]]
+    data = asset_bytes(tmp_path)
+    parts = [("file", ("a.glb", data)), ("file", ("b.glb", data))]
+    body = _problem(client.post("/v1/jobs", files=parts, headers=A), 400, "bad-request")
+    assert body["detail"] == "send exactly one 'file' part"
+    assert list((client.app.state.settings.storage_dir / "uploads").iterdir()) == []
