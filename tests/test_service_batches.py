@@ -139,16 +139,38 @@ def test_one_bad_file_refuses_the_whole_batch(client, settings, tmp_path):
     _nothing_kept(settings)
 
 
-def test_more_files_than_a_batch_may_hold_is_413(tmp_path):
-    gen = settings_scope(tmp_path, max_batch_files=2)
+def test_too_many_files_or_one_too_large_is_413(tmp_path):
+    gen = settings_scope(tmp_path, max_batch_files=2, max_upload_mb=0.05)
     settings = next(gen)
     try:
         with TestClient(create_app(settings), raise_server_exceptions=False) as c:
             body = _problem(post_batch(c, three(tmp_path), headers={}), 413, "limit-exceeded")
             assert "at most 2 files" in body["detail"]
+            files = [("small.glb", asset_bytes(tmp_path)), ("big.glb", b"\0" * 100_000)]
+            body = _problem(post_batch(c, files, headers={}), 413, "limit-exceeded")
+            assert body["detail"].startswith("file 2 (big.glb) is larger than"), body
             _nothing_kept(settings)
     finally:
         next(gen, None)
+
+
+def test_a_failure_while_queueing_takes_back_the_jobs_already_queued(
+    client, settings, tmp_path, monkeypatch
+):
+    real = Queue.enqueue
+    calls = []
+
+    def second_fails(self, *args, **kwargs):
+        calls.append(args)
+        if len(calls) == 2:
+            raise ConnectionError("redis went away")
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(Queue, "enqueue", second_fails)
+    _problem(post_batch(client, three(tmp_path)), 500, "internal-error")
+    assert len(calls) == 2
+    _nothing_kept(settings)
+    assert client.get("/v1/jobs", headers=A).json()["total"] == 0
 
 
 def test_a_batch_counts_all_its_jobs_against_the_limits(tmp_path):
