@@ -21,6 +21,8 @@ from pathlib import Path
 from fastapi import Request
 from python_multipart.multipart import MultipartParser, parse_options_header
 
+from pbrsr_jobs.store import safe_display_name
+
 from .problems import ProblemError
 
 MAX_FIELD_BYTES = 64 * 1024
@@ -44,8 +46,6 @@ class Upload:
 def file_label(number: int, filename: str | None) -> str:
     """How a problem body names the ``number``-th file of a batch (1-based), with its
     sanitised name."""
-    from pbrsr_jobs.store import safe_display_name
-
     return f"file {number} ({safe_display_name(filename, fallback='unnamed')})"
 
 
