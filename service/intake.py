@@ -13,7 +13,6 @@ with a problem naming it (``file 2 (chair.glb): ...``) and nothing is kept.
 
 from __future__ import annotations
 
-import contextlib
 import gc
 import json
 import os
@@ -38,6 +37,7 @@ from pbrsr_jobs.store import (
 )
 from pbrsr_jobs.webhooks import parse_webhook
 
+from .deletion import delete_job
 from .problems import ProblemError
 from .uploads import Upload, discard_uploads, file_label
 
@@ -326,19 +326,6 @@ def create_batch(
     except BaseException:
         discard_uploads(uploads)
         for job in staged:
-            _withdraw(job.id, index, layout)
+            delete_job(job.id, index, layout)  # queued or not
         raise
     return batch_id, job_ids
-
-
-def _withdraw(job_id: str, index: JobIndex, layout: JobLayout) -> None:
-    """Take back a job of a batch that failed to be created: off its queue, out of the index
-    and the events, its folder removed."""
-    from rq.exceptions import NoSuchJobError
-    from rq.job import Job
-
-    with contextlib.suppress(NoSuchJobError):
-        Job.fetch(job_id, connection=index.redis).delete()
-    index.remove(job_id)
-    JobEvents(index.redis, index.prefix).forget(job_id)
-    layout.remove(job_id)

@@ -11,6 +11,7 @@ from fastapi.concurrency import run_in_threadpool
 from pbrsr_jobs.idempotency import IdempotencyKeys
 from pbrsr_jobs.store import JobState
 
+from ..deletion import delete_job
 from ..deps import IndexDep, LayoutDep, OwnerDep, QueueDep, RedisDep, SettingsDep
 from ..idempotency import IdempotencyKeyHeader, check_key, create_once
 from ..intake import create_batch
@@ -18,7 +19,7 @@ from ..job_views import batch_links, batch_view, links, state_of
 from ..problems import PROBLEM_RESPONSES, Problem
 from ..schemas import BatchCreated, BatchDetail, JobCreated
 from ..uploads import receive_uploads
-from .jobs import UPLOAD_BODY, cancel_active, delete_ended, fetch_batch, fetch_jobs
+from .jobs import UPLOAD_BODY, cancel_active, fetch_batch, fetch_jobs
 
 router = APIRouter(prefix="/v1/batches", tags=["batches"], responses=PROBLEM_RESPONSES)
 
@@ -142,10 +143,8 @@ def cancel_batch(
     jobs = fetch_jobs(job_ids, redis)
     states = [state_of(job) for job in jobs]
     if all(state.is_terminal for state in states):
-        for job in jobs:
-            delete_ended(job, layout, index)
-        for job_id in set(job_ids) - {job.id for job in jobs}:  # their RQ jobs expired
-            index.remove(job_id)
+        for job_id in job_ids:  # those whose RQ job expired too
+            delete_job(job_id, index, layout)
         return Response(status_code=204)
     for job, state in zip(jobs, states, strict=True):
         if not state.is_terminal:

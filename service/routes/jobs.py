@@ -16,9 +16,10 @@ from rq.job import Job
 from pbrsr_jobs.events import JobEvents
 from pbrsr_jobs.idempotency import IdempotencyKeys
 from pbrsr_jobs.settings import Settings
-from pbrsr_jobs.store import JobIndex, JobLayout, JobState, check_job_id, sweep_expired
+from pbrsr_jobs.store import JobIndex, JobState, check_job_id, sweep_expired
 from pbrsr_jobs.webhooks import LOG_ENTRIES, WebhookQueue
 
+from ..deletion import delete_job
 from ..deps import (
     AsyncRedisDep,
     IndexDep,
@@ -251,19 +252,10 @@ def cancel_job(
     job = fetch_job(job_id, owner, redis, index)
     state = state_of(job)
     if state.is_terminal:
-        delete_ended(job, layout, index)
+        delete_job(job.id, index, layout)
         return Response(status_code=204)
     cancel_active(job, state, owner, settings, index)
     return detail_view(job, index, layout)
-
-
-def delete_ended(job: Job, layout: JobLayout, index: JobIndex) -> None:
-    """Delete an ended job: its RQ job, files, index entries and events."""
-    with contextlib.suppress(NoSuchJobError):
-        job.delete()
-    layout.remove(job.id)
-    index.remove(job.id)
-    JobEvents(index.redis, index.prefix).forget(job.id)
 
 
 def cancel_active(
