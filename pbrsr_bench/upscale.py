@@ -1,12 +1,12 @@
 """`pbrsr bench upscale`: speed against error.
 
-For each asset (a procedural one, and every asset of ``../shared/assets`` when that folder is
-present) the ground-truth maps are degraded by the paper's protocol (``pbrsr degrade``), then
-upscaled by bicubic, the direct prior and each PBR-SR preset. Each run is a subprocess, so its
-wall time and peak memory (max RSS) are its own. PBR-SR runs also save their maps at
-intermediate iterations, so the plot shows render PSNR against wall time as curves, with the
-baselines as lines. Metrics: PSNR per map over UV-covered texels, and render PSNR over the
-paper's evaluation views under two environment maps.
+For each asset (two procedural ones, a brick box and a foliage cutout, and every asset of
+``../shared/assets`` when that folder is present) the ground-truth maps are degraded by the paper's
+protocol (``pbrsr degrade``), then upscaled by bicubic, the direct prior and each PBR-SR preset.
+Each run is a subprocess, so its wall time and peak memory (max RSS) are its own. PBR-SR runs also
+save their maps at intermediate iterations, so the plot shows render PSNR against wall time as
+curves, with the baselines as lines. Metrics: PSNR per map over UV-covered texels, and render PSNR
+over the paper's evaluation views under two environment maps.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pbrsr_core.asset import load_asset, make_demo_asset
+from pbrsr_core.asset import load_asset, make_cutout_asset, make_demo_asset
 from pbrsr_core.asset.model import Asset
 from pbrsr_core.degrade import degrade_asset
 from pbrsr_core.metrics import RenderEvaluator, eval_cameras, map_metrics
@@ -59,15 +59,17 @@ def bench_assets(
     log,
     include_shared: bool = True,
 ) -> list[tuple[str, Path]]:
-    """(name, ground-truth file) of the assets a benchmark runs on: the procedural demo asset
-    (written under ``work``) and, with ``include_shared``, the shared assets (all, or those
-    ``names``), saying so when the shared folder is absent. A name with no folder there is a
-    ValueError."""
+    """(name, ground-truth file) of the assets a benchmark runs on: the procedural demo asset and a
+    procedural foliage cutout (alphaMode MASK; both written under ``work``) and, with
+    ``include_shared``, the shared assets (all, or those ``names``), saying so when the shared
+    folder is absent. A name with no folder there is a ValueError."""
     todo: list[tuple[str, Path]] = []
     if include_procedural:
         todo.append(
             ("procedural", make_demo_asset(work / "procedural" / "demo.glb", size=procedural_size))
         )
+        cutout = make_cutout_asset(work / "procedural-cutout" / "cutout.glb", size=procedural_size)
+        todo.append(("procedural-cutout", cutout))
     if include_shared and shared.is_dir():
         found = find_assets(shared, names)
         missing = sorted(set(names or ()) - {name for name, _ in found})

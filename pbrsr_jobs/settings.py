@@ -201,6 +201,9 @@ class Settings(BaseSettings):
         description="Jobs waiting in all queues together; a submission over it is 503 with "
         "Retry-After. 0 = no limit.",
     )
+    max_batch_files: int = Field(
+        100, ge=1, le=10_000, description="Most files (jobs) in one POST /v1/batches."
+    )
 
     # -- webhooks (pbrsr_jobs.webhooks) -------------------------------------------------
     webhook_secret: str | None = Field(

@@ -18,7 +18,7 @@ from pbrsr_jobs.settings import Settings, get_settings
 from pbrsr_jobs.store import JobFiles
 
 from .problems import install_handlers
-from .routes import events, health, jobs, prometheus, webhooks
+from .routes import batches, events, health, jobs, prometheus, webhooks
 
 STATIC_DIR = Path(__file__).parent / "static"
 log = logging.getLogger("pbrsr.service")
@@ -79,6 +79,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             expose_headers=["Location"],
         )
     app.include_router(jobs.router)
+    app.include_router(batches.router)
     app.include_router(events.router)
     app.include_router(webhooks.router)
     app.include_router(health.router)

@@ -1,4 +1,5 @@
-"""Job views: an RQ job + its meta + the job's stored files -> the API's response models."""
+"""Job views: an RQ job + its meta + the job's stored files -> the API's response models; a
+batch's jobs -> its aggregate view."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from pydantic import TypeAdapter, ValidationError
 from pbrsr_jobs.store import JobFiles, JobIndex, JobState, job_state
 from pbrsr_jobs.webhooks import WebhookQueue
 
-from .schemas import HistoryPoint, JobDetail, JobLinks, JobSummary
+from .schemas import BatchDetail, BatchLinks, HistoryPoint, JobDetail, JobLinks, JobSummary
 
 DIED_MESSAGE = (
     "the worker running this job stopped unexpectedly (killed or out of memory) on every "
@@ -81,6 +82,7 @@ def _common(
         "error": error if state == JobState.FAILED else None,
         "cancel_requested": (not state.is_terminal)
         and (index.cancel_requested(job.id) if cancel is None else cancel),
+        "batch": meta.get("batch"),
         "links": links(job.id, state, store, meta.get("files")),
     }
 
@@ -140,3 +142,39 @@ def _deliveries(job: Any, index: JobIndex) -> list[dict]:
     if not (job.meta or {}).get("webhook"):
         return []
     return WebhookQueue(index.redis, index.prefix).deliveries(job.id)
+
+
+def batch_links(batch_id: str) -> BatchLinks:
+    base = f"/v1/batches/{batch_id}"
+    return BatchLinks(self=base, cancel=base, jobs=f"/v1/jobs?batch={batch_id}")
+
+
+def batch_status(states: list[JobState]) -> JobState:
+    """A batch's state from its jobs' (see ``BatchDetail.status``)."""
+    if not all(s.is_terminal for s in states):
+        started = any(s != JobState.QUEUED for s in states)
+        return JobState.RUNNING if started else JobState.QUEUED
+    if all(s == JobState.FINISHED for s in states):
+        return JobState.FINISHED
+    return JobState.FAILED if JobState.FAILED in states else JobState.CANCELED
+
+
+def batch_view(
+    batch_id: str, created_at: float, jobs: list[Any], index: JobIndex, store: JobFiles
+) -> BatchDetail:
+    """``jobs``: the batch's RQ jobs in order. Cancel flags are read in one round trip."""
+    cancels = index.cancel_flags([j.id for j in jobs if not state_of(j).is_terminal])
+    items = [summary_view(j, index, store, j.id in cancels) for j in jobs]
+    states = [item.status for item in items]
+    counts = {state: states.count(state) for state in JobState}
+    done = [1.0 if item.status.is_terminal else item.fraction for item in items]
+    return BatchDetail(
+        id=batch_id,
+        status=batch_status(states),
+        created_at=_dt(created_at) or datetime.now(UTC),
+        total=len(items),
+        counts=counts,
+        fraction=sum(done) / len(done) if done else 1.0,
+        jobs=items,
+        links=batch_links(batch_id),
+    )

@@ -1,4 +1,4 @@
-"""`pbrsr bench upscale` end to end on a tiny procedural asset (no shared assets)."""
+"""`pbrsr bench upscale` end to end on the tiny procedural assets (no shared assets)."""
 
 from __future__ import annotations
 
@@ -24,15 +24,19 @@ def test_bench_upscale_small_run(tmp_path: Path):
         log=said.append,
     )
     assert any("not present" in s for s in said)
-    assert [r["method"] for r in rows] == ["fast"]
+    assert [(r["asset"], r["method"]) for r in rows] == [
+        ("procedural", "fast"),
+        ("procedural-cutout", "fast"),
+    ]
     for r in rows:
         assert r["run_s"] > 0 and r["peak_rss_mib"] > 0
         assert 5.0 < r["render.psnr"] < 100.0 and "maps.albedo.psnr" in r
+    assert "maps.normal.psnr" in rows[1]  # the foliage card's normal map is scored too
     fast = rows[0]
     assert fast["curve"] and fast["curve"][0]["it"] == 0
     assert [c["seconds"] for c in fast["curve"]] == sorted(c["seconds"] for c in fast["curve"])
     saved = json.loads((tmp_path / "out" / "results.json").read_text())
-    assert len(saved["rows"]) == 1
+    assert len(saved["rows"]) == 2
     assert (tmp_path / "out" / "speed_vs_error.png").stat().st_size > 0
     assert "| procedural | fast |" in (tmp_path / "out" / "results.md").read_text()
 
@@ -89,10 +93,10 @@ def test_bench_assets_refuses_an_unknown_name(tmp_path: Path):
     assert [name for name, _ in found] == ["Chair"]
     with pytest.raises(ValueError, match="Chiar not found"):
         bench_assets(tmp_path / "w", False, 16, shared, ["Chair", "Chiar"], print)
-    # --no-shared: the procedural asset alone, whatever the shared folder holds
+    # --no-shared: the procedural assets alone, whatever the shared folder holds
     said: list[str] = []
     only = bench_assets(tmp_path / "w2", True, 16, shared, None, said.append, include_shared=False)
-    assert [name for name, _ in only] == ["procedural"] and said == []
+    assert [name for name, _ in only] == ["procedural", "procedural-cutout"] and said == []
 
 
 def test_methods_may_name_their_prior_and_unknown_ones_are_refused():

@@ -1,7 +1,8 @@
 """The object stores behind job storage, against a real S3 server (moto's, over HTTP on
 localhost, started here) and a real folder: the store contract for both, clear errors for a
-missing bucket, refused credentials and an endpoint that is down, and a whole job through the
-API and a ``pbrsr worker --burst`` process that share nothing but Redis and the bucket."""
+missing bucket, refused credentials and an endpoint that is down, and a whole job and a batch
+through the API and a ``pbrsr worker --burst`` process that share nothing but Redis and the
+bucket."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ import pytest
 from fastapi.testclient import TestClient
 from pydantic import ValidationError
 from rq import Queue
+from test_service_batches import post_batch
 from test_service_support import (
     PBRSR,
     REPO,
@@ -26,6 +28,7 @@ from test_service_support import (
     post_asset,
     redis_client,
     settings_env,
+    worker_process,
 )
 
 from pbrsr_jobs.objstore import FilesystemStore, S3Store, StoreUnavailable, open_store
@@ -322,6 +325,59 @@ def test_a_job_through_s3_with_nothing_shared_but_the_bucket(s3_endpoint, bucket
             assert client.delete(f"/v1/jobs/{job_id}").status_code == 204
             assert list(raw.list_objects(bucket, prefix, recursive=True)) == []
             assert client.get(f"/v1/jobs/{job_id}").status_code == 404
+    finally:
+        cleanup_redis(api)
+
+
+@pytest.mark.slow
+def test_a_batch_through_s3_and_its_deletion(s3_endpoint, bucket, tmp_path):
+    api = _s3_settings(tmp_path / "api", s3_endpoint, bucket)
+    worker = api.model_copy(update={"storage_dir": tmp_path / "worker" / "storage"})
+    raw = _raw_client(s3_endpoint)
+
+    def keys(prefix: str) -> list[str]:
+        return sorted(o.object_name for o in raw.list_objects(bucket, prefix, recursive=True))
+
+    try:
+        with TestClient(create_app(api), raise_server_exceptions=False) as client:
+            assets = [(f"asset{size}.glb", asset_bytes(tmp_path, size=size)) for size in (32, 48)]
+            r = post_batch(client, assets, headers={})
+            assert r.status_code == 202, r.text
+            batch_id, ids = r.json()["id"], [job["id"] for job in r.json()["jobs"]]
+            for job_id in ids:
+                prefix = f"farm-a/jobs/{job_id}/"
+                assert keys(prefix) == [prefix + "input/asset.glb", prefix + "job.json"]
+            assert list((api.storage_dir / "jobs").iterdir()) == []  # nothing kept locally
+
+            log = tmp_path / "worker.log"
+            with worker_process(worker, log, extra=["--burst"]) as proc:
+                proc.wait(timeout=240)
+            batch = client.get(f"/v1/batches/{batch_id}").json()
+            assert batch["status"] == "finished", log.read_text()[-3000:]
+            assert [job["id"] for job in batch["jobs"]] == ids
+            assert list((worker.storage_dir / "jobs").iterdir()) == []  # released
+            for job in batch["jobs"]:
+                r = client.get(job["links"]["result"], follow_redirects=False)
+                assert r.status_code == 307
+                got = httpx.get(r.headers["location"], timeout=30)
+                stored = raw.get_object(bucket, f"farm-a/jobs/{job['id']}/result.zip").read()
+                assert got.status_code == 200 and got.content == stored
+                assert "asset.glb" in zipfile.ZipFile(io.BytesIO(got.content)).namelist()
+
+            # the store turns the API's key down: the batch is kept whole, 503
+            httpx.post(f"{s3_endpoint}/moto-api/reset-auth", content=b"0", timeout=10)
+            try:
+                r = client.delete(f"/v1/batches/{batch_id}")
+            finally:
+                httpx.post(f"{s3_endpoint}/moto-api/reset-auth", content=b"inf", timeout=10)
+            assert r.status_code == 503 and r.json()["code"] == "storage-unavailable", r.text
+            assert client.get(f"/v1/batches/{batch_id}").json()["total"] == 2
+            assert all(f"farm-a/jobs/{job_id}/result.zip" in keys("farm-a/") for job_id in ids)
+
+            assert client.delete(f"/v1/batches/{batch_id}").status_code == 204
+            assert keys("farm-a/") == []
+            assert client.get(f"/v1/batches/{batch_id}").status_code == 404
+            assert all(client.get(f"/v1/jobs/{job_id}").status_code == 404 for job_id in ids)
     finally:
         cleanup_redis(api)
 

@@ -15,9 +15,11 @@ from rq.job import Job
 
 from pbrsr_jobs.events import JobEvents
 from pbrsr_jobs.idempotency import IdempotencyKeys
+from pbrsr_jobs.settings import Settings
 from pbrsr_jobs.store import JobFiles, JobIndex, JobState, check_job_id, sweep_expired
 from pbrsr_jobs.webhooks import LOG_ENTRIES, WebhookQueue
 
+from ..deletion import delete_job
 from ..deps import (
     AsyncRedisDep,
     FilesDep,
@@ -39,7 +41,7 @@ router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=PROBLEM_RESPONSES
 
 _NOT_FOUND = {404: {"model": Problem, "description": "No such job (or not yours)."}}
 
-_UPLOAD_BODY = {
+UPLOAD_BODY = {
     "requestBody": {
         "required": True,
         "content": {
@@ -81,7 +83,7 @@ def fetch_job(job_id: str, owner: str, redis: Any, index: JobIndex) -> Job:
     "",
     status_code=202,
     response_model=JobCreated,
-    openapi_extra=_UPLOAD_BODY,
+    openapi_extra=UPLOAD_BODY,
     responses={
         200: {"model": JobCreated, "description": "A retry: the Idempotency-Key's first job."},
         400: {"model": Problem, "description": "Not a readable asset, or a bad Idempotency-Key."},
@@ -118,7 +120,7 @@ async def submit_job(
         job_id = await run_in_threadpool(create)
     else:
         keys = IdempotencyKeys(index.redis, settings.key_prefix, settings.idempotency_ttl_s)
-        job_id, created = await create_once(keys, owner, key, upload, create)
+        job_id, created = await create_once(keys, owner, key, [upload], upload.fields, create)
         if not created:
             response.status_code = 200
     response.headers["Location"] = f"/v1/jobs/{job_id}"
@@ -135,22 +137,29 @@ def list_jobs(
     index: IndexDep,
     background: BackgroundTasks,
     status: Annotated[JobState | None, Query(description="Only jobs in this state.")] = None,
+    batch: Annotated[
+        str | None, Query(description="Only the jobs of this batch, in the order of its files.")
+    ] = None,
     offset: Annotated[int, Query(ge=0)] = 0,
     limit: Annotated[int, Query(ge=1, le=1000)] = 20,
 ) -> Response:
-    """Newest first; ``offset``/``limit`` pagination; optional ``status`` filter."""
+    """Newest first (a batch's jobs: in the order of its files); ``offset``/``limit``
+    pagination; optional ``status`` and ``batch`` filters (an unknown batch, or another
+    key's, is 404)."""
     limit = min(limit, settings.page_size_max)
     if index.try_sweep_lock(settings.maintenance_s):
         background.add_task(sweep_expired, redis, index, layout, files, settings.retention_s)
-    if status is None:
+    if status is None and batch is None:
         ids, total = index.page(owner, offset, limit)
         jobs = [j for j in Job.fetch_many(ids, connection=redis) if j is not None]
     else:
-        all_ids, _ = index.page(owner, 0, 1_000_000)
-        matching = []
-        for start in range(0, len(all_ids), 500):
-            batch = Job.fetch_many(all_ids[start : start + 500], connection=redis)
-            matching.extend(j for j in batch if j is not None and state_of(j) == status)
+        if batch is None:
+            all_ids, _ = index.page(owner, 0, 1_000_000)
+        else:
+            all_ids = fetch_batch(batch, owner, index)[1]
+        matching = [
+            j for j in fetch_jobs(all_ids, redis) if status is None or state_of(j) == status
+        ]
         total = len(matching)
         jobs = matching[offset : offset + limit]
     cancels = index.cancel_flags([j.id for j in jobs if not state_of(j).is_terminal])
@@ -160,7 +169,26 @@ def list_jobs(
         nxt = f"/v1/jobs?offset={offset + limit}&limit={limit}"
         if status is not None:
             nxt += f"&status={status.value}"
+        if batch is not None:
+            nxt += f"&batch={batch}"
     return _json(JobPage(items=items, total=total, offset=offset, limit=limit, next=nxt))
+
+
+def fetch_jobs(job_ids: list[str], redis: Any) -> list[Job]:
+    """The RQ jobs of ``job_ids`` that still exist, in order, read 500 at a time."""
+    jobs: list[Job] = []
+    for start in range(0, len(job_ids), 500):
+        chunk = Job.fetch_many(job_ids[start : start + 500], connection=redis)
+        jobs.extend(j for j in chunk if j is not None)
+    return jobs
+
+
+def fetch_batch(batch_id: str, owner: str, index: JobIndex) -> tuple[float, list[str]]:
+    """The caller's batch (creation time, job ids), or 404 (also for someone else's)."""
+    found = index.batch(batch_id) if check_job_id(batch_id) else None
+    if found is None or found[0] != owner:
+        raise ProblemError(404, "not-found", "no such batch")
+    return found[1], found[2]
 
 
 @router.get("/{job_id}", response_model=JobDetail, responses=_NOT_FOUND, summary="Job status")
@@ -228,22 +256,25 @@ def cancel_job(
     job = fetch_job(job_id, owner, redis, index)
     state = state_of(job)
     if state.is_terminal:
-        files.remove(job_id)  # first: a store that is down answers 503, the job kept
-        layout.remove(job_id)
-        with contextlib.suppress(NoSuchJobError):
-            job.delete()
-        index.remove(job_id)
-        JobEvents(redis, settings.key_prefix).forget(job_id)
+        delete_job(job.id, index, layout, files)
         return Response(status_code=204)
-    index.request_cancel(job_id, settings.job_timeout + 3600)
+    cancel_active(job, state, owner, settings, index)
+    return detail_view(job, index, files)
+
+
+def cancel_active(
+    job: Job, state: JobState, owner: str, settings: Settings, index: JobIndex
+) -> None:
+    """Cancel a job not yet ended (``state``): flag it for its worker; a queued one is
+    taken off its queue at once and announced ``cancelled``."""
+    index.request_cancel(job.id, settings.job_timeout + 3600)
     if state == JobState.QUEUED:
         with contextlib.suppress(InvalidJobOperation):
             job.cancel()
         job.refresh()
         if state_of(job) == JobState.CANCELED:  # a worker did not take it first
             webhook = (job.meta or {}).get("webhook")
-            JobEvents(redis, settings.key_prefix).publish(job_id, owner, "cancelled", {}, webhook)
-    return detail_view(job, index, files)
+            JobEvents(index.redis, index.prefix).publish(job.id, owner, "cancelled", {}, webhook)
 
 
 _DOWNLOAD = {

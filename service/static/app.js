@@ -168,6 +168,10 @@ function jobRow(job) {
   const bits = [fmtTime(job.created_at)];
   if (job.status === "running") bits.push(job.stage || "starting", job.eta_s != null ? `ETA ${fmtDuration(job.eta_s)}` : "");
   if (job.status === "failed" && job.error) bits.push(job.error.slice(0, 80));
+  if (job.batch) {
+    bits.push(`batch ${job.batch.slice(0, 8)}`);
+    sub.title = `batch ${job.batch}`;
+  }
   sub.textContent = bits.filter(Boolean).join(" · ");
   const bar = document.createElement("div");
   bar.className = "bar thin";
