@@ -15,6 +15,7 @@ import copy
 import json
 import mimetypes
 import struct
+from collections.abc import Callable
 from pathlib import Path, PurePosixPath
 
 import numpy as np
@@ -240,7 +241,8 @@ def meshopt_variant(src: Path, dst: Path, *, filters: bool = True) -> Path:
         j = var.view(rows.tobytes(), **fields)
         var.compressed[j] = bytes(blob)
         acc = accessors[acc_index]
-        for k in ("byteOffset", "sparse"):
+        drop = ("byteOffset", "sparse", "min", "max") if acc_fields else ("byteOffset", "sparse")
+        for k in drop:  # bounds in another component type would need converting: dropped
             acc.pop(k, None)
         acc.update(bufferView=j, **acc_fields)
 
@@ -315,3 +317,10 @@ def meshopt_variant(src: Path, dst: Path, *, filters: bool = True) -> Path:
     if quantised:
         var.require("KHR_mesh_quantization")
     return var.write(dst)
+
+
+BENCH_VARIANTS: dict[str, tuple[str, Callable[[Path, Path], Path]]] = {
+    "WaterBottle-draco": ("WaterBottle", draco_variant),
+}
+"""Variants ``pbrsr bench upscale`` adds: {name: (shared asset it is made from, maker)}, so
+the speed table shows what decoding and keeping compressed geometry costs."""
