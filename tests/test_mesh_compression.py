@@ -276,3 +276,33 @@ def test_mesh_quantization_reads_normalized_integers(tmp_path):
         out.mesh.v_uv[0], a.mesh.v_uv[0]
     )
     assert validate_gltf(tmp_path / "out" / "q.glb")["numErrors"] == 0
+
+
+def test_an_image_in_a_meshopt_view_is_decoded(files, tmp_path):
+    import meshopt
+
+    glb = files["exact"].read_bytes()
+    jlen = int.from_bytes(glb[12:16], "little")
+    doc = json.loads(glb[20 : 20 + jlen])
+    binary = bytearray(glb[28 + jlen :])
+    view = doc["bufferViews"][doc["images"][0]["bufferView"]]
+    data = bytes(binary[view["byteOffset"] : view["byteOffset"] + view["byteLength"]])
+    data += b"\x00" * (-len(data) % 4)  # PNG readers stop at IEND
+    blob = meshopt.encode_gltf_buffer(np.frombuffer(data, np.uint8).reshape(-1, 4), "ATTRIBUTES")
+    binary += b"\x00" * (-len(binary) % 4)
+    fallback = doc["buffers"][1]
+    view.update(buffer=1, byteOffset=fallback["byteLength"], byteLength=len(data))
+    fallback["byteLength"] += len(data)
+    ext = {"buffer": 0, "byteOffset": len(binary), "byteLength": len(blob), "byteStride": 4}
+    view["extensions"] = {MESHOPT: {**ext, "count": len(data) // 4, "mode": "ATTRIBUTES"}}
+    binary += blob + b"\x00" * (-len(blob) % 4)
+    js = json.dumps(doc).encode()
+    js += b" " * (-len(js) % 4)
+    body = len(js).to_bytes(4, "little") + b"JSON" + js
+    body += len(binary).to_bytes(4, "little") + b"BIN\x00" + bytes(binary)
+    path = tmp_path / "img.glb"
+    path.write_bytes(
+        b"glTF" + (2).to_bytes(4, "little") + (12 + len(body)).to_bytes(4, "little") + body
+    )
+    a, b = load_asset(files["exact"]), load_asset(path)
+    assert np.array_equal(a.images[0].pixels, b.images[0].pixels)

@@ -574,7 +574,8 @@ def load_asset(path: Path, limits: Limits = Limits(), *, unwrap_missing_uvs: boo
     builder = _Builder(doc, buffers, limits, unwrap_missing_uvs, geometry)
     builder.walk(_scene_roots(doc))
     mesh = builder.build()
-    images = _load_images(doc, folder, buffers, limits, resources, used)
+    decoded_buffers = geometry.buffers if geometry else buffers  # meshopt views decoded
+    images = _load_images(doc, folder, decoded_buffers, limits, resources, used)
     by_index = {im.index: im for im in images}
     for m in materials:
         for role, ref in m.textures().items():
