@@ -198,8 +198,17 @@ def test_meshopt_glb_saved_as_gltf_keeps_its_fallback_buffer_without_a_uri(files
     assert sorted(p.name for p in tmp_path.glob("*.bin")) == ["m.bin"]
     b = load_asset(written[0])
     assert torch.equal(a.mesh.v_pos, b.mesh.v_pos) and torch.equal(a.mesh.v_nrm, b.mesh.v_nrm)
+    # and back to a GLB: a BIN buffer goes first, the meshopt ranges' buffer indices shift too
+    glb = save_asset(b, tmp_path / "again" / "m.glb", new)[0]
+    c = load_asset(glb)
+    assert [("uri" in buf) for buf in c.document["buffers"]] == [False, True, False]
+    assert all(
+        e["buffer"] == 1 for v in c.document["bufferViews"] if (e := meshopt_view(v)) is not None
+    )
+    assert torch.equal(a.mesh.v_pos, c.mesh.v_pos) and torch.equal(a.mesh.v_tng, c.mesh.v_tng)
     if validator_available():
         assert validate_gltf(written[0])["numErrors"] == 0
+        assert validate_gltf(glb)["numErrors"] == 0
 
 
 def test_draco_primitive_without_uvs_is_unwrapped_and_stored_uncompressed(files, tmp_path):
