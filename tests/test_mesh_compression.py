@@ -315,3 +315,21 @@ def test_an_image_in_a_meshopt_view_is_decoded(files, tmp_path):
     )
     a, b = load_asset(files["exact"]), load_asset(path)
     assert np.array_equal(a.images[0].pixels, b.images[0].pixels)
+
+
+def test_a_fallback_buffer_first_in_a_gltf_goes_last_in_a_glb(files, tmp_path):
+    a = load_asset(files["meshopt"])
+    gltf = save_asset(a, tmp_path / "g" / "m.gltf")[0]
+    doc = json.loads(gltf.read_text())
+    doc["buffers"].reverse()  # the fallback buffer (no uri) first
+    for bv in doc["bufferViews"]:
+        for holder in (bv, meshopt_view(bv) or {}):
+            if "buffer" in holder:
+                holder["buffer"] = 1 - holder["buffer"]
+    gltf.write_text(json.dumps(doc))
+    glb = save_asset(load_asset(gltf), tmp_path / "o" / "m.glb")[0]  # no image replaced
+    b = load_asset(glb)
+    assert [("uri" in buf) for buf in b.document["buffers"]] == [True, False]
+    assert torch.equal(a.mesh.v_pos, b.mesh.v_pos) and torch.equal(a.mesh.v_nrm, b.mesh.v_nrm)
+    if validator_available():
+        assert validate_gltf(glb)["numErrors"] == 0

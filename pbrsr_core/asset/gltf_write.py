@@ -371,8 +371,16 @@ def _save_glb(asset: Asset, out_path: Path, encoded: dict) -> list[Path]:
         if (encoded or asset.generated_uvs or doc.get("buffers"))
         else []
     )
-    placeholders = meshopt_placeholders(asset.document, asset.kind == "glb")
-    has_bin = bool(buffers) and "uri" not in buffers[0] and 0 not in placeholders
+    if buffers and 0 in meshopt_placeholders(asset.document, asset.kind == "glb"):
+        # a GLB's buffer 0 without a uri is its BIN chunk: a meshopt fallback buffer goes last
+        moved = {old: old - 1 if old else len(buffers) - 1 for old in range(len(buffers))}
+        for k, v in doc.items():
+            if k != "buffers":
+                _walk_refs(
+                    v, "buffer", lambda d: d.update(buffer=moved.get(d["buffer"], d["buffer"]))
+                )
+        buffers.append(buffers.pop(0))
+    has_bin = bool(buffers) and "uri" not in buffers[0]
     if has_bin:
         old_bin = bytes(asset.buffers[0][: buffers[0]["byteLength"]])
     else:
