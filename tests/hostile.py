@@ -333,6 +333,31 @@ def hostile_cases(folder: Path) -> list[HostileCase]:
 
     glb_edited("draco_magic", draco, lambda doc: None, InvalidAsset, "Draco data", not_draco)
 
+    def huge_counts(doc, binary):  # the header declares 2**31 vertices and triangles
+        bv = draco_view(doc)
+        start = bv["byteOffset"]
+        blob = bytes(binary[start : start + bv["byteLength"]])
+        assert blob[8] == 1  # edgebreaker: traversal type, vertices, triangles
+        pos = 12
+        for _ in range(2):
+            while blob[pos] & 0x80:
+                pos += 1
+            pos += 1
+        lie = blob[:12] + b"\x80\x80\x80\x80\x08" * 2 + blob[pos:]
+        lie += b"\x00" * (-len(lie) % 4)
+        binary[start:] = lie + binary[start + bv["byteLength"] :]
+        bv["byteLength"] = len(lie)
+        doc["buffers"][0]["byteLength"] = len(binary)
+
+    glb_edited("draco_header_lies", draco, lambda doc: None, InvalidAsset, "declares", huge_counts)
+
+    def point_cloud(doc, binary):
+        binary[draco_view(doc)["byteOffset"] + 7] = 0
+
+    glb_edited(
+        "draco_point_cloud", draco, lambda doc: None, InvalidAsset, "point cloud", point_cloud
+    )
+
     def wrong_id(doc):
         ext = doc["meshes"][0]["primitives"][0]["extensions"]["KHR_draco_mesh_compression"]
         ext["attributes"]["POSITION"] = 99

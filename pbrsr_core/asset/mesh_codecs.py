@@ -34,6 +34,7 @@ MESHOPT_MODES = ("ATTRIBUTES", "TRIANGLES", "INDICES")
 MESHOPT_FILTERS = ("NONE", "OCTAHEDRAL", "QUATERNION", "EXPONENTIAL")
 DRACO_MAGIC = b"DRACO"
 _DRACO_HEADER = 11  # "DRACO", major, minor, encoder type, method, flags (u16)
+_DRACO_MESH, _DRACO_EDGEBREAKER, _DRACO_METADATA = 1, 1, 0x8000
 
 
 def _ext(obj: dict, name: str) -> dict | None:
@@ -219,6 +220,39 @@ def _decoded_values(data: np.ndarray, dtype: np.dtype, what: str) -> np.ndarray:
     return data.astype(dtype)
 
 
+def _varint(data: bytes, pos: int, what: str) -> tuple[int, int]:
+    value = 0
+    for k in range(10):
+        if pos + k >= len(data):
+            raise InvalidAsset(f"{what}: the Draco data ends inside its header")
+        byte = data[pos + k]
+        value |= (byte & 0x7F) << (7 * k)
+        if not byte & 0x80:
+            return value, pos + k + 1
+    raise InvalidAsset(f"{what}: the Draco header has a malformed number")
+
+
+def draco_header_counts(data: bytes, what: str) -> tuple[int, int, bool] | None:
+    """(triangles, vertices, whether the vertex count is exact) that a Draco 2.2 mesh without
+    metadata declares in its header, read before any decoding (edgebreaker declares the
+    vertices it encodes, at most the points it decodes to); None for a layout it does not
+    parse (other versions, metadata first). A point cloud is InvalidAsset."""
+    major, minor, encoder, method = data[5], data[6], data[7], data[8]
+    if encoder != _DRACO_MESH:
+        raise InvalidAsset(f"{what}: the Draco data is a point cloud, not a mesh")
+    flags = int.from_bytes(data[9:11], "little")
+    if (major, minor) != (2, 2) or flags & _DRACO_METADATA:
+        return None
+    pos = _DRACO_HEADER
+    if method == _DRACO_EDGEBREAKER:
+        vertices, pos = _varint(data, pos + 1, what)  # after the traversal type
+        faces, _ = _varint(data, pos, what)
+        return faces, vertices, False
+    faces, pos = _varint(data, pos, what)
+    vertices, _ = _varint(data, pos, what)
+    return faces, vertices, True
+
+
 def decode_draco(doc: dict, buffers: list[bytes], limits: Limits) -> dict[int, np.ndarray]:
     """{accessor index: (count, ncomp) array in the accessor's component type} for the
     indices and every attribute each Draco primitive's extension maps to a Draco attribute."""
@@ -264,6 +298,14 @@ def decode_draco(doc: dict, buffers: list[bytes], limits: Limits) -> dict[int, n
         data = bytes(buffer_view_bytes(doc, buffers, bvi, what))
         if len(data) < _DRACO_HEADER or not data.startswith(DRACO_MAGIC):
             raise InvalidAsset(f"{what}: bufferView {bvi} does not hold Draco data")
+        declared = draco_header_counts(data, what) if tri_count is not None else None
+        if declared is not None:
+            n_tri, n_vert, exact = declared
+            if n_tri != tri_count or n_vert > nverts or (exact and n_vert != nverts):
+                raise InvalidAsset(
+                    f"{what}: the Draco data declares {n_tri} triangles and {n_vert} "
+                    f"vertices; its accessors hold {tri_count} and {nverts}"
+                )
         if bvi not in decoded:
             try:
                 decoded[bvi] = DracoPy.decode(data)
