@@ -333,3 +333,47 @@ def test_a_fallback_buffer_first_in_a_gltf_goes_last_in_a_glb(files, tmp_path):
     assert torch.equal(a.mesh.v_pos, b.mesh.v_pos) and torch.equal(a.mesh.v_nrm, b.mesh.v_nrm)
     if validator_available():
         assert validate_gltf(glb)["numErrors"] == 0
+
+
+def test_draco_integer_attributes_read_through_their_normalized_accessors(tmp_path):
+    import DracoPy
+
+    pos, _, uv, tri = grid_quad(2, 1.0)
+    q_uv = np.round(uv * 65535).astype(np.uint16)  # KHR_mesh_quantization texture coordinates
+    blob = DracoPy.encode(
+        pos.astype(np.float32),
+        tri.astype(np.uint32),
+        preserve_order=True,
+        generic_attributes={7: q_uv},
+    )
+    points = DracoPy.decode(blob)
+    pid = next(a["unique_id"] for a in points.attributes if a["attribute_type"] == 0)
+    b = GltfBuilder()
+    img = b.texture(b.image(_pattern(16, 1), name="base"))
+    m = b.add("materials", {"pbrMetallicRoughness": {"baseColorTexture": {"index": img}}})
+    n = len(points.points)
+    bounds = {"min": pos.min(0).tolist(), "max": pos.max(0).tolist()}
+    attrs = {
+        "POSITION": b.add(
+            "accessors", {"componentType": 5126, "count": n, "type": "VEC3", **bounds}
+        ),
+        "TEXCOORD_0": b.add(
+            "accessors", {"componentType": 5123, "normalized": True, "count": n, "type": "VEC2"}
+        ),
+    }
+    indices = b.add("accessors", {"componentType": 5123, "count": tri.size, "type": "SCALAR"})
+    ext = {"bufferView": b.view(bytes(blob)), "attributes": {"POSITION": pid, "TEXCOORD_0": 7}}
+    prim = {"attributes": attrs, "indices": indices, "material": m, "extensions": {DRACO: ext}}
+    b.doc["nodes"] = [{"mesh": b.add("meshes", {"primitives": [prim]})}]
+    b.doc["scenes"] = [{"nodes": [0]}]
+    for name in (DRACO, "KHR_mesh_quantization"):
+        b.use_extension(name)
+    b.doc["extensionsRequired"] = [DRACO, "KHR_mesh_quantization"]
+    path = b.write(tmp_path / "q.glb", kind="glb")
+    a = load_asset(path)
+    assert a.geometry.accessors[attrs["TEXCOORD_0"]].dtype == np.uint16
+    corners = tri.reshape(-1)  # no NORMAL: flat normals, one vertex per triangle corner
+    assert np.allclose(a.mesh.v_uv[0].numpy(), uv[corners], atol=0.5 / 65535 + 1e-7)
+    assert np.abs(a.mesh.v_pos.numpy() - pos[corners]).max() <= 2.0 / (2**14 - 1)
+    if validator_available():
+        assert validate_gltf(path)["numErrors"] == 0
