@@ -22,7 +22,13 @@ import numpy as np
 
 from pbrsr_core.asset import load_asset
 from pbrsr_core.asset.gltf_build import ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER
-from pbrsr_core.asset.gltf_read import CHUNK_BIN, CHUNK_JSON, buffer_view_bytes, read_accessor_raw
+from pbrsr_core.asset.gltf_read import (
+    CHUNK_BIN,
+    CHUNK_JSON,
+    buffer_view_bytes,
+    read_accessor,
+    read_accessor_raw,
+)
 from pbrsr_core.asset.gltf_write import _walk_refs, atomic_write
 from pbrsr_core.asset.mesh_codecs import DRACO, MESHOPT
 from pbrsr_core.asset.model import Asset
@@ -32,7 +38,7 @@ DRACO_BITS = {"POSITION": 14, "NORMAL": 10, "TEXCOORD": 12}
 """Draco quantisation bits per attribute kind (glTF-Transform's defaults); TANGENT and the
 texture coordinate sets after the first are stored as lossless float generic attributes."""
 
-_DRACO_SEMANTICS = ("POSITION", "NORMAL", "TANGENT")
+_SEMANTICS = ("POSITION", "NORMAL", "TANGENT")
 
 
 class _Variant:
@@ -66,33 +72,36 @@ class _Variant:
         return len(views) - 1
 
     def read(self, index: int) -> tuple[np.ndarray, dict]:
+        """Accessor ``index`` of the source in its own component type, and its JSON."""
         return read_accessor_raw(self.asset.document, self.asset.buffers, index)
 
-    def primitives(self, semantics_ok) -> list[tuple[str, dict]]:
-        """(label, primitive) of each triangle list the codec can take: every attribute
-        accepted by ``semantics_ok`` and its accessors used by no other primitive."""
+    def values(self, index: int) -> np.ndarray:
+        """Accessor ``index`` of the source as float64 (normalized integers scaled)."""
+        return read_accessor(self.asset.document, self.asset.buffers, index)
+
+    def primitives(self) -> list[dict]:
+        """Each triangle list a codec can take: POSITION, NORMAL, TANGENT and TEXCOORD_n
+        only, no morph targets, accessors used by no other primitive."""
         uses: dict[int, int] = {}
-        prims = []
-        for mi, mesh in enumerate(self.doc.get("meshes", [])):
-            for pi, prim in enumerate(mesh.get("primitives", [])):
-                prims.append((f"mesh {mi} primitive {pi}", prim))
-                refs = list(prim.get("attributes", {}).values()) + [prim.get("indices")]
-                refs += [a for t in prim.get("targets", []) for a in t.values()]
-                for a in refs:
-                    if isinstance(a, int):
-                        uses[a] = uses.get(a, 0) + 1
+        prims = [p for mesh in self.doc.get("meshes", []) for p in mesh.get("primitives", [])]
+        for prim in prims:
+            refs = list(prim.get("attributes", {}).values()) + [prim.get("indices")]
+            refs += [a for t in prim.get("targets", []) for a in t.values()]
+            for a in refs:
+                if isinstance(a, int):
+                    uses[a] = uses.get(a, 0) + 1
         out = []
-        for label, prim in prims:
+        for prim in prims:
             attrs = prim.get("attributes", {})
             if (
                 prim.get("mode", 4) == 4
                 and "indices" in prim
                 and "POSITION" in attrs
                 and not prim.get("targets")
-                and all(semantics_ok(s) for s in attrs)
+                and all(s in _SEMANTICS or s.startswith("TEXCOORD_") for s in attrs)
                 and all(uses[a] == 1 for a in [*attrs.values(), prim["indices"]])
             ):
-                out.append((label, prim))
+                out.append(prim)
         return out
 
     def require(self, *names: str) -> None:
@@ -156,11 +165,9 @@ def draco_variant(src: Path, dst: Path, *, compression_level: int = 7) -> Path:
 
     var = _Variant(load_asset(Path(src)))
     accessors = var.doc["accessors"]
-    for _label, prim in var.primitives(
-        lambda s: s in _DRACO_SEMANTICS or s.startswith("TEXCOORD_")
-    ):
+    for prim in var.primitives():
         attrs = prim["attributes"]
-        data = {s: var.read(a)[0].astype(np.float64) for s, a in attrs.items()}
+        data = {s: var.values(a) for s, a in attrs.items()}
         uv0 = data.get("TEXCOORD_0")
         # Draco's own attribute kinds take one set each; the rest go as generic attributes
         generic_ids = {
@@ -247,14 +254,12 @@ def meshopt_variant(src: Path, dst: Path, *, filters: bool = True) -> Path:
         acc.update(bufferView=j, **acc_fields)
 
     quantised = False
-    for _label, prim in var.primitives(
-        lambda s: s in _DRACO_SEMANTICS or s.startswith("TEXCOORD_")
-    ):
+    for prim in var.primitives():
         for s, a in prim["attributes"].items():
             raw, acc = var.read(a)
             if filters and s in ("NORMAL", "TANGENT"):
                 vec = np.zeros((raw.shape[0], 4), np.float32)
-                vec[:, : raw.shape[1]] = raw
+                vec[:, : raw.shape[1]] = var.values(a)
                 rows = meshopt.encode_filter_oct(vec, 4, 8)
                 compress(
                     a,
