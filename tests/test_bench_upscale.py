@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from pbrsr_bench.upscale import bench_assets, run
-from pbrsr_core.asset import make_demo_asset
+from pbrsr_bench.upscale import bench_assets, run, summary
+from pbrsr_core.asset import load_asset, make_demo_asset, make_test_asset
 
 
 def test_bench_upscale_small_run(tmp_path: Path):
@@ -55,7 +55,7 @@ def _row(asset, method, render, albedo, run_s):
 
 
 def test_summary_gains_worst_map_and_fast_share():
-    from pbrsr_bench.upscale import markdown_table, summary, summary_table
+    from pbrsr_bench.upscale import markdown_table, summary_table
 
     rows = [
         _row("a", "bicubic", 28.0, 27.0, 1.0),
@@ -97,6 +97,41 @@ def test_bench_assets_refuses_an_unknown_name(tmp_path: Path):
     said: list[str] = []
     only = bench_assets(tmp_path / "w2", True, 16, shared, None, said.append, include_shared=False)
     assert [name for name, _ in only] == ["procedural", "procedural-cutout"] and said == []
+
+
+def test_bench_assets_adds_the_draco_variant_of_the_water_bottle(tmp_path: Path):
+    shared = tmp_path / "shared"
+    (shared / "WaterBottle").mkdir(parents=True)
+    make_test_asset(shared / "WaterBottle" / "WaterBottle.gltf", size=16)
+    said: list[str] = []
+    found = dict(bench_assets(tmp_path / "w", False, 16, shared, None, said.append, variants=True))
+    assert list(found) == ["WaterBottle", "WaterBottle-draco"]
+    variant = found["WaterBottle-draco"]
+    assert variant == tmp_path / "w" / "WaterBottle-draco" / "WaterBottle.glb"
+    plain, draco = load_asset(found["WaterBottle"]), load_asset(variant)
+    assert draco.document["extensionsRequired"] == ["KHR_draco_mesh_compression"]
+    assert draco.geometry is not None and draco.geometry.accessors
+    assert draco.mesh.num_triangles == plain.mesh.num_triangles
+    assert [im.pixels.shape for im in draco.images] == [im.pixels.shape for im in plain.images]
+    # named alone, the variant comes without its source; other benchmarks get none
+    only = bench_assets(
+        tmp_path / "w2", False, 16, shared, ["WaterBottle-draco"], print, variants=True
+    )
+    assert [name for name, _ in only] == ["WaterBottle-draco"]
+    assert [n for n, _ in bench_assets(tmp_path / "w3", False, 16, shared, None, print)] == [
+        "WaterBottle"
+    ]
+    # the variant repeats its source's maps: the summary means leave it out
+    rows = [
+        {"asset": a, "method": m, "render.psnr": p, "run_s": 1.0, "peak_rss_mib": 1.0}
+        for a, m, p in [
+            ("WaterBottle", "bicubic", 30.0),
+            ("WaterBottle", "fast", 31.0),
+            ("WaterBottle-draco", "bicubic", 20.0),
+            ("WaterBottle-draco", "fast", 30.0),
+        ]
+    ]
+    assert summary(rows)[0]["render_gain_db"] == 1.0 and summary(rows)[0]["assets"] == 1
 
 
 def test_methods_may_name_their_prior_and_unknown_ones_are_refused():
