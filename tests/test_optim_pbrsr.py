@@ -60,6 +60,25 @@ def _quad_scene():
     return mesh, mats
 
 
+def _optimize_base_color(mesh, mats, lr, init, **kw):
+    """``optimize_pbrsr`` of one base-colour map (image 0) on the CPU, under a uniform white
+    light unless ``light`` is given."""
+    kw.setdefault("light", EnvLight.uniform(1.0))
+    return optimize_pbrsr(mesh, mats, {0: lr}, {0: init}, {0: {"base_color"}}, device=CPU, **kw)
+
+
+def _oracle_on_quad(gt, s, **kw):
+    """The oracle run on the quad: the LR map is ``gt`` averaged down by ``s``, the init its
+    bicubic upscaling, the pseudo-GT the render of ``gt``. -> (result, init)"""
+    lr = _down(gt, s)
+    init = _bicubic(lr, s)
+    mesh, mats = _quad_scene()
+    res = _optimize_base_color(
+        mesh, mats, lr, init, scale=s, prior=None, reference_maps={0: gt}, **kw
+    )
+    return res, init
+
+
 def _cfg(**kw):
     base = dict(
         iterations=60, lr=1e-2, batch_views=1, log_every=10, mask_unseen=True, lambda_pix=100.0
@@ -71,23 +90,9 @@ def _cfg(**kw):
 def test_recovers_hr_albedo_better_than_bicubic():
     s, h = 4, 48
     gt = _pattern(h, h)
-    lr = _down(gt, s)
-    init = _bicubic(lr, s)
-    mesh, mats = _quad_scene()
     t0 = time.perf_counter()
-    res = optimize_pbrsr(
-        mesh,
-        mats,
-        {0: lr},
-        {0: init},
-        {0: {"base_color"}},
-        scale=s,
-        prior=None,
-        light=EnvLight.uniform(1.0),
-        config=_cfg(iterations=40, lr=1.5e-2),
-        device=CPU,
-        cameras=[_front_camera(72)],
-        reference_maps={0: gt},
+    res, init = _oracle_on_quad(
+        gt, s, config=_cfg(iterations=40, lr=1.5e-2), cameras=[_front_camera(72)]
     )
     elapsed = time.perf_counter() - t0
     m = res.seen_masks[0]
@@ -112,32 +117,15 @@ def test_recovers_hr_albedo_better_than_bicubic():
 def test_same_seed_same_maps_in_both_sampling_modes():
     s = 2
     gt = _pattern(16, 24, seed=1)
-    lr = _down(gt, s)
-    init = _bicubic(lr, s)
-    mesh, mats = _quad_scene()
     cams = [_front_camera(48), cam.look_at((0.6, 0.3, 1.9), fov_deg=30.0, resolution=(48, 48))]
     for mode in ("views", "pixels"):
         cfg = _cfg(iterations=8, sampling=mode, pixels_per_step=500)
         runs = [
-            optimize_pbrsr(
-                mesh,
-                mats,
-                {0: lr},
-                {0: init},
-                {0: {"base_color"}},
-                scale=s,
-                prior=None,
-                light=EnvLight.uniform(0.8),
-                config=cfg,
-                device=CPU,
-                cameras=cams,
-                reference_maps={0: gt},
-                seed=3,
-            ).maps[0]
+            _oracle_on_quad(gt, s, light=EnvLight.uniform(0.8), config=cfg, cameras=cams, seed=3)
             for _ in range(2)
         ]
-        assert torch.equal(runs[0], runs[1]), mode
-        assert not torch.equal(runs[0], init)
+        assert torch.equal(runs[0][0].maps[0], runs[1][0].maps[0]), mode
+        assert not torch.equal(runs[0][0].maps[0], runs[0][1])
 
 
 def test_hard_cases_stay_finite_and_in_range():
@@ -192,26 +180,9 @@ def test_hard_cases_stay_finite_and_in_range():
 
 def test_unseen_texels_keep_their_init():
     s = 2
-    gt = _pattern(32, 32)
-    lr = _down(gt, s)
-    init = _bicubic(lr, s)
-    mesh, mats = _quad_scene()
     # a narrow view of the quad's centre: the border texels are never seen
     c = cam.look_at((0.0, 0.0, 1.0), fov_deg=20.0, resolution=(64, 64))
-    res = optimize_pbrsr(
-        mesh,
-        mats,
-        {0: lr},
-        {0: init},
-        {0: {"base_color"}},
-        scale=s,
-        prior=None,
-        light=EnvLight.uniform(1.0),
-        config=_cfg(iterations=10),
-        device=CPU,
-        cameras=[c],
-        reference_maps={0: gt},
-    )
+    res, init = _oracle_on_quad(_pattern(32, 32), s, config=_cfg(iterations=10), cameras=[c])
     seen = res.seen_masks[0]
     assert 0.05 < float(seen.float().mean()) < 0.9
     assert torch.equal(res.maps[0][~seen], init[~seen])
@@ -239,26 +210,19 @@ def test_pseudo_gt_is_cached_on_disk_and_reused(tmp_path):
     init = _bicubic(lr, s)
     mesh, mats = _quad_scene()
     cams = [_front_camera(32), cam.look_at((0.5, 0.0, 1.9), fov_deg=30.0, resolution=(32, 32))]
-    kw = dict(
-        scale=s,
-        light=EnvLight.uniform(1.0),
-        config=_cfg(iterations=3),
-        device=CPU,
-        cameras=cams,
-        cache_dir=tmp_path,
-    )
+    kw = dict(scale=s, config=_cfg(iterations=3), cameras=cams, cache_dir=tmp_path)
     pseudo_gt.MEMORY_CACHE.clear()
     p1 = _CountingPrior()
-    r1 = optimize_pbrsr(mesh, mats, {0: lr}, {0: init}, {0: {"base_color"}}, prior=p1, **kw)
+    r1 = _optimize_base_color(mesh, mats, lr, init, prior=p1, **kw)
     assert p1.calls == 2 and len(list(tmp_path.glob("*.npy"))) == 2
     pseudo_gt.MEMORY_CACHE.clear()  # a retried job in a new process: only the disk cache
     p2 = _CountingPrior()
-    r2 = optimize_pbrsr(mesh, mats, {0: lr}, {0: init}, {0: {"base_color"}}, prior=p2, **kw)
+    r2 = _optimize_base_color(mesh, mats, lr, init, prior=p2, **kw)
     assert p2.calls == 0
     assert torch.equal(r1.maps[0], r2.maps[0])
     # other init maps: a different key, recomputed
     p3 = _CountingPrior()
-    optimize_pbrsr(mesh, mats, {0: lr}, {0: init * 0.9}, {0: {"base_color"}}, prior=p3, **kw)
+    _optimize_base_color(mesh, mats, lr, init * 0.9, prior=p3, **kw)
     assert p3.calls == 2
 
 
@@ -327,17 +291,14 @@ def test_coverage_views_on_a_sphere_and_progress_cancel():
         n_candidates=12, max_views=6, max_render_res=64, iterations=4, log_every=1
     )
     events = []
-    res = optimize_pbrsr(
+    res = _optimize_base_color(
         mesh,
         mats,
-        {0: lr},
-        {0: init},
-        {0: {"base_color"}},
+        lr,
+        init,
         scale=s,
         prior=BicubicPrior(),
-        light=EnvLight.uniform(1.0),
         config=cfg,
-        device=CPU,
         progress=events.append,
     )
     assert 2 <= len(res.views) <= 6
@@ -353,18 +314,8 @@ def test_coverage_views_on_a_sphere_and_progress_cancel():
             raise Cancelled("stop")
 
     with pytest.raises(Cancelled):
-        optimize_pbrsr(
-            mesh,
-            mats,
-            {0: lr},
-            {0: init},
-            {0: {"base_color"}},
-            scale=s,
-            prior=BicubicPrior(),
-            light=EnvLight.uniform(1.0),
-            config=cfg,
-            device=CPU,
-            progress=cancel,
+        _optimize_base_color(
+            mesh, mats, lr, init, scale=s, prior=BicubicPrior(), config=cfg, progress=cancel
         )
 
 
@@ -410,16 +361,13 @@ def test_prior_sees_only_the_covered_box_and_covered_pixels_keep_their_target(
         pseudo_gt.MEMORY_CACHE.clear()
         prior = _ShapeRecordingPrior()
         cache = tmp_path / f"c{context}"
-        optimize_pbrsr(
+        _optimize_base_color(
             mesh,
             mats,
-            {0: lr},
-            {0: _bicubic(lr, s)},
-            {0: {"base_color"}},
+            lr,
+            _bicubic(lr, s),
             prior=prior,
             scale=s,
-            light=EnvLight.uniform(1.0),
-            device=CPU,
             cameras=[camera],
             config=_cfg(iterations=1, lr_render=lr_render, target="detail"),
             cache_dir=cache,
