@@ -10,6 +10,7 @@ import time
 import zipfile
 
 import pytest
+from bundles import assert_one_bundle
 from fastapi.testclient import TestClient
 from test_service_support import (
     asset_bytes,
@@ -92,16 +93,7 @@ def test_job_runs_to_finished_with_a_complete_bundle(env):
         assert img.status_code == 200 and img.content[:4] == b"\x89PNG"
     assert len(job["links"]["thumbs"]) == len(maps)
 
-    # nothing temporary left, one bundle
-    job_dir = JobLayout(settings.storage_dir).job_dir(job_id)
-    assert sorted(p.name for p in job_dir.iterdir()) == [
-        "input",
-        "job.json",
-        "output",
-        "result.zip",
-        "thumbs",
-        "work",
-    ]
+    assert_one_bundle(settings.storage_dir, job_id)
     metrics = client.get("/metrics").text
     assert 'pbrsr_jobs_completed_total{state="finished"} 1.0' in metrics
     assert "pbrsr_job_duration_seconds_count 1.0" in metrics

@@ -10,6 +10,7 @@ import signal
 import zipfile
 
 import pytest
+from bundles import assert_one_bundle
 from fastapi.testclient import TestClient
 from rq.job import Job
 from test_service_support import (
@@ -22,7 +23,6 @@ from test_service_support import (
     worker_process,
 )
 
-from pbrsr_jobs.store import JobLayout
 from service.app import create_app
 
 pytestmark = pytest.mark.slow
@@ -67,15 +67,7 @@ def test_killed_worker_job_is_retried_elsewhere_and_finishes(tmp_path):
             assert r.status_code == 200
             names = zipfile.ZipFile(io.BytesIO(r.content)).namelist()
             assert "asset.glb" in names and "report.json" in names
-            job_dir = JobLayout(settings.storage_dir).job_dir(job_id)
-            assert sorted(p.name for p in job_dir.iterdir()) == [
-                "input",
-                "job.json",
-                "output",
-                "result.zip",
-                "thumbs",
-                "work",
-            ]
+            job_dir = assert_one_bundle(settings.storage_dir, job_id)
             assert not list((job_dir / "output").rglob(".*"))
     finally:
         cleanup_redis(settings)
