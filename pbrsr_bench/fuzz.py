@@ -21,7 +21,7 @@ outside the case's own folder are escapes too.
 
 Mutations draw their choices through a small :class:`Draw` interface, so the same mutators run
 from a seeded numpy generator here (case ``i`` of seed ``s`` is reproducible) and from
-hypothesis' ``st.data()`` in ``tests/test_fuzz.py`` (with shrinking).
+hypothesis' ``st.data()`` in ``tests/core/asset/test_fuzz.py`` (with shrinking).
 """
 
 from __future__ import annotations
