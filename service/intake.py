@@ -3,8 +3,10 @@
 The checks run before anything is queued, so a bad asset is answered 4xx at once rather than
 failing later on a worker: options (422), file kind by magic bytes (415), zip safety and
 size (400/413), that the asset parses and every resource resolves (400), triangle and texture
-limits (413), and that there is something to upscale (422). Stored names are generated
-(``input/asset.glb``; a zip's ``.gltf`` is renamed ``asset.gltf`` beside its resources).
+limits (413), and that there is something to upscale (422). The input is unpacked and
+checked in a temporary folder of this machine, then stored as the job's objects
+(:class:`~pbrsr_jobs.store.JobFiles`). Stored names are generated (``input/asset.glb``; a
+zip's ``.gltf`` is renamed ``asset.gltf`` beside its resources).
 
 A batch (:func:`create_batch`) is all or nothing: every file is checked as a single job's
 would be, and only when all pass are its jobs queued; the first bad file refuses the batch
@@ -13,9 +15,11 @@ with a problem naming it (``file 2 (chair.glb): ...``) and nothing is kept.
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import json
 import os
+import shutil
 import threading
 import time
 from dataclasses import dataclass
@@ -25,8 +29,10 @@ from typing import Any
 from pbrsr_core.errors import InvalidAsset, InvalidOptions, PbrsrError, UnprocessableAsset
 from pbrsr_core.options import UpscaleOptions
 from pbrsr_jobs.events import JobEvents
+from pbrsr_jobs.objstore import StoreUnavailable
 from pbrsr_jobs.settings import PRIORITIES, Settings
 from pbrsr_jobs.store import (
+    JobFiles,
     JobIndex,
     JobLayout,
     JobManifest,
@@ -37,7 +43,7 @@ from pbrsr_jobs.store import (
 )
 from pbrsr_jobs.webhooks import parse_webhook
 
-from .deletion import delete_job
+from .deletion import take_back
 from .problems import ProblemError
 from .uploads import Upload, discard_uploads, file_label
 
@@ -166,7 +172,7 @@ def parse_form(fields: dict[str, str], settings: Settings) -> JobForm:
 
 @dataclass(frozen=True)
 class StagedJob:
-    """A checked asset stored as a job (folder and manifest), not yet queued."""
+    """A checked asset stored as a job (input and manifest objects), not yet queued."""
 
     id: str
     owner: str
@@ -180,10 +186,13 @@ def stage_job(
     owner: str,
     settings: Settings,
     layout: JobLayout,
+    files: JobFiles,
     batch_id: str | None = None,
 ) -> StagedJob:
-    """Check ``upload`` (a file part came) and store it as a new job's input and manifest
-    (the upload is moved away). On any error the upload and the job's folder are removed."""
+    """Check ``upload`` (a file part came) in a staging folder of this machine and store it
+    as a new job's input and manifest objects (the upload and the staging folder are
+    removed). On any error the upload, the job's working folder and objects are removed; a
+    store that cannot be reached is StoreUnavailable (503)."""
     assert upload.path is not None
     job_id = new_job_id()
     try:
@@ -192,11 +201,13 @@ def stage_job(
         from pbrsr_core.asset import detect_kind
 
         kind = detect_kind(upload.path)
-        rel = _place_input(upload.path, kind, layout.input_dir(job_id), settings)
-        output_mpix = check_asset(layout.input_dir(job_id) / rel, form.options, settings)
+        staging = layout.tmp_dir(job_id, "input")
+        rel = _place_input(upload.path, kind, staging, settings)
+        output_mpix = check_asset(staging / rel, form.options, settings)
         name = safe_display_name(upload.filename, fallback=f"asset.{kind}")
         created = time.time()
-        layout.write_manifest(
+        files.put_input(job_id, staging)
+        files.write_manifest(
             JobManifest(
                 id=job_id,
                 owner=owner,
@@ -210,7 +221,11 @@ def stage_job(
     except BaseException:
         discard_uploads([upload])
         layout.remove(job_id)
+        with contextlib.suppress(StoreUnavailable):  # unreachable: nothing more to remove
+            files.remove(job_id)
         raise
+    shutil.rmtree(staging, ignore_errors=True)
+    layout.release(job_id)  # the filesystem backend's objects stay
     meta = {
         "owner": owner,
         "name": name,
@@ -229,7 +244,7 @@ def stage_job(
 
 def enqueue_staged(staged: StagedJob, settings: Settings, index: JobIndex, queue: Any) -> None:
     """Index a staged job, announce it (``queued``) and put it on its RQ queue. When the
-    enqueue fails its index entries and events are removed (its folder is the caller's)."""
+    enqueue fails its index entries and events are removed (its objects are the caller's)."""
     from rq import Retry
 
     job_id, meta = staged.id, staged.meta
@@ -261,12 +276,14 @@ def create_job(
     owner: str,
     settings: Settings,
     layout: JobLayout,
+    files: JobFiles,
     index: JobIndex,
     queue: Any,
 ) -> str:
     """Validate ``upload``, store it as a new job and enqueue it. Returns the job id.
 
-    On any error nothing is left behind (upload, job folder) and nothing is queued.
+    On any error nothing is left behind (upload, job objects, working folder) and nothing is
+    queued; a store that cannot be reached is StoreUnavailable (503).
     """
     try:
         if upload.path is None:
@@ -276,11 +293,11 @@ def create_job(
     except BaseException:
         discard_uploads([upload])
         raise
-    staged = stage_job(upload, form, owner, settings, layout)
+    staged = stage_job(upload, form, owner, settings, layout, files)
     try:
         enqueue_staged(staged, settings, index, queue)
     except BaseException:
-        layout.remove(staged.id)
+        take_back(staged.id, index, layout, files)
         raise
     return staged.id
 
@@ -291,6 +308,7 @@ def create_batch(
     owner: str,
     settings: Settings,
     layout: JobLayout,
+    files: JobFiles,
     index: JobIndex,
     queue: Any,
 ) -> tuple[str, list[str]]:
@@ -299,7 +317,8 @@ def create_batch(
 
     All or nothing: a bad form field is refused as for one job, a bad file with a problem
     that names it (number and name), a batch that does not fit the limits with 429/503/413;
-    on any error nothing is left behind and nothing stays queued.
+    on any error nothing is left behind and nothing stays queued; a store that cannot be
+    reached is StoreUnavailable (503).
     """
     staged: list[StagedJob] = []
     try:
@@ -310,7 +329,7 @@ def create_batch(
         batch_id = new_job_id()
         for number, upload in enumerate(uploads, 1):
             try:
-                staged.append(stage_job(upload, form, owner, settings, layout, batch_id))
+                staged.append(stage_job(upload, form, owner, settings, layout, files, batch_id))
             except PbrsrError as exc:
                 label = file_label(number, upload.filename)
                 raise ProblemError(exc.http_status, exc.code, f"{label}: {exc.message}") from None
@@ -326,6 +345,6 @@ def create_batch(
     except BaseException:
         discard_uploads(uploads)
         for job in staged:
-            delete_job(job.id, index, layout)  # queued or not
+            take_back(job.id, index, layout, files)  # queued or not
         raise
     return batch_id, job_ids

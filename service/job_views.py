@@ -1,4 +1,4 @@
-"""Job views: an RQ job + its meta + the files on disk -> the API's response models; a
+"""Job views: an RQ job + its meta + the job's stored files -> the API's response models; a
 batch's jobs -> its aggregate view."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from typing import Any
 
 from pydantic import TypeAdapter, ValidationError
 
-from pbrsr_jobs.store import JobIndex, JobLayout, JobState, job_state
+from pbrsr_jobs.store import JobFiles, JobIndex, JobState, job_state
 from pbrsr_jobs.webhooks import WebhookQueue
 
 from .schemas import BatchDetail, BatchLinks, HistoryPoint, JobDetail, JobLinks, JobSummary
@@ -40,19 +40,19 @@ def state_of(job: Any) -> JobState:
 
 
 def links(
-    job_id: str, state: JobState, layout: JobLayout | None = None, files: dict | None = None
+    job_id: str, state: JobState, store: JobFiles | None = None, files: dict | None = None
 ) -> JobLinks:
     """The job's URLs; a finished job's previews and thumbnails by the names its worker
-    recorded in ``files`` (``meta['files']``), else as listed in its folders."""
+    recorded in ``files`` (``meta['files']``), else as the store lists them."""
     base = f"/v1/jobs/{job_id}"
     result = previews = thumbs = None
-    if state == JobState.FINISHED and (layout is not None or files):
+    if state == JobState.FINISHED and (store is not None or files):
         result = f"{base}/result"
         if files:
             preview_list, thumb_list = files.get("previews", []), files.get("thumbs", [])
         else:
-            assert layout is not None
-            preview_list, thumb_list = layout.preview_names(job_id), layout.thumb_names(job_id)
+            assert store is not None
+            preview_list, thumb_list = store.preview_names(job_id), store.thumb_names(job_id)
         previews = {n: f"{base}/previews/{n}" for n in preview_list}
         thumbs = {n: f"{base}/thumbs/{n}" for n in thumb_list}
     return JobLinks(
@@ -61,7 +61,7 @@ def links(
 
 
 def _common(
-    job: Any, index: JobIndex, layout: JobLayout | None, cancel: bool | None
+    job: Any, index: JobIndex, store: JobFiles | None, cancel: bool | None
 ) -> dict[str, Any]:
     """``cancel``: whether a cancel was requested, when the caller read it already."""
     meta = job.meta or {}
@@ -83,14 +83,14 @@ def _common(
         "cancel_requested": (not state.is_terminal)
         and (index.cancel_requested(job.id) if cancel is None else cancel),
         "batch": meta.get("batch"),
-        "links": links(job.id, state, layout, meta.get("files")),
+        "links": links(job.id, state, store, meta.get("files")),
     }
 
 
 def summary_view(
-    job: Any, index: JobIndex, layout: JobLayout | None = None, cancel: bool | None = None
+    job: Any, index: JobIndex, store: JobFiles | None = None, cancel: bool | None = None
 ) -> JobSummary:
-    return JobSummary(**_common(job, index, layout, cancel))
+    return JobSummary(**_common(job, index, store, cancel))
 
 
 def _history(points: Any) -> list[HistoryPoint]:
@@ -113,13 +113,13 @@ _HISTORY = TypeAdapter(list[HistoryPoint])
 def detail_view(
     job: Any,
     index: JobIndex,
-    layout: JobLayout,
+    store: JobFiles,
     cancel: bool | None = None,
     deliveries: list[dict] | None = None,
 ) -> JobDetail:
     """``deliveries``: the webhook delivery log, when the caller read it already."""
     meta = job.meta or {}
-    data = _common(job, index, layout, cancel)
+    data = _common(job, index, store, cancel)
     history = _history(meta.get("history"))
     return JobDetail(
         **data,
@@ -160,11 +160,11 @@ def batch_status(states: list[JobState]) -> JobState:
 
 
 def batch_view(
-    batch_id: str, created_at: float, jobs: list[Any], index: JobIndex, layout: JobLayout
+    batch_id: str, created_at: float, jobs: list[Any], index: JobIndex, store: JobFiles
 ) -> BatchDetail:
     """``jobs``: the batch's RQ jobs in order. Cancel flags are read in one round trip."""
     cancels = index.cancel_flags([j.id for j in jobs if not state_of(j).is_terminal])
-    items = [summary_view(j, index, layout, j.id in cancels) for j in jobs]
+    items = [summary_view(j, index, store, j.id in cancels) for j in jobs]
     states = [item.status for item in items]
     counts = {state: states.count(state) for state in JobState}
     done = [1.0 if item.status.is_terminal else item.fraction for item in items]

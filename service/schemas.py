@@ -86,6 +86,13 @@ class JobPage(BaseModel):
     next: str | None = Field(None, description="The next page, if any.")
 
 
+class DownloadLink(BaseModel):
+    """A presigned URL of a job's file (``?redirect=false`` with the s3 storage backend)."""
+
+    url: str = Field(description="GET it without credentials until it expires.")
+    expires_in_s: int = Field(description="Seconds the URL stays valid.")
+
+
 class BatchLinks(BaseModel):
     model_config = ConfigDict(populate_by_name=True, serialize_by_alias=True)
 

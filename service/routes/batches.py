@@ -12,7 +12,7 @@ from pbrsr_jobs.idempotency import IdempotencyKeys
 from pbrsr_jobs.store import JobState
 
 from ..deletion import delete_job
-from ..deps import IndexDep, LayoutDep, OwnerDep, QueueDep, RedisDep, SettingsDep
+from ..deps import FilesDep, IndexDep, LayoutDep, OwnerDep, QueueDep, RedisDep, SettingsDep
 from ..idempotency import IdempotencyKeyHeader, check_key, create_once
 from ..intake import create_batch
 from ..job_views import batch_links, batch_view, links, state_of
@@ -73,6 +73,7 @@ async def submit_batch(
     settings: SettingsDep,
     owner: OwnerDep,
     layout: LayoutDep,
+    files: FilesDep,
     index: IndexDep,
     queue: QueueDep,
     idempotency_key: IdempotencyKeyHeader = None,
@@ -88,7 +89,7 @@ async def submit_batch(
     uploads, fields = await receive_uploads(
         request, layout.new_upload_path, max_bytes, settings.max_batch_files, digest=key is not None
     )
-    create = partial(create_batch, uploads, fields, owner, settings, layout, index, queue)
+    create = partial(create_batch, uploads, fields, owner, settings, layout, files, index, queue)
     if key is None:
         batch_id, job_ids = await run_in_threadpool(create)
     else:
@@ -110,11 +111,11 @@ async def submit_batch(
 
 @router.get("/{batch_id}", response_model=BatchDetail, responses=_NOT_FOUND, summary="Batch status")
 def get_batch(
-    batch_id: str, redis: RedisDep, owner: OwnerDep, layout: LayoutDep, index: IndexDep
+    batch_id: str, redis: RedisDep, owner: OwnerDep, files: FilesDep, index: IndexDep
 ) -> Response:
     """Every job's summary, the jobs per state, the overall state and progress."""
     created, job_ids = fetch_batch(batch_id, owner, index)
-    view = batch_view(batch_id, created, fetch_jobs(job_ids, redis), index, layout)
+    view = batch_view(batch_id, created, fetch_jobs(job_ids, redis), index, files)
     return Response(view.model_dump_json(), media_type="application/json")
 
 
@@ -134,6 +135,7 @@ def cancel_batch(
     settings: SettingsDep,
     owner: OwnerDep,
     layout: LayoutDep,
+    files: FilesDep,
     index: IndexDep,
 ) -> Any:
     """Cancels every job not yet ended as ``DELETE /v1/jobs/{id}`` does (queued ones at once,
@@ -144,9 +146,9 @@ def cancel_batch(
     states = [state_of(job) for job in jobs]
     if all(state.is_terminal for state in states):
         for job_id in job_ids:  # those whose RQ job expired too
-            delete_job(job_id, index, layout)
+            delete_job(job_id, index, layout, files)
         return Response(status_code=204)
     for job, state in zip(jobs, states, strict=True):
         if not state.is_terminal:
             cancel_active(job, state, owner, settings, index)
-    return batch_view(batch_id, created, jobs, index, layout)
+    return batch_view(batch_id, created, jobs, index, files)

@@ -8,7 +8,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, BackgroundTasks, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import FileResponse
+from fastapi.responses import FileResponse, RedirectResponse
 from pydantic import BaseModel
 from rq.exceptions import InvalidJobOperation, NoSuchJobError
 from rq.job import Job
@@ -16,12 +16,13 @@ from rq.job import Job
 from pbrsr_jobs.events import JobEvents
 from pbrsr_jobs.idempotency import IdempotencyKeys
 from pbrsr_jobs.settings import Settings
-from pbrsr_jobs.store import JobIndex, JobState, check_job_id, sweep_expired
+from pbrsr_jobs.store import JobFiles, JobIndex, JobState, check_job_id, sweep_expired
 from pbrsr_jobs.webhooks import LOG_ENTRIES, WebhookQueue
 
 from ..deletion import delete_job
 from ..deps import (
     AsyncRedisDep,
+    FilesDep,
     IndexDep,
     LayoutDep,
     OwnerDep,
@@ -33,7 +34,7 @@ from ..idempotency import IdempotencyKeyHeader, check_key, create_once
 from ..intake import create_job
 from ..job_views import detail_view, links, state_of, summary_view
 from ..problems import PROBLEM_RESPONSES, Problem, ProblemError
-from ..schemas import JobCreated, JobDetail, JobPage
+from ..schemas import DownloadLink, JobCreated, JobDetail, JobPage
 from ..uploads import receive_upload
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=PROBLEM_RESPONSES)
@@ -103,6 +104,7 @@ async def submit_job(
     settings: SettingsDep,
     owner: OwnerDep,
     layout: LayoutDep,
+    files: FilesDep,
     index: IndexDep,
     queue: QueueDep,
     idempotency_key: IdempotencyKeyHeader = None,
@@ -113,7 +115,7 @@ async def submit_job(
     limits = settings.limits()
     dest = layout.new_upload_path()
     upload = await receive_upload(request, dest, limits.max_file_bytes, digest=key is not None)
-    create = partial(create_job, upload, owner, settings, layout, index, queue)
+    create = partial(create_job, upload, owner, settings, layout, files, index, queue)
     if key is None:
         job_id = await run_in_threadpool(create)
     else:
@@ -131,6 +133,7 @@ def list_jobs(
     settings: SettingsDep,
     owner: OwnerDep,
     layout: LayoutDep,
+    files: FilesDep,
     index: IndexDep,
     background: BackgroundTasks,
     status: Annotated[JobState | None, Query(description="Only jobs in this state.")] = None,
@@ -145,7 +148,7 @@ def list_jobs(
     key's, is 404)."""
     limit = min(limit, settings.page_size_max)
     if index.try_sweep_lock(settings.maintenance_s):
-        background.add_task(sweep_expired, redis, index, layout, settings.retention_s)
+        background.add_task(sweep_expired, redis, index, layout, files, settings.retention_s)
     if status is None and batch is None:
         ids, total = index.page(owner, offset, limit)
         jobs = [j for j in Job.fetch_many(ids, connection=redis) if j is not None]
@@ -160,7 +163,7 @@ def list_jobs(
         total = len(matching)
         jobs = matching[offset : offset + limit]
     cancels = index.cancel_flags([j.id for j in jobs if not state_of(j).is_terminal])
-    items = [summary_view(j, index, layout, j.id in cancels) for j in jobs]
+    items = [summary_view(j, index, files, j.id in cancels) for j in jobs]
     nxt = None
     if offset + limit < total:
         nxt = f"/v1/jobs?offset={offset + limit}&limit={limit}"
@@ -194,7 +197,7 @@ async def get_job(
     aredis: AsyncRedisDep,
     redis: RedisDep,
     owner: OwnerDep,
-    layout: LayoutDep,
+    files: FilesDep,
     index: IndexDep,
 ) -> Response:
     """Status, stage, progress, ETA, latest losses/metrics, timings, history, error, links.
@@ -219,9 +222,9 @@ async def get_job(
     sent = WebhookQueue.decode_log(log)
     if job.meta.get("state") == JobState.FINISHED.value and "files" not in job.meta:
         # finished before its worker recorded its files: list them off the event loop
-        detail = await run_in_threadpool(detail_view, job, index, layout, bool(cancel), sent)
+        detail = await run_in_threadpool(detail_view, job, index, files, bool(cancel), sent)
     else:
-        detail = detail_view(job, index, layout, bool(cancel), sent)
+        detail = detail_view(job, index, files, bool(cancel), sent)
     return _json(detail)
 
 
@@ -245,6 +248,7 @@ def cancel_job(
     settings: SettingsDep,
     owner: OwnerDep,
     layout: LayoutDep,
+    files: FilesDep,
     index: IndexDep,
 ) -> Any:
     """Queued: canceled at once. Running: the worker stops within about 2 s (poll the job).
@@ -252,10 +256,10 @@ def cancel_job(
     job = fetch_job(job_id, owner, redis, index)
     state = state_of(job)
     if state.is_terminal:
-        delete_job(job.id, index, layout)
+        delete_job(job.id, index, layout, files)
         return Response(status_code=204)
     cancel_active(job, state, owner, settings, index)
-    return detail_view(job, index, layout)
+    return detail_view(job, index, files)
 
 
 def cancel_active(
@@ -273,42 +277,82 @@ def cancel_active(
             JobEvents(index.redis, index.prefix).publish(job.id, owner, "cancelled", {}, webhook)
 
 
+_DOWNLOAD = {
+    307: {"description": "With the s3 storage backend: a presigned URL of the file."},
+}
+RedirectQuery = Annotated[
+    bool,
+    Query(
+        description="false: with the s3 backend, answer the presigned URL as JSON "
+        "(DownloadLink) instead of redirecting to it (a browser's fetch with X-API-Key, which "
+        "must not follow the key to the bucket). The filesystem backend serves the file."
+    ),
+]
+
+
+def _download(
+    files: JobFiles,
+    key: str,
+    media_type: str,
+    filename: str | None,
+    link_expiry_s: int | None,
+) -> Response:
+    """The object ``key``: a 307 to a presigned URL when the store gives one (s3), or that
+    URL as JSON when ``link_expiry_s`` (its validity) is given; else the file itself."""
+    url = files.store.url(key, filename=filename, media_type=media_type)
+    if url is not None and link_expiry_s is not None:
+        return _json(DownloadLink(url=url, expires_in_s=link_expiry_s))
+    if url is not None:
+        return RedirectResponse(url, status_code=307)
+    path = files.store.local_path(key)
+    if path is None:
+        raise ProblemError(404, "not-found", "this file is gone (the job may have expired)")
+    return FileResponse(path, media_type=media_type, filename=filename)
+
+
 @router.get(
     "/{job_id}/result",
     response_class=FileResponse,
     responses={
         **_NOT_FOUND,
+        **_DOWNLOAD,
         200: {"content": {"application/zip": {}}, "description": "The bundle."},
         409: {"model": Problem, "description": "The job has not finished."},
     },
     summary="Download the bundle",
 )
 def get_result(
-    job_id: str, redis: RedisDep, owner: OwnerDep, layout: LayoutDep, index: IndexDep
-) -> FileResponse:
+    job_id: str,
+    redis: RedisDep,
+    owner: OwnerDep,
+    settings: SettingsDep,
+    files: FilesDep,
+    index: IndexDep,
+    redirect: RedirectQuery = True,
+) -> Response:
     """A zip: the upscaled asset in the input's form, every HR map, report.json, previews."""
+    link = None if redirect else settings.s3_presign_expiry_s
     job = fetch_job(job_id, owner, redis, index)
     state = state_of(job)
-    path = layout.bundle_path(job_id)
-    if state != JobState.FINISHED or not path.is_file():
+    key = files.bundle_key(job_id)
+    if state != JobState.FINISHED or not files.store.exists(key):
         raise ProblemError(
             409, "not-finished", f"the job is {state.value}; the result exists once it finished"
         )
     name = (job.meta or {}).get("name", "asset").rsplit(".", 1)[0] or "asset"
     scale = ((job.meta or {}).get("options") or {}).get("scale", "")
-    return FileResponse(path, media_type="application/zip", filename=f"{name}-pbrsr-x{scale}.zip")
+    return _download(files, key, "application/zip", f"{name}-pbrsr-x{scale}.zip", link)
 
 
-def _file_in(job_id: str, name: str, names: list[str], folder: Any) -> FileResponse:
-    if name not in names:  # only names that exist in the folder: never a path from the URL
+def _named(name: str, names: list[str]) -> None:
+    if name not in names:  # only names the store lists: never a path from the URL
         raise ProblemError(404, "not-found", f"no file '{name[:64]}' for this job")
-    return FileResponse(folder / name, media_type="image/png")
 
 
 @router.get(
     "/{job_id}/previews/{name}",
     response_class=FileResponse,
-    responses={**_NOT_FOUND, 200: {"content": {"image/png": {}}}},
+    responses={**_NOT_FOUND, **_DOWNLOAD, 200: {"content": {"image/png": {}}}},
     summary="A before/after render",
 )
 def get_preview(
@@ -316,21 +360,22 @@ def get_preview(
     name: str,
     redis: RedisDep,
     owner: OwnerDep,
-    layout: LayoutDep,
+    settings: SettingsDep,
+    files: FilesDep,
     index: IndexDep,
-) -> FileResponse:
+    redirect: RedirectQuery = True,
+) -> Response:
     """``preview.png`` (side by side) or ``before_<env>.png`` / ``after_<env>.png``."""
+    link = None if redirect else settings.s3_presign_expiry_s
     fetch_job(job_id, owner, redis, index)
-    names = layout.preview_names(job_id)
-    out = layout.output_dir(job_id)
-    folder = out if name == "preview.png" else out / "previews"
-    return _file_in(job_id, name, names, folder)
+    _named(name, files.preview_names(job_id))
+    return _download(files, files.preview_key(job_id, name), "image/png", None, link)
 
 
 @router.get(
     "/{job_id}/thumbs/{name}",
     response_class=FileResponse,
-    responses={**_NOT_FOUND, 200: {"content": {"image/png": {}}}},
+    responses={**_NOT_FOUND, **_DOWNLOAD, 200: {"content": {"image/png": {}}}},
     summary="A thumbnail of one HR map",
 )
 def get_thumb(
@@ -338,8 +383,12 @@ def get_thumb(
     name: str,
     redis: RedisDep,
     owner: OwnerDep,
-    layout: LayoutDep,
+    settings: SettingsDep,
+    files: FilesDep,
     index: IndexDep,
-) -> FileResponse:
+    redirect: RedirectQuery = True,
+) -> Response:
+    link = None if redirect else settings.s3_presign_expiry_s
     fetch_job(job_id, owner, redis, index)
-    return _file_in(job_id, name, layout.thumb_names(job_id), layout.thumbs_dir(job_id))
+    _named(name, files.thumb_names(job_id))
+    return _download(files, files.thumb_key(job_id, name), "image/png", None, link)

@@ -37,13 +37,22 @@ async function api(path, init) {
   return resp.json();
 }
 
+// A job's file fetched with the API key: the file itself, or (s3 storage) a presigned URL
+// as JSON, so that the key never follows a redirect to the bucket.
+async function keyedFile(path) {
+  const resp = await fetch(`${path}?redirect=false`, { headers: headers() });
+  if (!resp.ok) throw new Error(`cannot load ${path}`);
+  if ((resp.headers.get("content-type") || "").startsWith("application/json")) {
+    return { url: (await resp.json()).url, resp: null };
+  }
+  return { url: URL.createObjectURL(await resp.blob()), resp };
+}
+
 async function imageUrl(path) {
   if (!state.key) return path;
   if (state.blobUrls.has(path)) return state.blobUrls.get(path);
-  const resp = await fetch(path, { headers: headers() });
-  if (!resp.ok) throw new Error(`cannot load ${path}`);
-  const url = URL.createObjectURL(await resp.blob());
-  state.blobUrls.set(path, url);
+  const { url, resp } = await keyedFile(path);
+  if (resp) state.blobUrls.set(path, url); // a presigned URL expires: asked again next time
   return url;
 }
 
@@ -309,12 +318,14 @@ async function cancelSelected() {
 async function download(event) {
   if (!state.key) return; // a plain link works without a key
   event.preventDefault();
-  const resp = await fetch($("download").getAttribute("href"), { headers: headers() });
-  if (!resp.ok) return;
-  const name = (resp.headers.get("content-disposition") || "").match(/filename="?([^";]+)"?/);
+  let file;
+  try { file = await keyedFile($("download").getAttribute("href")); } catch (_) { return; }
   const a = document.createElement("a");
-  a.href = URL.createObjectURL(await resp.blob());
-  a.download = name ? name[1] : "result.zip";
+  a.href = file.url;
+  if (file.resp) { // the bytes: name them as the server does
+    const name = (file.resp.headers.get("content-disposition") || "").match(/filename="?([^";]+)"?/);
+    a.download = name ? name[1] : "result.zip";
+  } // a presigned URL names the download itself
   a.click();
 }
 

@@ -12,7 +12,8 @@ from fastapi.testclient import TestClient
 from rq import Queue
 from rq.job import Job
 
-from pbrsr_jobs.store import JobIndex, JobLayout, sweep_expired
+from pbrsr_jobs.objstore import FilesystemStore
+from pbrsr_jobs.store import JobFiles, JobIndex, JobLayout, sweep_expired
 from service.app import create_app
 from tests.service_support import (
     LONG_KEY_A,
@@ -242,12 +243,13 @@ def test_a_batch_expires_with_its_jobs(client, settings, tmp_path):
     old.meta["ended_at"] = time.time() - settings.retention_s - 10
     old.save_meta()
     layout = JobLayout(settings.storage_dir)
-    assert sweep_expired(redis, index, layout, settings.retention_s) == [ids[0]]
+    files = JobFiles(FilesystemStore(settings.storage_dir))
+    assert sweep_expired(redis, index, layout, files, settings.retention_s) == [ids[0]]
     batch = client.get(f"/v1/batches/{batch_id}", headers=A).json()
     assert [j["id"] for j in batch["jobs"]] == [ids[1]] and batch["total"] == 1
     Job.fetch(ids[1], connection=redis).delete()  # its RQ hash gone, as after RQ's own expiry
     later = time.time() + settings.retention_s + 10
-    assert sweep_expired(redis, index, layout, settings.retention_s, now=later) == [ids[1]]
+    assert sweep_expired(redis, index, layout, files, settings.retention_s, now=later) == [ids[1]]
     _problem(client.get(f"/v1/batches/{batch_id}", headers=A), 404, "not-found")
     _nothing_kept(settings)
 
