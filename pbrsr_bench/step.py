@@ -114,7 +114,7 @@ def run(
                     "total_ms": round(total * 1e3, 2),
                     "floor_ms": round(floor * 1e3, 3),
                     "over_floor": round(total / floor, 2),
-                    "copy_gb_s": round(bw / 1e9, 1),
+                    "copy_gb_s": float(f"{bw / 1e9:.3g}"),  # 3 digits at any rate
                 }
             )
     result = {
