@@ -87,7 +87,6 @@ class EventWatch:
         self._lock = threading.Lock()
         self._loop = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self._loop.run_forever, daemon=True)
-        self._tasks: list[Future] = []
         self._client: Any = None
         self._key_open = threading.Event()
 
@@ -100,7 +99,7 @@ class EventWatch:
             # the key stream's ids are Redis's "<ms>-<seq>": starting after this millisecond
             # misses nothing published from now on and replays nothing earlier
             after = f"{int(time.time() * 1000) - 1}-0"
-            self._tasks.append(self._submit(self._follow("/v1/events", "key", after)))
+            self._submit(self._follow("/v1/events", "key", after))
             if not self._key_open.wait(self.timeout):
                 raise TimeoutError("the key's event stream did not open")
         return self
@@ -123,7 +122,7 @@ class EventWatch:
 
     def job(self, job_id: str) -> None:
         """Follow ``job_id``'s own stream (its whole history, then live until its outcome)."""
-        self._tasks.append(self._submit(self._follow(f"/v1/jobs/{job_id}/events", "job")))
+        self._submit(self._follow(f"/v1/jobs/{job_id}/events", "job"))
 
     # -- reading ---------------------------------------------------------------------------
     def events(self, channel: str | None = None) -> list[Received]:
