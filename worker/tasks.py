@@ -205,7 +205,7 @@ def _bundle_event():
 
 
 def _summary(report: dict[str, Any]) -> dict[str, Any]:
-    keys = ("wall_seconds", "device", "timings", "metrics", "final_losses")
+    keys = ("wall_seconds", "device", "threads", "timings", "metrics", "final_losses")
     out = {k: report[k] for k in keys if k in report}
     out["maps"] = [img.get("file") for img in report.get("images", []) if isinstance(img, dict)]
     return out

@@ -77,6 +77,18 @@ def test_short_load_run_has_no_errors_and_drains_every_job(tmp_path, capsys):
     drain = result["drain"]
     assert drain["submitted"] == drain["finished"] == 6, drain["states"]
     assert drain["workers_alive"] == 2
+    # every job's events on its own stream, the key's stream and by signed webhook
+    events = drain["events"]
+    assert events["jobs"] == 6 and events["lost"] == 0 and events["bad_signatures"] == 0
+    channels = events["channels"]
+    assert set(channels) == {"sse_job", "sse_key", "webhook"}
+    assert channels["webhook"]["events"] == 6 * 3  # queued, started, succeeded
+    assert channels["webhook"]["duplicates"] == 0
+    assert channels["sse_key"]["events"] >= 6 * 3 and channels["sse_job"]["events"] >= 6 * 3
+    for c in channels.values():
+        assert c["lost"] == 0 and c["timed"] > 0
+        assert 0 < c["p50_ms"] <= c["p99_ms"] <= c["max_ms"]
+    assert channels["sse_key"]["timed"] == channels["sse_key"]["events"]  # open from the start
     assert result["ok"] is True
     saved = json.loads((tmp_path / "out" / "load.json").read_text())
     assert saved["drain"]["finished"] == 6 and saved["ok"] is True

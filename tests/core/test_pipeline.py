@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import torch.nn.functional as F
 
 from pbrsr_core.asset import (
@@ -58,6 +59,7 @@ def test_bicubic_bundle(demo: Path, tmp_path: Path):
     for name in report["previews"].values():
         assert (out / name).is_file()
     assert json.loads((out / "report.json").read_text())["input"] == "demo.glb"
+    assert report["threads"] == torch.get_num_threads()  # what the run used
     assert {e.stage for e in events} >= {"load", "export", "done"}
     src, res = load_asset(demo), load_asset(out / "demo.glb")
     for img in src.images:
