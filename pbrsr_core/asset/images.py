@@ -30,7 +30,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from ..errors import InvalidAsset, InvalidOptions, LimitExceeded, UnsupportedAsset
-from ..limits import Limits
+from ..limits import Limits, check_image_size
 from .model import SRGB_ROLES, ImageData
 from .texture_codecs import (
     TextureEncoding,
@@ -138,15 +138,6 @@ def _jpeg_size(data: bytes) -> tuple[int, int]:
     raise InvalidAsset("truncated JPEG header (no frame marker)")
 
 
-def _check_dims(w: int, h: int, name: str, limits: Limits) -> None:
-    if w <= 0 or h <= 0:
-        raise InvalidAsset(f"the image '{name}' declares an empty size {w}x{h}")
-    if w > limits.max_texture_dim or h > limits.max_texture_dim:
-        raise LimitExceeded(
-            f"the image '{name}' is {w}x{h}; the limit is {limits.max_texture_dim} per side"
-        )
-
-
 def _read_with_oiio(
     filename: str, fmt: ImageFormat, name: str, limits: Limits
 ) -> tuple[np.ndarray, int, str]:
@@ -162,7 +153,7 @@ def _read_with_oiio(
         )
     try:
         spec = inp.spec()
-        _check_dims(spec.width, spec.height, name, limits)
+        check_image_size(spec.width, spec.height, name, limits)
         if spec.depth > 1 or spec.nchannels < 1 or spec.nchannels > 4:
             raise UnsupportedAsset(
                 f"the image '{name}' has {spec.nchannels} channels/depth {spec.depth}; "
@@ -254,13 +245,13 @@ def _read_texture_format(
 
 def _precheck(fmt: ImageFormat, head: bytes, name: str, limits: Limits) -> None:
     if fmt == "png":
-        _check_dims(*_png_size(head), name, limits)
+        check_image_size(*_png_size(head), name, limits)
     elif fmt == "jpeg":
         try:
             w, h = _jpeg_size(head)
         except InvalidAsset:
             return  # frame marker beyond the first bytes read: OIIO's header read checks it
-        _check_dims(w, h, name, limits)
+        check_image_size(w, h, name, limits)
 
 
 def _oiio_type(fmt: ImageFormat, bit_depth: int) -> str:
@@ -300,20 +291,6 @@ def write_image(
         arr = arr[..., None]
     if arr.ndim != 3 or not 1 <= arr.shape[2] <= 4 or arr.shape[0] < 1 or arr.shape[1] < 1:
         raise ValueError(f"pixels must be (H, W, C) with C in 1..4, got {arr.shape}")
-    if fmt in TEXTURE_FORMATS:
-        if not np.isfinite(arr).all():
-            raise ValueError("pixels contain NaN or infinite values")
-        data = encode_texture(arr, cast(TextureFormat, fmt), encoding)
-        fd, tmp = tempfile.mkstemp(prefix=".pbrsr-", suffix=EXT[fmt], dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                f.write(data)
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
-        return path
     if fmt == "jpeg" and arr.shape[2] in (2, 4):
         raise InvalidOptions("JPEG has no alpha channel; write PNG for images with alpha")
     h, w, c = arr.shape
@@ -325,16 +302,20 @@ def write_image(
     strips = range(0, h, rows)
     if not all(np.isfinite(arr[y : y + rows]).all() for y in strips):
         raise ValueError("pixels contain NaN or infinite values")
-    spec = oiio.ImageSpec(w, h, c, _oiio_type(fmt, bit_depth))
-    spec.attribute("oiio:UnassociatedAlpha", 1)
-    if fmt == "jpeg":
-        spec.attribute("Compression", "jpeg:95")
-        spec.attribute("jpeg:subsampling", "4:4:4")
-    elif fmt == "exr" or fmt == "tiff":
-        spec.attribute("compression", "zip")
     fd, tmp = tempfile.mkstemp(prefix=".pbrsr-", suffix=EXT[fmt], dir=path.parent)
     os.close(fd)
     try:
+        if fmt in TEXTURE_FORMATS:
+            Path(tmp).write_bytes(encode_texture(arr, cast(TextureFormat, fmt), encoding))
+            os.replace(tmp, path)
+            return path
+        spec = oiio.ImageSpec(w, h, c, _oiio_type(fmt, bit_depth))
+        spec.attribute("oiio:UnassociatedAlpha", 1)
+        if fmt == "jpeg":
+            spec.attribute("Compression", "jpeg:95")
+            spec.attribute("jpeg:subsampling", "4:4:4")
+        elif fmt == "exr" or fmt == "tiff":
+            spec.attribute("compression", "zip")
         out = oiio.ImageOutput.create(tmp)
         if out is None or not out.open(tmp, spec):
             raise OSError(f"cannot write image: {oiio.geterror()}")

@@ -36,7 +36,7 @@ import numpy as np
 
 from ..colour import linear_to_srgb, srgb_to_linear
 from ..errors import InvalidAsset, LimitExceeded, UnsupportedAsset
-from ..limits import Limits
+from ..limits import Limits, check_image_size
 
 TextureFormat = Literal["ktx2", "webp", "avif"]
 
@@ -89,15 +89,6 @@ def sniff_texture_format(head: bytes) -> TextureFormat | None:
     return None
 
 
-def _check_dims(w: int, h: int, name: str, limits: Limits) -> None:
-    if w <= 0 or h <= 0:
-        raise InvalidAsset(f"the image '{name}' declares an empty size {w}x{h}")
-    if w > limits.max_texture_dim or h > limits.max_texture_dim:
-        raise LimitExceeded(
-            f"the image '{name}' is {w}x{h}; the limit is {limits.max_texture_dim} per side"
-        )
-
-
 # ----------------------------------------------------------------------------- KTX2
 def ktx2_encoding(data: bytes, name: str, limits: Limits) -> Ktx2Encoding:
     """Check a KTX2 file's header, level index and DFD against its length and ``limits``;
@@ -134,7 +125,7 @@ def ktx2_encoding(data: bytes, name: str, limits: Limits) -> Ktx2Encoding:
             f"the KTX2 image '{name}' is not a single 2D image ({layers} layers, {faces} "
             f"faces, depth {depth})"
         )
-    _check_dims(width, height, name, limits)
+    check_image_size(width, height, name, limits)
     if levels > max(width, height).bit_length():
         raise InvalidAsset(
             f"the KTX2 image '{name}' declares {levels} mip levels for {width}x{height}"
@@ -258,12 +249,12 @@ def webp_encoding(data: bytes, name: str, limits: Limits) -> WebpEncoding:
             else:
                 raise InvalidAsset(f"the WebP image '{name}' has a corrupt {fourcc!r} header")
             canvas_w, canvas_h = size or frame
-            _check_dims(canvas_w, canvas_h, name, limits)
-            _check_dims(frame[0], frame[1], name, limits)
+            check_image_size(canvas_w, canvas_h, name, limits)
+            check_image_size(frame[0], frame[1], name, limits)
             return WebpEncoding(lossless=lossless)
         pos += 8 + clen + (clen & 1)
     if size is not None:
-        _check_dims(size[0], size[1], name, limits)
+        check_image_size(size[0], size[1], name, limits)
     raise InvalidAsset(f"the WebP image '{name}' has no image data (truncated?)")
 
 
@@ -274,7 +265,7 @@ def _decode_pillow(data: bytes, fmt: TextureFormat, name: str, limits: Limits) -
     kind = "WebP" if fmt == "webp" else "AVIF"
     try:
         with Image.open(io.BytesIO(data), formats=[fmt.upper()]) as im:
-            _check_dims(im.width, im.height, name, limits)
+            check_image_size(im.width, im.height, name, limits)
             im.load()
             bands = im.getbands()
             mode = "RGBA" if "A" in bands or "transparency" in im.info else "RGB"
