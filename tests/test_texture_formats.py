@@ -17,16 +17,18 @@ import pytest
 from clirun import run_cli
 from PIL import Image
 
-from pbrsr_core.asset import load_asset, make_quad_asset, read_image
+from pbrsr_core.asset import encode_image, load_asset, make_quad_asset, read_image
 from pbrsr_core.asset.procedural import _pattern
 from pbrsr_core.asset.texture_codecs import Ktx2Encoding, ktx2_encoding, webp_encoding
 from pbrsr_core.asset.validator import validate_gltf, validator_available
 from pbrsr_core.colour import linear_to_srgb
-from pbrsr_core.errors import InvalidAsset, LimitExceeded
+from pbrsr_core.errors import InvalidAsset, LimitExceeded, PbrsrError
 from pbrsr_core.limits import Limits
+from pbrsr_core.maps import image_cutout, image_wrap, kind_of
 from pbrsr_core.metrics import psnr
 from pbrsr_core.options import UpscaleOptions
 from pbrsr_core.pipeline import upscale_asset
+from pbrsr_core.prior.direct import bicubic_map
 
 EXTENSION = {"ktx2": "KHR_texture_basisu", "webp": "EXT_texture_webp", "avif": "EXT_texture_avif"}
 MIME = {"ktx2": "image/ktx2", "webp": "image/webp", "avif": "image/avif"}
@@ -119,12 +121,18 @@ def _validate(path: Path) -> None:
     assert other == [], other
 
 
-def _png_path(src: Path, folder: Path) -> dict[str, np.ndarray]:
-    """The PNG path: a quad whose PNG maps hold ``src``'s decoded maps, upscaled x4 by
-    bicubic; the upscaled pixels by role."""
-    maps = {role: im.pixels for im in load_asset(src).images for role in im.roles}
-    out = _bicubic(make_quad_asset(folder / "in" / "quad.gltf", maps), folder / "out")
-    return {role: im.pixels for im in load_asset(out).images for role in im.roles}
+def _png_path(src: Path) -> dict[str, np.ndarray]:
+    """The PNG path: ``src``'s decoded maps upscaled x4 as the bicubic method does (the
+    pipeline's own steps, without its previews) and stored as 8-bit PNG; pixels by role."""
+    asset = load_asset(src)
+    out = {}
+    for im in asset.images:
+        if im.roles:
+            wrap, cutout = image_wrap(asset, im.index), image_cutout(asset, im.index)
+            hr = bicubic_map(im.pixels, kind_of(im.roles), 4, wrap, cutout)
+            (role,) = im.roles
+            out[role] = read_image(encode_image(hr, 8, "png"), role)[0]
+    return out
 
 
 ROUND_TRIPS = [
@@ -144,7 +152,7 @@ ROUND_TRIPS = [
 def test_round_trip_keeps_format_encoding_and_extensions(tmp_path, fmt, enc, fallback, bound):
     src = _asset(tmp_path / "in", fmt, enc, fallback=fallback)
     out = _bicubic(src, tmp_path / "out")
-    png_reference = _png_path(src, tmp_path / "png")
+    png_reference = _png_path(src)
     doc_in, doc = json.loads(src.read_text()), json.loads(out.read_text())
     ext = EXTENSION[fmt]
     assert doc["extensionsUsed"] == [ext]
@@ -325,3 +333,32 @@ def test_bad_payloads_through_the_service_intake(tmp_path):
         assert list((settings.storage_dir / "jobs").iterdir()) == []
     finally:
         cleanup_redis(settings)
+
+
+def test_mutated_payloads_raise_only_typed_errors():
+    """Bytes cut short or overwritten at random in KTX2 (ETC1S, UASTC + Zstandard, with mips),
+    WebP (lossless, lossy) and AVIF files: each decodes or raises a PbrsrError."""
+    rgb = np.rint(_maps()["base_color"][:24, :28] * 255)
+    files = [
+        _encode(rgb, "ktx2", True, {"codec": "etc1s"}),
+        _encode(rgb, "ktx2", False, {"codec": "uastc", "zstd": True}),
+        _encode(rgb, "webp", True, {"lossless": True}),
+        _encode(rgb, "webp", True, {"lossless": False}),
+        _encode(rgb, "avif", True, {}),
+    ]
+    rng = np.random.default_rng(0)
+    escaped = []
+    for n in range(1500):
+        data = bytearray(files[n % len(files)])
+        if n % 3 == 0:
+            data = data[: rng.integers(1, len(data))]
+        else:
+            for _ in range(rng.integers(1, 6)):
+                data[rng.integers(0, len(data))] = rng.integers(256)
+        try:
+            read_image(bytes(data), "fuzz")
+        except PbrsrError:
+            pass
+        except Exception as exc:  # noqa: BLE001 -- the escapes are what the test collects
+            escaped.append(f"{n % len(files)}: {type(exc).__name__}: {exc}")
+    assert escaped == []
