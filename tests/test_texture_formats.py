@@ -18,8 +18,15 @@ from clirun import run_cli
 from PIL import Image
 
 from pbrsr_core.asset import encode_image, load_asset, make_quad_asset, read_image
+from pbrsr_core.asset.gltf_textures import sync_texture_extensions
 from pbrsr_core.asset.procedural import _pattern
-from pbrsr_core.asset.texture_codecs import Ktx2Encoding, ktx2_encoding, webp_encoding
+from pbrsr_core.asset.texture_codecs import (
+    Ktx2Encoding,
+    decode_texture,
+    encode_texture,
+    ktx2_encoding,
+    webp_encoding,
+)
 from pbrsr_core.asset.validator import validate_gltf, validator_available
 from pbrsr_core.colour import linear_to_srgb
 from pbrsr_core.errors import InvalidAsset, LimitExceeded, PbrsrError
@@ -362,3 +369,37 @@ def test_mutated_payloads_raise_only_typed_errors():
         except Exception as exc:  # noqa: BLE001 -- the escapes are what the test collects
             escaped.append(f"{n % len(files)}: {type(exc).__name__}: {exc}")
     assert escaped == []
+
+
+@pytest.mark.parametrize("codec, zstd", [("etc1s", False), ("uastc", True)])
+def test_ktx2_alpha_and_encoding_survive_encode_and_decode(codec, zstd):
+    rgba = np.concatenate([_maps()["base_color"], _pattern(SIZE, 5, 1)], axis=2)
+    encoding = Ktx2Encoding(codec=codec, zstd=zstd, srgb=True, mipmaps=True)
+    data = encode_texture(rgba, "ktx2", encoding)
+    assert ktx2_encoding(data, "a", Limits()) == encoding
+    back, read_as = decode_texture(data, "ktx2", "a", Limits())
+    assert read_as == encoding and back.shape == rgba.shape
+    assert psnr(back[..., 3], rgba[..., 3]) > 25.0
+
+
+def test_sync_moves_images_between_extensions_and_keeps_the_lists_true():
+    doc = {
+        "extensionsUsed": ["KHR_materials_sheen", "KHR_texture_basisu", "EXT_texture_webp"],
+        "extensionsRequired": ["KHR_texture_basisu"],
+        "textures": [
+            {"extensions": {"KHR_texture_basisu": {"source": 0}}},  # KTX2 -> WebP
+            {"source": 1, "extensions": {"EXT_texture_webp": {"source": 2}}},  # WebP -> PNG
+            {"source": 3},  # PNG -> AVIF
+            {"source": 4, "sampler": 0},  # stays PNG
+        ],
+    }
+    mimes = ["image/webp", "image/png", "image/png", "image/avif", "image/png"]
+    sync_texture_extensions(doc, mimes.__getitem__)
+    assert doc["textures"] == [
+        {"extensions": {"EXT_texture_webp": {"source": 0}}},
+        {"source": 1},
+        {"extensions": {"EXT_texture_avif": {"source": 3}}},
+        {"source": 4, "sampler": 0},
+    ]
+    assert doc["extensionsUsed"] == ["KHR_materials_sheen", "EXT_texture_webp", "EXT_texture_avif"]
+    assert doc["extensionsRequired"] == ["EXT_texture_avif", "EXT_texture_webp"]

@@ -212,6 +212,7 @@ def _encode_ktx2(pixels: np.ndarray, encoding: Ktx2Encoding) -> bytes:
         zstd_supercompression_level=ZSTD_LEVEL if encoding.zstd else None,
         threads=1,
         check_for_alpha=False,
+        force_alpha=c == 4,
     )
 
 
