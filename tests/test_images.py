@@ -119,6 +119,10 @@ def _img(mime, depth, c=3):
         ("image/x-exr", 16, 3, "same", ("exr", 16)),
         ("image/png", 8, 3, "exr", ("exr", 16)),
         ("image/tiff", 16, 3, "same", ("tiff", 16)),
+        ("image/webp", 8, 4, "same", ("webp", 8)),
+        ("image/png", 8, 4, "avif", ("avif", 8)),
+        ("image/png", 16, 3, "webp", ("png", 16)),
+        ("image/png", 8, 3, "ktx2", ("png", 8)),  # 2x2: KTX2 needs sides that are multiples of 4
     ],
 )
 def test_output_format(mime, depth, c, req, expect):
