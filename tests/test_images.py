@@ -130,6 +130,14 @@ def test_output_format(mime, depth, c, req, expect):
     assert (fmt, bits) == expect
 
 
+@pytest.mark.parametrize("size, expect", [((4096, 3072), "ktx2"), ((4096, 4096), "png")])
+@pytest.mark.parametrize("req", ["same", "ktx2"])
+def test_ktx2_over_the_encoders_texel_limit_is_written_as_png(size, expect, req):
+    pixels = np.broadcast_to(np.float32(0.5), (size[1], size[0], 3))
+    image = ImageData(index=0, name="x", pixels=pixels, bit_depth=8, mime="image/ktx2")
+    assert output_format(image, req)[0] == expect
+
+
 def _check_frames(t, n):
     assert np.isfinite(t).all()
     assert np.allclose(np.linalg.norm(t[:, :3], axis=1), 1.0, atol=1e-5)

@@ -1,7 +1,8 @@
 """KTX2 (KHR_texture_basisu), WebP (EXT_texture_webp) and AVIF (EXT_texture_avif) textures:
 read, upscaled and written back in their own encodings, converted on request, and refused with
 a clear error when their bytes lie. Fixtures are procedural quads whose PNG maps the tests
-re-encode themselves (Basis Universal's encoder through alktx2, Pillow for WebP/AVIF)."""
+re-encode themselves (Basis Universal's encoder for KTX2 at quality 50 and without
+mips, Pillow for WebP/AVIF)."""
 
 from __future__ import annotations
 
@@ -9,15 +10,16 @@ import io
 import json
 import struct
 import zipfile
+from functools import cache
 from pathlib import Path
 
-import alktx2
 import numpy as np
 import pytest
 from clirun import run_cli
 from PIL import Image
 
 from pbrsr_core.asset import encode_image, load_asset, make_quad_asset, read_image
+from pbrsr_core.asset.basis_encoder import Ktx2EncoderUnavailable, encode_ktx2_rgba
 from pbrsr_core.asset.gltf_textures import sync_texture_extensions
 from pbrsr_core.asset.procedural import _pattern
 from pbrsr_core.asset.texture_codecs import (
@@ -55,25 +57,23 @@ def _encode(rgb: np.ndarray, fmt: str, srgb: bool, enc: dict) -> bytes:
     """The test's own encoding of 8-bit pixels (not pbrsr's writer)."""
     px = np.ascontiguousarray(rgb.astype(np.uint8))
     if fmt == "ktx2":
-        rgba = np.concatenate([px, np.full(px.shape[:2] + (1,), 255, np.uint8)], axis=2)
-        return alktx2.encode_raw_rgba_to_ktx2(
-            rgba.tobytes(),
-            px.shape[1],
-            px.shape[0],
-            False,
-            codec=enc["codec"],
-            srgb=srgb,
-            linear=not srgb,
-            zstd_supercompression_level=10 if enc.get("zstd") else None,
-            threads=1,
-            check_for_alpha=False,
-        )
+        return _ktx2_file(px.tobytes(), px.shape[:2], srgb, enc["codec"], enc.get("zstd", False))
     out = io.BytesIO()
     if fmt == "webp":
         Image.fromarray(px).save(out, "WEBP", lossless=enc["lossless"], quality=90, exact=True)
     else:
         Image.fromarray(px).save(out, "AVIF", quality=90, subsampling="4:4:4")
     return out.getvalue()
+
+
+@cache
+def _ktx2_file(rgb: bytes, shape: tuple[int, int], srgb: bool, codec: str, zstd: bool) -> bytes:
+    """Basis Universal's KTX2 file of ``rgb`` (kept: each call is a node process)."""
+    px = np.frombuffer(rgb, np.uint8).reshape(*shape, 3)
+    rgba = np.concatenate([px, np.full(shape + (1,), 255, np.uint8)], axis=2)
+    return encode_ktx2_rgba(
+        rgba, codec=codec, quality=50, effort=3, srgb=srgb, mipmaps=False, zstd=zstd, alpha=False
+    )
 
 
 def _asset(
@@ -403,3 +403,10 @@ def test_sync_moves_images_between_extensions_and_keeps_the_lists_true():
     ]
     assert doc["extensionsUsed"] == ["KHR_materials_sheen", "EXT_texture_webp", "EXT_texture_avif"]
     assert doc["extensionsRequired"] == ["EXT_texture_avif", "EXT_texture_webp"]
+
+
+def test_ktx2_writer_without_its_npm_package_says_what_to_install(tmp_path, set_runtime):
+    set_runtime(npm_dir=tmp_path / "node_modules")
+    encoding = Ktx2Encoding(codec="uastc", zstd=True, srgb=False, mipmaps=True)
+    with pytest.raises(Ktx2EncoderUnavailable, match="ktx2-encoder .* is not installed"):
+        encode_texture(_maps()["normal"], "ktx2", encoding)

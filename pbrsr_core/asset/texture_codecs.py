@@ -8,10 +8,13 @@ These are the image formats of the glTF extensions ``KHR_texture_basisu``,
   the file) before any payload reaches the transcoder. Only what ``KHR_texture_basisu``
   allows is taken: a 2D image (no array, cube map or depth), ETC1S (BasisLZ) or UASTC (no
   supercompression or Zstandard). Level 0 is decoded by Basis Universal's transcoder
-  (``opengl_basisu``) to RGBA8; KTX2 files are written by the Basis Universal encoder
-  (``alktx2``) with the input's codec, supercompression, transfer function and mip levels
-  (:class:`Ktx2Encoding`). Khronos' own bindings (``pyktx``) are an sdist that builds only
-  against an installed libktx, which neither PyPI nor Debian provide here.
+  (``opengl_basisu``) to RGBA8; KTX2 files are written by Basis Universal's encoder
+  (:mod:`~pbrsr_core.asset.basis_encoder`: npm ``ktx2-encoder``'s WebAssembly build, run
+  through node) with the input's codec, supercompression, transfer function, mip levels and
+  alpha (:class:`Ktx2Encoding`). An image over the encoder's
+  :data:`~pbrsr_core.asset.basis_encoder.MAX_PIXELS` is written as PNG instead
+  (:func:`pbrsr_core.asset.images.output_format`). Khronos' own bindings (``pyktx``) are an
+  sdist that builds only against an installed libktx, which neither PyPI nor Debian provide.
 * WebP: the RIFF chunks give the size (``VP8X`` canvas, ``VP8 ``/``VP8L`` frame) and
   whether the image is lossless, checked before Pillow decodes; animated WebP is refused.
   Written lossless (exact, colour under transparent texels kept) when the input was, else at
@@ -37,6 +40,7 @@ import numpy as np
 from ..colour import linear_to_srgb, srgb_to_linear
 from ..errors import InvalidAsset, LimitExceeded, UnsupportedAsset
 from ..limits import Limits, check_image_size
+from .basis_encoder import encode_ktx2_rgba
 
 TextureFormat = Literal["ktx2", "webp", "avif"]
 
@@ -51,12 +55,12 @@ _SCHEME_NONE, _SCHEME_BASISLZ, _SCHEME_ZSTD = 0, 1, 2
 
 WEBP_LOSSY_QUALITY = 95
 AVIF_QUALITY = 90
-ZSTD_LEVEL = 18
-"""Zstandard level of written UASTC files (toktx's default for ``--zcmp``)."""
 BASIS_QUALITY = 90
-"""Basis Universal encoder quality (alktx2's 1-100; its default effort, 3). Effort 1 is
-faster (a 512² map: ETC1S 2.0 s and UASTC + Zstandard 2.3 s against 3.6 s and 3.5 s) but
-costs up to 2.6 dB on small detailed maps (tests/test_texture_formats.py's UASTC base colour)."""
+"""Basis Universal encoder quality (1-100)."""
+BASIS_EFFORT = 3
+"""Basis Universal encoder effort (0-10). Effort 1 is faster (a 512² map: ETC1S 2.0 s and
+UASTC + Zstandard 2.3 s against 3.6 s and 3.5 s) but costs up to 2.6 dB on small detailed maps
+(tests/test_texture_formats.py's UASTC base colour)."""
 
 
 @dataclass(frozen=True)
@@ -194,25 +198,18 @@ def _decode_ktx2(data: bytes, name: str, limits: Limits) -> tuple[np.ndarray, Kt
 
 
 def _encode_ktx2(pixels: np.ndarray, encoding: Ktx2Encoding) -> bytes:
-    import alktx2
-
     h, w, c = pixels.shape
     rgba = np.full((h, w, 4), 255, dtype=np.uint8)
     rgba[..., :c] = _to_uint8(pixels)
-    return alktx2.encode_raw_rgba_to_ktx2(
-        rgba.tobytes(),
-        w,
-        h,
-        c == 4,
+    return encode_ktx2_rgba(
+        rgba,
         codec=encoding.codec,
         quality=BASIS_QUALITY,
+        effort=BASIS_EFFORT,
         srgb=encoding.srgb,
-        linear=not encoding.srgb,
         mipmaps=encoding.mipmaps,
-        zstd_supercompression_level=ZSTD_LEVEL if encoding.zstd else None,
-        threads=1,
-        check_for_alpha=False,
-        force_alpha=c == 4,
+        zstd=encoding.zstd,
+        alpha=c == 4,
     )
 
 
