@@ -405,8 +405,18 @@ def test_sync_moves_images_between_extensions_and_keeps_the_lists_true():
     assert doc["extensionsRequired"] == ["EXT_texture_avif", "EXT_texture_webp"]
 
 
-def test_ktx2_writer_without_its_npm_package_says_what_to_install(tmp_path, set_runtime):
-    set_runtime(npm_dir=tmp_path / "node_modules")
-    encoding = Ktx2Encoding(codec="uastc", zstd=True, srgb=False, mipmaps=True)
-    with pytest.raises(Ktx2EncoderUnavailable, match="ktx2-encoder .* is not installed"):
-        encode_texture(_maps()["normal"], "ktx2", encoding)
+def test_ktx2_output_without_the_encoder_package_says_what_to_install_and_writes_nothing(
+    tmp_path, capfd, monkeypatch, set_runtime
+):
+    monkeypatch.setenv("PBRSR_NPM_DIR", str(tmp_path / "node_modules"))  # set_runtime: restored
+    src = make_quad_asset(tmp_path / "in" / "quad.gltf", _maps())
+    out_dir = tmp_path / "out"
+    code, err = run_cli(
+        ["upscale", str(src), "-o", str(out_dir), "--method", "bicubic", "-q"]
+        + ["--texture-format", "ktx2"],
+        capfd,
+    )
+    assert code == Ktx2EncoderUnavailable.exit_code, err
+    assert "ktx2-encoder" in err and "npm ci" in err and "Traceback" not in err
+    assert str(tmp_path) not in err
+    assert not out_dir.exists()

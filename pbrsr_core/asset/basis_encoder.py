@@ -81,8 +81,8 @@ def encode_ktx2_rgba(
     script, package = _paths()
     if not package.is_dir() or not script.is_file():
         raise Ktx2EncoderUnavailable(
-            f"The npm package {PACKAGE} (Basis Universal's KTX2 encoder) is not installed in "
-            f"{script.parent}: run 'npm ci --prefix tools/npm' (./scripts/setup does it)."
+            f"The npm package {PACKAGE} (Basis Universal's KTX2 encoder) is not installed: run "
+            "'npm ci --prefix tools/npm' (./scripts/setup does it)."
         )
     options = {
         "width": w,
@@ -110,6 +110,6 @@ def encode_ktx2_rgba(
             f"the KTX2 encoder took longer than {timeout_s:.0f} s on a {w}x{h} image"
         ) from None
     if proc.returncode != 0 or not proc.stdout:
-        reason = proc.stderr.decode("utf-8", "replace").strip()[-500:]
-        raise Ktx2EncoderUnavailable(f"the KTX2 encoder failed on a {w}x{h} image: {reason}")
+        lines = proc.stderr.decode("utf-8", "replace").strip().splitlines() or ["no reason given"]
+        raise Ktx2EncoderUnavailable(f"the KTX2 encoder failed on a {w}x{h} image: {lines[-1]}")
     return proc.stdout

@@ -8,7 +8,7 @@
 // "zstd" (UASTC Zstandard supercompression), "alpha" (store the alpha channel)}.
 // stdin: width * height * 4 bytes, rows top to bottom, R G B A.
 // Exit status: 0 with the KTX2 bytes on stdout; 2 on bad options or input; 1 when the encoder
-// fails (its reason on stderr).
+// fails. The reason is the last line on stderr, with no path in it.
 import { NodeBasisEncoder } from "ktx2-encoder";
 
 // stdout carries the file alone: whatever the WebAssembly module prints goes to stderr
@@ -38,36 +38,42 @@ if (pixels.length !== width * height * 4) {
   fail(2, `expected ${width * height * 4} bytes of RGBA8 pixels, read ${pixels.length}`);
 }
 
-const basis = await new NodeBasisEncoder().init();
-const encoder = new basis.BasisEncoder();
-try {
-  const format = codec === "etc1s" ? basis.basis_tex_format.cETC1S : basis.basis_tex_format.cUASTC_LDR_4x4;
-  encoder.setFormatModeAndQualityEffort(format.value, quality, effort, true);
-  encoder.setCreateKTX2File(true);
-  encoder.setStatusOutput(false);
-  encoder.setDebug(false);
-  encoder.setSRGBOptions(srgb);
-  encoder.setCheckForAlpha(false);
-  encoder.setForceAlpha(alpha);
-  encoder.setMipGen(mipmaps);
-  encoder.setMipWrapping(false);
-  encoder.setKTX2UASTCSupercompression(zstd);
-  if (!encoder.setSliceSourceImage(0, pixels, width, height, basis.ldr_image_type.cRGBA32.value)) {
-    fail(1, `the encoder refused the ${width}x${height} source image`);
-  }
-  // room for every level uncompressed plus the header; doubled once if that is not enough
-  const room = Math.ceil((width * height * 4 * 4) / 3) + 65536;
-  let encoded = null;
-  for (const capacity of [room, 2 * room]) {
-    const output = new Uint8Array(capacity);
-    const length = encoder.encode(output);
-    if (length > 0) {
-      encoded = output.subarray(0, length);
-      break;
+async function encode() {
+  const basis = await new NodeBasisEncoder().init();
+  const encoder = new basis.BasisEncoder();
+  try {
+    const format = codec === "etc1s" ? basis.basis_tex_format.cETC1S : basis.basis_tex_format.cUASTC_LDR_4x4;
+    encoder.setFormatModeAndQualityEffort(format.value, quality, effort, true);
+    encoder.setCreateKTX2File(true);
+    encoder.setStatusOutput(false);
+    encoder.setDebug(false);
+    encoder.setSRGBOptions(srgb);
+    encoder.setCheckForAlpha(false);
+    encoder.setForceAlpha(alpha);
+    encoder.setMipGen(mipmaps);
+    encoder.setMipWrapping(false);
+    encoder.setKTX2UASTCSupercompression(zstd);
+    if (!encoder.setSliceSourceImage(0, pixels, width, height, basis.ldr_image_type.cRGBA32.value)) {
+      return null;
     }
+    // room for every level uncompressed plus the header; doubled once if that is not enough
+    const room = Math.ceil((width * height * 4 * 4) / 3) + 65536;
+    for (const capacity of [room, 2 * room]) {
+      const output = new Uint8Array(capacity);
+      const length = encoder.encode(output);
+      if (length > 0) return output.subarray(0, length);
+    }
+    return null;
+  } finally {
+    encoder.delete();
   }
-  if (encoded === null) fail(1, `the encoder failed on the ${width}x${height} image`);
-  process.stdout.write(encoded);
-} finally {
-  encoder.delete();
 }
+
+let encoded;
+try {
+  encoded = await encode();
+} catch (err) {
+  fail(1, `Basis Universal's encoder stopped: ${err?.message ?? err}`);
+}
+if (!encoded) fail(1, `Basis Universal's encoder refused the ${width}x${height} image`);
+process.stdout.write(encoded);
