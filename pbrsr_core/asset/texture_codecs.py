@@ -58,9 +58,8 @@ AVIF_QUALITY = 90
 BASIS_QUALITY = 90
 """Basis Universal encoder quality (1-100)."""
 BASIS_EFFORT = 3
-"""Basis Universal encoder effort (0-10). Effort 1 is faster (a 512² map: ETC1S 2.0 s and
-UASTC + Zstandard 2.3 s against 3.6 s and 3.5 s) but costs up to 2.6 dB on small detailed maps
-(tests/test_texture_formats.py's UASTC base colour)."""
+"""Basis Universal encoder effort (0-10). Effort 1 is faster but costs up to 2.6 dB on small
+detailed maps (tests/test_texture_formats.py's UASTC base colour)."""
 
 
 @dataclass(frozen=True)
