@@ -48,7 +48,7 @@ from .progress import JobReporter
 log = logging.getLogger("pbrsr.worker")
 
 THUMB_SIZE = 256
-_STORED = {".png", ".jpg", ".jpeg", ".glb", ".exr", ".ktx2", ".webp"}
+_STORED = {".png", ".jpg", ".jpeg", ".glb", ".exr", ".ktx2", ".webp", ".avif"}
 
 
 @dataclass

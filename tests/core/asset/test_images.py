@@ -74,7 +74,7 @@ def test_limits_and_not_images():
     with pytest.raises(InvalidAsset):
         read_image(encode_image(px, 8, "png")[:60], "cut.png")
     with pytest.raises(UnsupportedAsset):
-        read_image(b"RIFF\x00\x00\x00\x00WEBPVP8 ", "a.webp")
+        read_image(b"GIF89a\x01\x00\x01\x00\x00\x00\x00;", "a.gif")
     with pytest.raises(InvalidAsset):
         read_image(b"", "e.png")
 
@@ -119,11 +119,23 @@ def _img(mime, depth, c=3):
         ("image/x-exr", 16, 3, "same", ("exr", 16)),
         ("image/png", 8, 3, "exr", ("exr", 16)),
         ("image/tiff", 16, 3, "same", ("tiff", 16)),
+        ("image/webp", 8, 4, "same", ("webp", 8)),
+        ("image/png", 8, 4, "avif", ("avif", 8)),
+        ("image/png", 16, 3, "webp", ("png", 16)),
+        ("image/png", 8, 3, "ktx2", ("png", 8)),  # 2x2: KTX2 needs sides that are multiples of 4
     ],
 )
 def test_output_format(mime, depth, c, req, expect):
     fmt, bits, _, _ = output_format(_img(mime, depth, c), req)
     assert (fmt, bits) == expect
+
+
+@pytest.mark.parametrize("size, expect", [((4096, 3072), "ktx2"), ((4096, 4096), "png")])
+@pytest.mark.parametrize("req", ["same", "ktx2"])
+def test_ktx2_over_the_encoders_texel_limit_is_written_as_png(size, expect, req):
+    pixels = np.broadcast_to(np.float32(0.5), (size[1], size[0], 3))
+    image = ImageData(index=0, name="x", pixels=pixels, bit_depth=8, mime="image/ktx2")
+    assert output_format(image, req)[0] == expect
 
 
 def _check_frames(t, n):
