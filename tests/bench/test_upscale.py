@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pbrsr_bench.upscale import bench_assets, run, summary
@@ -105,7 +106,7 @@ def test_bench_assets_adds_the_draco_variant_of_the_water_bottle(tmp_path: Path)
     make_test_asset(shared / "WaterBottle" / "WaterBottle.gltf", size=16)
     said: list[str] = []
     found = dict(bench_assets(tmp_path / "w", False, 16, shared, None, said.append, variants=True))
-    assert list(found) == ["WaterBottle", "WaterBottle-draco"]
+    assert list(found) == ["WaterBottle", "WaterBottle-draco", "WaterBottle-draco-ktx2"]
     variant = found["WaterBottle-draco"]
     assert variant == tmp_path / "w" / "WaterBottle-draco" / "WaterBottle.glb"
     plain, draco = load_asset(found["WaterBottle"]), load_asset(variant)
@@ -113,6 +114,17 @@ def test_bench_assets_adds_the_draco_variant_of_the_water_bottle(tmp_path: Path)
     assert draco.geometry is not None and draco.geometry.accessors
     assert draco.mesh.num_triangles == plain.mesh.num_triangles
     assert [im.pixels.shape for im in draco.images] == [im.pixels.shape for im in plain.images]
+    ktx2 = load_asset(found["WaterBottle-draco-ktx2"])
+    assert set(ktx2.document["extensionsRequired"]) == {
+        "KHR_draco_mesh_compression",
+        "KHR_texture_basisu",
+    }
+    assert ktx2.mesh.num_triangles == plain.mesh.num_triangles
+    for im, ref in zip(ktx2.images, plain.images, strict=True):
+        assert im.pixels.shape == ref.pixels.shape
+        assert im.mime == ("image/ktx2" if ref.bit_depth == 8 else "image/png")  # 16 bits kept
+        # Basis on 16² test patterns: the colours kept, not the texels (ETC1S blocks)
+        assert np.abs(im.pixels.mean((0, 1)) - ref.pixels.mean((0, 1))).max() < 0.05
     # named alone, the variant comes without its source; other benchmarks get none
     only = bench_assets(
         tmp_path / "w2", False, 16, shared, ["WaterBottle-draco"], print, variants=True
