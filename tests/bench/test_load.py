@@ -70,7 +70,8 @@ def test_short_load_run_has_no_errors_and_drains_every_job(tmp_path, capsys):
     assert set(ratios) == {(k, p) for k in ("get_job", "list_jobs") for p in ("poll_only", "mixed")}
     for (kind, phase), r in ratios.items():
         kinds = result[phase]["kinds"]
-        assert r["ratio"] == pytest.approx(kinds[kind]["p50_ms"] / kinds["healthz"]["p50_ms"], 0.01)
+        want = kinds[kind]["p50_ms"] / kinds["healthz"]["p50_ms"]
+        assert r["ratio"] == pytest.approx(want, rel=0.01, abs=0.006)  # kept to 2 decimals
         assert r["met"] == (r["ratio"] <= r["target"])
     assert result["big"]["errors"] == 0 and result["big"]["kinds"]["big_upload"]["requests"] == 2
     assert result["cleanup"]["errors"] == 0
