@@ -31,7 +31,7 @@ from pbrsr_core.pipeline import upscale_asset
 
 from .results import pyplot
 from .shared import SHARED_ASSETS
-from .upscale import bench_assets, cpu_evaluator, eval_lights
+from .upscale import PROCEDURAL_ASSETS, bench_assets, cpu_evaluator, eval_lights
 
 
 def with_gt_maps(pred: Asset, gt: Asset, names: list[str]) -> Asset:
@@ -139,7 +139,7 @@ def markdown_table(rows: list[dict]) -> str:
         lines.append(
             f"| {r['asset']} | {r['bicubic']:.2f} | " + " | ".join(cell(r, n) for n in names) + " |"
         )
-    shared = [r for r in rows if r["asset"] != "procedural"]
+    shared = [r for r in rows if r["asset"] not in PROCEDURAL_ASSETS]
     if shared:
         means = []
         for n in names:

@@ -327,11 +327,16 @@ def markdown_table(rows: list[dict]) -> str:
     return head + "\n".join(lines) + "\n"
 
 
+PROCEDURAL_ASSETS = ("procedural", "procedural-cutout")
+"""The assets the benchmarks make themselves (:func:`bench_assets`); summaries over real
+assets leave them out."""
+
+
 def summary(
-    rows: list[dict], exclude: tuple[str, ...] = ("procedural", *BENCH_VARIANTS)
+    rows: list[dict], exclude: tuple[str, ...] = (*PROCEDURAL_ASSETS, *BENCH_VARIANTS)
 ) -> list[dict]:
     """Per method, over the assets that also have a bicubic row (``exclude`` left out: the
-    procedural asset, and the variants, which repeat their source's maps): mean
+    procedural assets, and the variants, which repeat their source's maps): mean
     render PSNR gain over bicubic, the worst map PSNR difference to bicubic (any asset, any
     map the two rows both score, occlusion and emissive included), mean run seconds and the
     largest peak memory; the targets are stated on these."""
@@ -401,7 +406,7 @@ def published_summary(out_dir: Path) -> str:
         command += f" --scale {data['scale']}"
     if data["prior"] != DEFAULT_PRIOR:
         command += f" --prior {data['prior']}"
-    shared = sorted({r["asset"] for r in rows} - {"procedural", *BENCH_VARIANTS})
+    shared = sorted({r["asset"] for r in rows} - {*PROCEDURAL_ASSETS, *BENCH_VARIANTS})
     return (
         f"x{data['scale']}, prior `{data['prior']}`, render PSNR over {data['eval_views']} views "
         f"at {data['eval_res']}² under {' and '.join(data['lights'])}, mean over "
