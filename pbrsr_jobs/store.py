@@ -11,6 +11,8 @@ a request without :func:`check_job_id`):
       <root>/jobs/<id>/work/           the pipeline's per-job cache (kept across retries)
       <root>/jobs/<id>/output/         the finished bundle's files (renamed into place)
       <root>/jobs/<id>/thumbs/*.png    small per-map thumbnails for the dashboard
+      <root>/jobs/<id>/crops/          per-map LR/HR detail crops (pbrsr_core.crops) for
+                                       the dashboard's wipe sliders
       <root>/jobs/<id>/result.zip      the bundle (renamed into place)
       <root>/jobs/<id>/.tmp-*          a run's temporary folders (every hidden entry is
                                        temporary); never read by the API
@@ -159,6 +161,9 @@ class JobLayout:
     def thumbs_dir(self, job_id: str) -> Path:
         return self.job_dir(job_id) / "thumbs"
 
+    def crops_dir(self, job_id: str) -> Path:
+        return self.job_dir(job_id) / "crops"
+
     def bundle_path(self, job_id: str) -> Path:
         return self.job_dir(job_id) / "result.zip"
 
@@ -207,6 +212,25 @@ class JobLayout:
 
     def thumb_names(self, job_id: str) -> list[str]:
         return self.list_files(self.thumbs_dir(job_id), (".png",))
+
+    def model_name(self, job_id: str) -> str | None:
+        """The upscaled asset's file in ``output/`` (the one ``.glb`` or ``.gltf`` there)."""
+        models = self.list_files(self.output_dir(job_id), (".glb", ".gltf"))
+        return models[0] if len(models) == 1 else None
+
+    def output_files(self, job_id: str) -> set[str]:
+        """Every file of a finished job's ``output/``, as relative POSIX paths (hidden entries
+        and symlinks left out)."""
+        out = self.output_dir(job_id)
+        if not out.is_dir():
+            return set()
+        files = set()
+        for path in out.rglob("*"):
+            rel = path.relative_to(out)
+            hidden = any(part.startswith(".") for part in rel.parts)
+            if not hidden and path.is_file() and not path.is_symlink():
+                files.add(rel.as_posix())
+        return files
 
     def list_files(self, folder: Path, suffixes: tuple[str, ...] = ()) -> list[str]:
         """Plain files directly in ``folder`` (sorted names), optionally by suffix."""

@@ -9,8 +9,10 @@ import json
 import time
 import zipfile
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from PIL import Image
 from test_service_support import (
     asset_bytes,
     cleanup_redis,
@@ -92,9 +94,30 @@ def test_job_runs_to_finished_with_a_complete_bundle(env):
         assert img.status_code == 200 and img.content[:4] == b"\x89PNG"
     assert len(job["links"]["thumbs"]) == len(maps)
 
+    # per-map detail crops: the same region of the LR and the HR map
+    crops = client.get(job["links"]["crops"]).json()["items"]
+    assert sorted(f"maps/{c['map']}.png" for c in crops) == sorted(maps)
+    for crop in crops:
+        x, y, w, h = crop["lr_region"]
+        assert crop["scale"] == 2 and crop["hr_region"] == [2 * x, 2 * y, 2 * w, 2 * h]
+        lr, hr = client.get(crop["lr"]), client.get(crop["hr"])
+        assert lr.headers["content-type"] == hr.headers["content-type"] == "image/png"
+        lr_px = np.asarray(Image.open(io.BytesIO(lr.content)))
+        hr_px = np.asarray(Image.open(io.BytesIO(hr.content)))
+        assert lr_px.shape[:2] == (h, w) and hr_px.shape[:2] == (2 * h, 2 * w)
+    # the upscaled asset for a 3D viewer, and any file of the bundle by its path
+    model = client.get(job["links"]["model"])
+    assert job["links"]["model"].endswith("/files/asset.glb")
+    assert model.headers["content-type"] == "model/gltf-binary"
+    assert model.content == zf.read("asset.glb")
+    assert client.get(f"/v1/jobs/{job_id}/files/report.json").json() == report
+    for bad in ("..%2Fjob.json", "maps", "maps%2F..%2Freport.json", "%2E%2E%2Finput", "nope.glb"):
+        assert client.get(f"/v1/jobs/{job_id}/files/{bad}").status_code == 404, bad
+
     # nothing temporary left, one bundle
     job_dir = JobLayout(settings.storage_dir).job_dir(job_id)
     assert sorted(p.name for p in job_dir.iterdir()) == [
+        "crops",
         "input",
         "job.json",
         "output",

@@ -6,10 +6,11 @@ on ``jobs/<id>/input/`` with a :class:`~worker.progress.JobReporter` as the prog
 callback, and publishes the result:
 
 1. the pipeline writes the bundle's files into a fresh ``jobs/<id>/.tmp-output-*`` folder,
-2. thumbnails of every HR map go to a ``.tmp-thumbs-*`` folder,
+2. every map's LR/HR detail crops (:mod:`pbrsr_core.crops`) go to a ``.tmp-crops-*`` folder
+   and thumbnails of every HR map to a ``.tmp-thumbs-*`` folder,
 3. the zip is written as ``.tmp-bundle-*.zip``,
-4. each is renamed into place (``output/``, ``thumbs/``, ``result.zip``), and only then
-   ``meta['state']`` becomes ``finished``.
+4. each is renamed into place (``output/``, ``crops/``, ``thumbs/``, ``result.zip``), and
+   only then ``meta['state']`` becomes ``finished``.
 
 A reader therefore never sees half a bundle; a run that dies leaves only ``.tmp-*`` entries,
 removed by the next attempt or by expiry. User errors (``PbrsrError``) and cancellation end
@@ -107,7 +108,9 @@ def run_job(job_id: str) -> dict[str, Any]:
         options = resolve_options(manifest.options, ctx.settings, device=ctx.device)
         input_path = layout.input_dir(job_id) / manifest.input
         out_tmp = layout.tmp_dir(job_id, "output")
-        tmp_paths.append(out_tmp)
+        crops_tmp = layout.tmp_dir(job_id, "crops")
+        tmp_paths += [out_tmp, crops_tmp]
+        from pbrsr_core.crops import read_crop_index
         from pbrsr_core.footprint import memory_budget
         from pbrsr_core.pipeline import upscale_asset
 
@@ -121,6 +124,7 @@ def run_job(job_id: str) -> dict[str, Any]:
                 work_dir=layout.work_dir(job_id),
                 # refused, not killed, when it cannot fit
                 memory_budget=memory_budget(ctx.settings.worker_memory_mb),
+                crops_dir=crops_tmp,
             )
             reporter.check_cancel()
             reporter(_bundle_event())
@@ -132,6 +136,7 @@ def run_job(job_id: str) -> dict[str, Any]:
             write_bundle_zip(out_tmp, bundle_tmp)
         # published only after the watchdog is disarmed: a cancel cannot cut this short
         publish(thumbs_tmp, layout.thumbs_dir(job_id))
+        publish(crops_tmp, layout.crops_dir(job_id))
         publish(out_tmp, layout.output_dir(job_id))
         publish(bundle_tmp, layout.bundle_path(job_id))
         summary = _summary(report)
@@ -139,6 +144,8 @@ def run_job(job_id: str) -> dict[str, Any]:
         job.meta["files"] = {
             "previews": layout.preview_names(job_id),
             "thumbs": layout.thumb_names(job_id),
+            "crops": read_crop_index(layout.crops_dir(job_id)),
+            "model": report["input"],
         }
         reporter.finish(JobState.FINISHED, summary=summary)
         log.info("job %s: finished", job_id)
