@@ -1,8 +1,9 @@
 """The dashboard end to end in headless Chromium (Debian's /usr/bin/chromium, driven by
 Playwright): a real ``pbrsr serve`` and ``pbrsr worker`` on localhost; drop a procedural
 asset on the page, watch the progress bar move (pushed by the event stream), see the job
-finish, download the bundle.
-The screenshot is kept as test-artifacts/dashboard.png."""
+finish, download the bundle; a finished job's detail crops with their wipe sliders and its
+3D view (WebGL, drawn by SwiftShader on the CPU here).
+The screenshots are kept as test-artifacts/dashboard.png and dashboard-detail.png."""
 
 from __future__ import annotations
 
@@ -12,13 +13,17 @@ import time
 import zipfile
 from pathlib import Path
 
+import httpx
+import numpy as np
 import pytest
+from PIL import Image
 from test_service_support import (
     REPO,
     api_server,
     asset_bytes,
     cleanup_redis,
     make_settings,
+    wait_for,
     worker_process,
 )
 
@@ -34,6 +39,8 @@ CHROMIUM_ARGS = [
     "--disable-background-networking",
     "--disable-component-update",
     "--disable-sync",
+    # WebGL without a GPU: SwiftShader, which newer Chromium builds use only when allowed
+    "--enable-unsafe-swiftshader",
 ]
 ARTIFACTS = REPO / "test-artifacts"
 
@@ -131,5 +138,147 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
                 assert errors == []
             finally:
                 browser.close()
+    finally:
+        cleanup_redis(settings)
+
+
+# The 3D view's canvas read back in the page: how many pixels differ from the background
+# (the top-left pixel) and how many distinct colours there are.
+CANVAS_STATS = """() => {
+  const src = document.querySelector('#model-view canvas');
+  const c = document.createElement('canvas');
+  c.width = src.width; c.height = src.height;
+  const ctx = c.getContext('2d');
+  ctx.drawImage(src, 0, 0);
+  const px = ctx.getImageData(0, 0, c.width, c.height).data;
+  const colours = new Set();
+  let differ = 0;
+  for (let i = 0; i < px.length; i += 4) {
+    colours.add((px[i] << 16) | (px[i + 1] << 8) | px[i + 2]);
+    const d = Math.abs(px[i] - px[0]) + Math.abs(px[i + 1] - px[1]) + Math.abs(px[i + 2] - px[2]);
+    if (d > 6) differ++;
+  }
+  return { differ: differ / (px.length / 4), colours: colours.size, url: src.toDataURL() };
+}"""
+
+
+def _png(data: bytes) -> np.ndarray:
+    return np.asarray(Image.open(io.BytesIO(data)).convert("RGB"), dtype=np.int16)
+
+
+@pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian's chromium is not installed")
+def test_dashboard_detail_crops_wipe_and_3d_view(tmp_path):
+    from playwright.sync_api import sync_playwright
+
+    settings = make_settings(tmp_path)
+    ARTIFACTS.mkdir(exist_ok=True)
+    data = asset_bytes(tmp_path, size=64)
+    try:
+        # the API's first check of an upload imports torch: seconds on a busy machine
+        with (
+            api_server(settings, tmp_path / "api.log") as base,
+            httpx.Client(base_url=base, timeout=60) as api,
+        ):
+            options = '{"method": "bicubic", "scale": 4}'
+            files = {"file": ("sphere.glb", data, "model/gltf-binary")}
+            job_id = api.post("/v1/jobs", files=files, data={"options": options}).json()["id"]
+            with worker_process(settings, tmp_path / "worker.log", extra=["--burst"]) as proc:
+                wait_for(lambda: proc.poll() is not None, 120, 0.2, "the burst worker to end")
+            job = api.get(f"/v1/jobs/{job_id}").json()
+            assert job["status"] == "finished", job
+            crops = api.get(job["links"]["crops"]).json()["items"]
+            assert len(crops) == len(job["links"]["thumbs"]) >= 3
+
+            with sync_playwright() as pw:
+                browser = pw.chromium.launch(
+                    executable_path=str(CHROMIUM), args=CHROMIUM_ARGS, headless=True
+                )
+                try:
+                    page = browser.new_page(viewport={"width": 1360, "height": 1000})
+                    errors: list[str] = []
+                    page.on("pageerror", lambda exc: errors.append(str(exc)))
+                    requests: list[str] = []
+                    page.on("request", lambda req: requests.append(req.url))
+                    page.goto(base + "/")
+                    page.click(f".job-row[data-id='{job_id}']")
+
+                    # one wipe per map, both crops decoded: the LR at its texels, the HR x4
+                    page.wait_for_selector("#crops-box:not([hidden]) .wipe")
+                    figures = page.locator("#crops .wipe")
+                    assert figures.count() == len(crops)
+                    page.wait_for_function(
+                        "[...document.querySelectorAll('#crops img')]"
+                        ".every(i => i.complete && i.naturalWidth > 0)"
+                    )
+                    sizes = page.eval_on_selector_all(
+                        "#crops .wipe",
+                        "els => els.map(f => [f.dataset.map,"
+                        " f.querySelector('.wipe-lr').naturalWidth,"
+                        " f.querySelector('.wipe-hr').naturalWidth,"
+                        " getComputedStyle(f.querySelector('.wipe-lr')).imageRendering])",
+                    )
+                    assert sorted(m for m, *_ in sizes) == sorted(c["map"] for c in crops)
+                    for _, lr_w, hr_w, rendering in sizes:
+                        assert hr_w == 4 * lr_w and rendering == "pixelated"
+
+                    # the wipe: drag across the first crop to 10 %, then its slider to 90 %
+                    first = figures.first
+                    box = first.locator(".wipe-box")
+                    first.scroll_into_view_if_needed()
+                    rect = box.bounding_box()
+                    assert rect is not None and rect["width"] >= 256  # at least 2x a 128 crop
+                    y = rect["y"] + rect["height"] / 2
+                    page.mouse.move(rect["x"] + rect["width"] / 2, y)
+                    page.mouse.down()
+                    page.mouse.move(rect["x"] + rect["width"] * 0.1, y, steps=4)
+                    page.mouse.up()
+                    split = box.evaluate("b => b.style.getPropertyValue('--split')")
+                    assert abs(float(split.rstrip("%")) - 10) < 1, split
+                    at_10 = _png(box.screenshot())
+                    first.locator(".wipe-range").fill("90")
+                    assert box.evaluate("b => b.style.getPropertyValue('--split')") == "90%"
+                    clip = first.locator(".wipe-lr").evaluate("i => getComputedStyle(i).clipPath")
+                    assert "10%" in clip, clip  # the input shows on the left 90 %
+                    at_90 = _png(box.screenshot())
+                    h, w = at_10.shape[:2]
+                    rows = slice(4, h - 4)  # inside the rounded border
+                    left, middle = slice(4, int(0.08 * w)), slice(int(0.15 * w), int(0.85 * w))
+                    # left of both splits the input both times; between them input vs result
+                    assert np.array_equal(at_10[rows, left], at_90[rows, left])
+                    assert np.abs(at_10[rows, middle] - at_90[rows, middle]).mean() > 1.0
+
+                    # the 3D view (set up once on screen): the upscaled asset drawn under the
+                    # room environment
+                    page.wait_for_selector("#model-box:not([hidden])")
+                    page.locator("#model-view").scroll_into_view_if_needed()
+                    page.wait_for_function(
+                        "document.getElementById('model-view').dataset.state === 'ready'",
+                        timeout=30_000,
+                    )
+                    stats = page.evaluate(CANVAS_STATS)
+                    # the test asset's two small objects: about 2 % of the view, many colours
+                    assert stats["differ"] > 0.01 and stats["colours"] > 200, stats["colours"]
+                    # orbiting redraws it from elsewhere
+                    frames = int(page.get_attribute("#model-view", "data-frames") or 0)
+                    view = page.locator("#model-view").bounding_box()
+                    assert view is not None
+                    cx, cy = view["x"] + view["width"] / 2, view["y"] + view["height"] / 2
+                    page.mouse.move(cx, cy)
+                    page.mouse.down()
+                    page.mouse.move(cx + 120, cy + 30, steps=5)
+                    page.mouse.up()
+                    page.wait_for_function(
+                        f"+document.getElementById('model-view').dataset.frames > {frames}"
+                    )
+                    assert page.evaluate(CANVAS_STATS)["url"] != stats["url"]
+                    assert page.inner_text("#model-status") == ""
+
+                    page.screenshot(path=str(ARTIFACTS / "dashboard-detail.png"), full_page=True)
+                    assert errors == []
+                    # nothing from elsewhere (blob: URLs are the GLB's own images)
+                    assert [u for u in requests if not u.startswith((base, "blob:"))] == []
+                    assert any("/vendor/three/build/three.module.js" in u for u in requests)
+                finally:
+                    browser.close()
     finally:
         cleanup_redis(settings)

@@ -310,6 +310,19 @@ def test_crops_and_files_wait_for_the_end_and_serve_only_recorded_names(client, 
         _problem_ok(client.get(f"{base}/files/{path}"), 404)
 
 
+def test_the_3d_viewer_library_comes_from_the_npm_packages(client, tmp_path):
+    r = client.get("/vendor/three/build/three.module.js")
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/javascript")
+    assert b"./three.core.js" in r.content
+    assert client.get("/vendor/three/examples/jsm/loaders/GLTFLoader.js").status_code == 200
+    for path in ("package.json", "..%2F..%2Fpackage.json", "src/Three.js"):
+        _problem_ok(client.get(f"/vendor/three/{path}"), 404)
+    bare = make_settings(tmp_path, npm_dir=tmp_path / "no-node-modules")
+    with TestClient(create_app(bare), raise_server_exceptions=False) as c:
+        body = _problem_ok(c.get("/vendor/three/build/three.module.js"), 404)
+        assert "scripts/setup" in body["detail"]
+
+
 def test_cors_off_by_default_and_on_when_configured(client, tmp_path):
     origin = {"Origin": "http://example.test"}
     assert "access-control-allow-origin" not in client.get("/v1/jobs", headers=origin).headers
