@@ -22,6 +22,7 @@ CROPS_INDEX = "crops.json"
 CROP_HR_TEXELS = 128  # side of an HR crop when the map is that large
 MIN_LR_TEXELS = 16  # side of an LR crop at least (x8: a 128 HR crop shows 16 LR texels)
 SEARCH_STEPS = 4  # candidate windows start every side/SEARCH_STEPS texels
+SAMPLE_TEXELS = 1 << 20  # texels a region search looks at, at most about
 
 
 def crop_side(lr_shape: tuple[int, ...], scale: int) -> int:
@@ -36,7 +37,8 @@ def detail_origin(pixels: np.ndarray, side: int) -> tuple[int, int]:
     highest local variance (summed over the colour channels; alpha left out).
 
     Windows start on a grid of ``side // SEARCH_STEPS`` texels; among windows of equal
-    variance (a flat map) the one nearest the centre wins."""
+    variance (a flat map) the one nearest the centre wins. A map of more than
+    ``SAMPLE_TEXELS`` texels is sampled on a regular sub-grid."""
     arr = np.asarray(pixels, dtype=np.float32)
     if arr.ndim == 2:
         arr = arr[:, :, None]
@@ -45,10 +47,17 @@ def detail_origin(pixels: np.ndarray, side: int) -> tuple[int, int]:
     side = max(1, min(side, h, w))
     step = max(1, side // SEARCH_STEPS)
     k = max(1, side // step)  # blocks per window side
-    hb, wb = h // step, w // step
-    blocks = colour[: hb * step, : wb * step].reshape(hb, step, wb, step, -1).astype(np.float64)
-    s1 = _window_sums(blocks.mean(axis=(1, 3)), k)
-    s2 = _window_sums((blocks * blocks).mean(axis=(1, 3)), k)
+    # a large map is sampled every `stride` texels (a power of two dividing the block size):
+    # about SAMPLE_TEXELS texels in all
+    stride = 1
+    while step % (2 * stride) == 0 and (h // stride) * (w // stride) > SAMPLE_TEXELS:
+        stride *= 2
+    hb, wb, b = h // step, w // step, step // stride
+    sampled = colour[::stride, ::stride][: hb * b, : wb * b]
+    blocks = sampled.reshape(hb, b, wb, b, colour.shape[2])
+    m1 = blocks.mean(axis=(1, 3), dtype=np.float64)
+    m2 = np.square(blocks, dtype=np.float64).mean(axis=(1, 3))
+    s1, s2 = _window_sums(m1, k), _window_sums(m2, k)
     n = float(k * k)
     variance = (s2 / n - (s1 / n) ** 2).sum(axis=-1)  # (hb - k + 1, wb - k + 1)
     ys, xs = np.nonzero(variance >= variance.max() - 1e-9)

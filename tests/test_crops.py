@@ -29,6 +29,14 @@ def test_region_is_the_detailed_patch_not_the_corner():
     assert x <= 88 and x + 32 >= 104 and y <= 60 and y + 32 >= 76
 
 
+def test_a_large_map_is_searched_on_a_sampled_grid_and_still_finds_the_detail():
+    rng = np.random.default_rng(2)
+    px = np.full((2048, 2048, 3), 0.5, np.float32)  # 4 Mtexels: sampled every 2nd texel
+    px[1203:1243, 517:557] = rng.random((40, 40, 3))
+    # the one window on the 8-texel grid inside the patch
+    assert detail_origin(px, 32) == (520, 1208)
+
+
 def test_alpha_is_not_detail_and_a_flat_map_gives_the_centre():
     rng = np.random.default_rng(1)
     px = np.full((64, 64, 4), 0.25, np.float32)
