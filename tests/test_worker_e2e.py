@@ -8,6 +8,7 @@ import io
 import json
 import time
 import zipfile
+from urllib.parse import urljoin
 
 import numpy as np
 import pytest
@@ -16,6 +17,7 @@ from PIL import Image
 from test_service_support import (
     asset_bytes,
     cleanup_redis,
+    gltf_zip_bytes,
     make_settings,
     post_asset,
     wait_for,
@@ -129,6 +131,23 @@ def test_job_runs_to_finished_with_a_complete_bundle(env):
     assert 'pbrsr_jobs_completed_total{state="finished"} 1.0' in metrics
     assert "pbrsr_job_duration_seconds_count 1.0" in metrics
     assert "pbrsr_workers 1.0" in metrics
+
+
+def test_a_gltf_result_resolves_its_files_beside_it(env):
+    """A zip upload's result is a .gltf: links.model and the URIs inside it, resolved against
+    its URL as a browser's 3D viewer does, all answer."""
+    settings, client, proc, tmp = env
+    r = post_asset(client, gltf_zip_bytes(tmp), "scene.zip", {"method": "bicubic", "scale": 2})
+    job = _wait_state(client, r.json()["id"], ("finished", "failed", "canceled"), 150)
+    assert job["status"] == "finished", job
+    model_url = job["links"]["model"]
+    assert model_url.endswith(".gltf")
+    doc = client.get(model_url).json()
+    uris = [x["uri"] for x in doc["buffers"] + doc["images"]]
+    assert len(uris) >= 2
+    for uri in uris:
+        r = client.get(urljoin(model_url, uri))
+        assert r.status_code == 200 and r.content, uri
 
 
 def test_running_job_cancels_within_two_seconds(env):
