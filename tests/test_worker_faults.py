@@ -69,6 +69,7 @@ def test_killed_worker_job_is_retried_elsewhere_and_finishes(tmp_path):
             assert "asset.glb" in names and "report.json" in names
             job_dir = JobLayout(settings.storage_dir).job_dir(job_id)
             assert sorted(p.name for p in job_dir.iterdir()) == [
+                "crops",
                 "input",
                 "job.json",
                 "output",
