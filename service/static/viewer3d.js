@@ -19,6 +19,7 @@ const BACKGROUND = 0x2e2e2e;
 class ModelView {
   constructor(container) {
     this.container = container;
+    // preserveDrawingBuffer: the canvas can be read back (saved, tested) between draws
     this.renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
     this.renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
     this.renderer.toneMapping = THREE.NeutralToneMapping;
@@ -27,7 +28,9 @@ class ModelView {
     this.scene = new THREE.Scene();
     this.scene.background = new THREE.Color(BACKGROUND);
     const pmrem = new THREE.PMREMGenerator(this.renderer);
-    this.scene.environment = pmrem.fromScene(new RoomEnvironment(), 0.04).texture;
+    const room = new RoomEnvironment();
+    this.scene.environment = pmrem.fromScene(room, 0.04).texture;
+    room.dispose();
     pmrem.dispose();
     this.camera = new THREE.PerspectiveCamera(35, 1, 0.01, 100);
     this.controls = new OrbitControls(this.camera, this.renderer.domElement);
