@@ -43,8 +43,8 @@ class MapCrop(BaseModel):
     hr_region: list[int] = Field(description="[x, y, width, height] in texels of the HR map.")
     lr_size: list[int] = Field(description="[width, height] of the LR map.")
     hr_size: list[int] = Field(description="[width, height] of the HR map.")
-    lr: str = Field(description="The LR crop (PNG, LR texels: show it scaled by `scale`).")
-    hr: str = Field(description="The HR crop (PNG).")
+    lr: str = Field(description="URL of the LR crop, a PNG at LR texels (show it `scale` x).")
+    hr: str = Field(description="URL of the HR crop, a PNG.")
 
 
 class CropList(BaseModel):
