@@ -173,7 +173,11 @@ def step_cmd(
 def upscale_cmd(
     out: Path = typer.Option(Path("bench-out/upscale"), "--out", "-o", help="Output directory."),
     asset: list[str] = typer.Option(  # noqa: B006
-        [], "--asset", "-a", help="Shared asset folder name (repeatable); default: all."
+        [],
+        "--asset",
+        "-a",
+        help="Shared asset folder name, or a variant made from one (WaterBottle-draco: its "
+        "geometry Draco-compressed) (repeatable); default: all, variants too.",
     ),
     methods: str = typer.Option(
         "bicubic,direct,fast,balanced", help="bicubic, direct and preset names, comma-separated."

@@ -1,12 +1,12 @@
 """`pbrsr bench upscale`: speed against error.
 
-For each asset (a procedural one, and every asset of ``../shared/assets`` when that folder is
-present) the ground-truth maps are degraded by the paper's protocol (``pbrsr degrade``), then
-upscaled by bicubic, the direct prior and each PBR-SR preset. Each run is a subprocess, so its
-wall time and peak memory (max RSS) are its own. PBR-SR runs also save their maps at
-intermediate iterations, so the plot shows render PSNR against wall time as curves, with the
-baselines as lines. Metrics: PSNR per map over UV-covered texels, and render PSNR over the
-paper's evaluation views under two environment maps.
+For each asset (two procedural ones, a brick box and a foliage cutout, and every asset of
+``../shared/assets`` when that folder is present) the ground-truth maps are degraded by the paper's
+protocol (``pbrsr degrade``), then upscaled by bicubic, the direct prior and each PBR-SR preset.
+Each run is a subprocess, so its wall time and peak memory (max RSS) are its own. PBR-SR runs also
+save their maps at intermediate iterations, so the plot shows render PSNR against wall time as
+curves, with the baselines as lines. Metrics: PSNR per map over UV-covered texels, and render PSNR
+over the paper's evaluation views under two environment maps.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pbrsr_core.asset import load_asset, make_demo_asset
+from pbrsr_core.asset import load_asset, make_cutout_asset, make_demo_asset
 from pbrsr_core.asset.model import Asset
 from pbrsr_core.degrade import degrade_asset
 from pbrsr_core.metrics import RenderEvaluator, eval_cameras, map_metrics
@@ -32,6 +32,7 @@ from pbrsr_core.scene import procedural_light, rotated_procedural_light
 
 from .docs import machine
 from .shared import SHARED_ASSETS
+from .variants import BENCH_VARIANTS
 
 DEFAULT_METHODS = ("bicubic", "direct", "fast", "balanced")
 ENVMAPS = ("studio_small_03_1k.hdr", "venice_sunset_1k.hdr")
@@ -58,22 +59,35 @@ def bench_assets(
     names: list[str] | None,
     log,
     include_shared: bool = True,
+    variants: bool = False,
 ) -> list[tuple[str, Path]]:
     """(name, ground-truth file) of the assets a benchmark runs on: the procedural demo asset
-    (written under ``work``) and, with ``include_shared``, the shared assets (all, or those
-    ``names``), saying so when the shared folder is absent. A name with no folder there is a
-    ValueError."""
+    and a procedural foliage cutout (alphaMode MASK; both written under ``work``) and, with
+    ``include_shared``, the shared assets (all, or those ``names``), saying so when the shared
+    folder is absent. With ``variants``, also each :data:`~pbrsr_bench.variants.BENCH_VARIANTS`
+    entry whose source asset is there (all, or those ``names``), made under ``work``. A name
+    with no folder there is a ValueError."""
     todo: list[tuple[str, Path]] = []
     if include_procedural:
         todo.append(
             ("procedural", make_demo_asset(work / "procedural" / "demo.glb", size=procedural_size))
         )
+        cutout = make_cutout_asset(work / "procedural-cutout" / "cutout.glb", size=procedural_size)
+        todo.append(("procedural-cutout", cutout))
     if include_shared and shared.is_dir():
-        found = find_assets(shared, names)
-        missing = sorted(set(names or ()) - {name for name, _ in found})
+        kinds = BENCH_VARIANTS if variants else {}
+        chosen = {v: kinds[v] for v in kinds if not names or v in names}
+        plain = [n for n in names or () if n not in kinds]
+        sources = sorted({*plain, *(src for src, _ in chosen.values())}) if names else None
+        found = dict(find_assets(shared, sources))
+        missing = sorted(set(sources or ()) - set(found))
         if missing:
             raise ValueError(f"asset folder {', '.join(missing)} not found in {shared}")
-        todo.extend(found)
+        todo.extend((n, p) for n, p in found.items() if not names or n in plain)
+        for name, (src, make) in chosen.items():
+            if src in found:
+                log(f"== {name}: made from {src}")
+                todo.append((name, make(found[src], work / name / f"{found[src].stem}.glb")))
     elif include_shared:
         log(f"shared assets folder {shared} not present: procedural asset only")
     return todo
@@ -220,7 +234,14 @@ def run(
     }
     try:
         todo = bench_assets(
-            work_root, include_procedural, procedural_size, shared, assets, log, include_shared
+            work_root,
+            include_procedural,
+            procedural_size,
+            shared,
+            assets,
+            log,
+            include_shared,
+            variants=True,
         )
         for name, gt_path in todo:
             log(f"== {name}: degrade x{scale}")
@@ -306,8 +327,11 @@ def markdown_table(rows: list[dict]) -> str:
     return head + "\n".join(lines) + "\n"
 
 
-def summary(rows: list[dict], exclude: tuple[str, ...] = ("procedural",)) -> list[dict]:
-    """Per method, over the assets that also have a bicubic row (``exclude`` left out): mean
+def summary(
+    rows: list[dict], exclude: tuple[str, ...] = ("procedural", *BENCH_VARIANTS)
+) -> list[dict]:
+    """Per method, over the assets that also have a bicubic row (``exclude`` left out: the
+    procedural asset, and the variants, which repeat their source's maps): mean
     render PSNR gain over bicubic, the worst map PSNR difference to bicubic (any asset, any
     map the two rows both score, occlusion and emissive included), mean run seconds and the
     largest peak memory; the targets are stated on these."""
@@ -377,7 +401,7 @@ def published_summary(out_dir: Path) -> str:
         command += f" --scale {data['scale']}"
     if data["prior"] != DEFAULT_PRIOR:
         command += f" --prior {data['prior']}"
-    shared = sorted({r["asset"] for r in rows} - {"procedural"})
+    shared = sorted({r["asset"] for r in rows} - {"procedural", *BENCH_VARIANTS})
     return (
         f"x{data['scale']}, prior `{data['prior']}`, render PSNR over {data['eval_views']} views "
         f"at {data['eval_res']}² under {' and '.join(data['lights'])}, mean over "

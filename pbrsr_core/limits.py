@@ -17,7 +17,8 @@ class Limits:
     max_output_dim: int = 16384  # per side, of any output image (input dim x scale)
     max_data_uri_bytes: int = 64 * 1024 * 1024
     max_zip_entries: int = 1000
-    max_unpacked_bytes: int = 1024 * 1024 * 1024  # sum of the sizes of the zip entries unpacked
+    # sum of the sizes of the zip entries unpacked; also of the meshopt geometry decoded
+    max_unpacked_bytes: int = 1024 * 1024 * 1024
     max_compression_ratio: float = 200.0  # size : compressed size, of each zip entry unpacked
 
 

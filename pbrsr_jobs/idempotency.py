@@ -1,15 +1,18 @@
-"""Idempotency keys of ``POST /v1/jobs``: the same request sent twice makes one job.
+"""Idempotency keys of ``POST /v1/jobs`` and ``POST /v1/batches``: the same request sent twice
+makes one job (one batch).
 
 A client may send ``Idempotency-Key: <1..255 printable ASCII characters>``. Keys are scoped
-per owner (API key) and live in Redis under ``<prefix>:idem:<owner>:<sha256 of the key>`` as
-one string:
+per owner (API key) and endpoint and live in Redis under
+``<prefix>:<namespace>:<owner>:<sha256 of the key>`` (namespace ``idem`` for jobs,
+``idem-batch`` for batches) as one string:
 
 * ``pending <fingerprint> <token>`` - a request holds the key and is creating its job. Taken
   with ``SET NX`` and a short expiry (``pending_ttl_s``), so a process that dies mid-request
   frees the key by itself.
-* ``done <fingerprint> <job id>`` - the job was created; kept ``ttl_s`` (24 h by default).
+* ``done <fingerprint> <id>`` - the job (batch) was created; kept ``ttl_s`` (24 h by
+  default).
 
-The fingerprint is a hash of the uploaded file's bytes and the form's text fields (``options``):
+The fingerprint is a hash of the uploaded files' bytes and the form's text fields (``options``):
 the same key with another fingerprint is a reused key, not a retry. Completing or releasing a
 reservation only touches the record while it is still that reservation's (compare and set
 in a Lua script).
@@ -59,7 +62,7 @@ def fingerprint(file_sha256: str | None, fields: dict[str, str]) -> str:
 @dataclass(frozen=True)
 class Record:
     """What Redis holds for a key: ``pending`` (``ref`` = a reservation's token) or ``done``
-    (``ref`` = the job id)."""
+    (``ref`` = the job or batch id)."""
 
     state: str
     fingerprint: str
@@ -87,10 +90,10 @@ class Reservation:
     redis_key: str
     record: Record
 
-    def complete(self, job_id: str) -> bool:
-        """Remember ``job_id`` for the key (``ttl_s``). False when another request took the
-        key after this reservation expired (that one's record is kept)."""
-        done = Record("done", self.record.fingerprint, job_id)
+    def complete(self, ref: str) -> bool:
+        """Remember ``ref`` (the job or batch id) for the key (``ttl_s``). False when another
+        request took the key after this reservation expired (that one's record is kept)."""
+        done = Record("done", self.record.fingerprint, ref)
         args = [self.record.encode(), done.encode(), self.keys.ttl_s]
         return bool(self.keys.complete_script(keys=[self.redis_key], args=args))
 
@@ -100,11 +103,21 @@ class Reservation:
 
 
 class IdempotencyKeys:
-    """The idempotency records of one Redis (``redis``: a sync client) and key prefix."""
+    """The idempotency records of one Redis (``redis``: a sync client), key prefix and
+    endpoint (``namespace``)."""
 
-    def __init__(self, redis: Any, prefix: str, ttl_s: int, *, pending_ttl_s: int = PENDING_TTL_S):
+    def __init__(
+        self,
+        redis: Any,
+        prefix: str,
+        ttl_s: int,
+        *,
+        pending_ttl_s: int = PENDING_TTL_S,
+        namespace: str = "idem",
+    ):
         self.redis = redis
         self.prefix = prefix
+        self.namespace = namespace
         self.ttl_s = ttl_s
         self.pending_ttl_s = pending_ttl_s
         self.complete_script = redis.register_script(_COMPLETE)
@@ -112,7 +125,7 @@ class IdempotencyKeys:
 
     def redis_key(self, owner: str, key: str) -> str:
         digest = hashlib.sha256(key.encode()).hexdigest()
-        return f"{self.prefix}:idem:{owner}:{digest}"
+        return f"{self.prefix}:{self.namespace}:{owner}:{digest}"
 
     def get(self, owner: str, key: str) -> Record | None:
         raw = self.redis.get(self.redis_key(owner, key))

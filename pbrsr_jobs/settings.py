@@ -13,9 +13,10 @@ import os
 import re
 from functools import lru_cache
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
+from urllib.parse import urlsplit
 
-from pydantic import Field, field_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from pbrsr_core import runtime
@@ -56,7 +57,45 @@ class Settings(BaseSettings):
     storage_dir: Path = Field(
         default_factory=_default_storage,
         description="Root of job storage (jobs/<id>/input, output, result.zip); a shared "
-        "NFS path when API and workers run on different machines.",
+        "NFS path when API and workers run on different machines. With the s3 backend: "
+        "this machine's scratch space (uploads while they stream, a job's working folder).",
+    )
+    storage_backend: Literal["filesystem", "s3"] = Field(
+        "filesystem",
+        description="Where the files API and workers share live: 'filesystem' (under "
+        "PBRSR_STORAGE_DIR) or 's3' (an S3-compatible bucket; PBRSR_STORAGE_DIR is then each "
+        "machine's own scratch space).",
+    )
+    s3_endpoint_url: str | None = Field(
+        None, description="S3 endpoint, http(s)://host[:port] (e.g. https://s3.eu-west-1."
+        "amazonaws.com, http://minio:9000); required with the s3 backend."
+    )  # fmt: skip
+    s3_public_url: str | None = Field(
+        None,
+        description="The endpoint as clients reach it, when not PBRSR_S3_ENDPOINT_URL (e.g. "
+        "the API and workers use http://minio:9000 inside a cluster, clients "
+        "https://files.example.com): presigned URLs are made for it. Unset = the endpoint.",
+    )
+    s3_bucket: str | None = Field(
+        None, description="Bucket of the job files; must exist. Required with the s3 backend."
+    )
+    s3_region: str = Field("us-east-1", description="The bucket's region (used to sign).")
+    s3_access_key: SecretStr | None = Field(None, description="S3 access key id.")
+    s3_secret_key: SecretStr | None = Field(None, description="S3 secret access key.")
+    s3_key_prefix: str = Field(
+        "", description="Prefix of every object key (e.g. 'pbrsr/'), to share a bucket."
+    )
+    s3_presign_expiry_s: int = Field(
+        900,
+        ge=1,
+        le=7 * 86400,
+        description="Seconds a presigned download URL (the 307 of a result, preview or "
+        "thumbnail) stays valid.",
+    )
+    s3_path_style: bool = Field(
+        True,
+        description="Path-style addressing (endpoint/bucket/key), as MinIO and most "
+        "self-hosted servers need; false = virtual-hosted (bucket.endpoint/key).",
     )
     queue: str = Field("pbrsr", description="RQ queue name (workers and API must agree).")
     large_job_mpix: float = Field(
@@ -162,6 +201,9 @@ class Settings(BaseSettings):
         description="Jobs waiting in all queues together; a submission over it is 503 with "
         "Retry-After. 0 = no limit.",
     )
+    max_batch_files: int = Field(
+        100, ge=1, le=10_000, description="Most files (jobs) in one POST /v1/batches."
+    )
 
     # -- webhooks (pbrsr_jobs.webhooks) -------------------------------------------------
     webhook_secret: str | None = Field(
@@ -214,6 +256,35 @@ class Settings(BaseSettings):
         if not value.startswith(("redis://", "rediss://", "unix://")):
             raise ValueError("must start with redis://, rediss:// or unix://")
         return value
+
+    @field_validator("s3_endpoint_url", "s3_public_url")
+    @classmethod
+    def _endpoint(cls, value: str | None) -> str | None:
+        if value is None or not value.strip():
+            return None
+        parts = urlsplit(value.strip())
+        if parts.scheme not in ("http", "https") or not parts.netloc:
+            raise ValueError("must be http(s)://host[:port]")
+        if parts.path.strip("/") or parts.query:
+            raise ValueError("must be http(s)://host[:port] without a path (the bucket is "
+                             "PBRSR_S3_BUCKET)")  # fmt: skip
+        return f"{parts.scheme}://{parts.netloc}"
+
+    @field_validator("s3_key_prefix")
+    @classmethod
+    def _key_prefix(cls, value: str) -> str:
+        value = value.strip("/")
+        if value and not re.match(r"^[A-Za-z0-9][A-Za-z0-9_./-]{0,199}$", value) or ".." in value:
+            raise ValueError("use letters, digits, '.', '_', '-' and '/' (at most 200)")
+        return value + "/" if value else ""
+
+    @model_validator(mode="after")
+    def _backend(self) -> Settings:
+        if self.storage_backend == "s3" and not (self.s3_endpoint_url and self.s3_bucket):
+            raise ValueError(
+                "PBRSR_STORAGE_BACKEND=s3 needs PBRSR_S3_ENDPOINT_URL and PBRSR_S3_BUCKET"
+            )
+        return self
 
     @field_validator("queue", "key_prefix")
     @classmethod

@@ -13,10 +13,12 @@ from fastapi.staticfiles import StaticFiles
 from redis import Redis
 
 from pbrsr_core import __version__
+from pbrsr_jobs.objstore import open_store
 from pbrsr_jobs.settings import Settings, get_settings
+from pbrsr_jobs.store import JobFiles
 
 from .problems import install_handlers
-from .routes import events, health, jobs, prometheus, vendor, webhooks
+from .routes import batches, events, health, jobs, prometheus, vendor, webhooks
 
 STATIC_DIR = Path(__file__).parent / "static"
 log = logging.getLogger("pbrsr.service")
@@ -24,9 +26,12 @@ log = logging.getLogger("pbrsr.service")
 
 def create_app(settings: Settings | None = None) -> FastAPI:
     """Build the app. ``settings`` defaults to the environment's (validated here: a bad
-    value or an unwritable PBRSR_STORAGE_DIR stops start-up with a clear message)."""
+    value, an unwritable PBRSR_STORAGE_DIR or an object store that cannot be used stops
+    start-up with a clear message: ValueError, StoreUnavailable)."""
     settings = settings or get_settings()
     settings.prepare_storage()
+    store = open_store(settings)
+    store.check()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):  # noqa: ANN202
@@ -45,6 +50,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=lifespan,
     )
     app.state.settings = settings
+    app.state.files = JobFiles(store)
     app.state.redis_clients = {}
     app.state.async_redis_clients = {}
 
@@ -73,6 +79,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             expose_headers=["Location"],
         )
     app.include_router(jobs.router)
+    app.include_router(batches.router)
     app.include_router(events.router)
     app.include_router(webhooks.router)
     app.include_router(health.router)

@@ -24,6 +24,7 @@ def register(app: typer.Typer) -> None:
             import uvicorn
 
             import service.app  # noqa: F401  (uvicorn loads it by name)
+            from pbrsr_jobs.objstore import StoreUnavailable, open_store
             from pbrsr_jobs.settings import Settings
 
         try:
@@ -31,6 +32,11 @@ def register(app: typer.Typer) -> None:
             settings.prepare_storage()
         except (ValidationError, ValueError) as exc:
             typer.secho(f"error: invalid settings:\n{exc}", fg="red", err=True)
+            raise typer.Exit(2) from None
+        try:
+            open_store(settings).check()
+        except StoreUnavailable as exc:
+            typer.secho(f"error: job storage: {exc}", fg="red", err=True)
             raise typer.Exit(2) from None
         logging.basicConfig(
             level=settings.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s"

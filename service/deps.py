@@ -1,4 +1,5 @@
-"""FastAPI dependencies: settings, Redis, storage, the queue and the caller's identity."""
+"""FastAPI dependencies: settings, Redis, storage (this machine's folders and the object
+store), the queue and the caller's identity."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from redis.asyncio import Redis as AsyncRedis
 from rq import Queue
 
 from pbrsr_jobs.settings import Settings, get_settings
-from pbrsr_jobs.store import JobIndex, JobLayout, owner_of
+from pbrsr_jobs.store import JobFiles, JobIndex, JobLayout, owner_of
 
 from .problems import ProblemError
 
@@ -65,6 +66,11 @@ async def get_layout(settings: SettingsDep) -> JobLayout:
     return JobLayout(settings.storage_dir.expanduser())
 
 
+async def get_files(request: Request) -> JobFiles:
+    """The app's object store (one client, built and checked at start-up)."""
+    return request.app.state.files
+
+
 async def get_index(redis: RedisDep, settings: SettingsDep) -> JobIndex:
     return JobIndex(redis, settings.key_prefix)
 
@@ -93,6 +99,7 @@ async def get_owner(settings: SettingsDep, key: Annotated[str | None, Security(_
 
 
 LayoutDep = Annotated[JobLayout, Depends(get_layout)]
+FilesDep = Annotated[JobFiles, Depends(get_files)]
 IndexDep = Annotated[JobIndex, Depends(get_index)]
 QueueDep = Annotated[Queue, Depends(get_queue)]
 OwnerDep = Annotated[str, Depends(get_owner)]

@@ -1,27 +1,38 @@
-"""From a streamed upload to an enqueued job: validate everything first, then enqueue.
+"""From streamed uploads to enqueued jobs: validate everything first, then enqueue.
 
 The checks run before anything is queued, so a bad asset is answered 4xx at once rather than
 failing later on a worker: options (422), file kind by magic bytes (415), zip safety and
 size (400/413), that the asset parses and every resource resolves (400), triangle and texture
-limits (413), and that there is something to upscale (422). Stored names are generated
-(``input/asset.glb``; a zip's ``.gltf`` is renamed ``asset.gltf`` beside its resources).
+limits (413), and that there is something to upscale (422). The input is unpacked and
+checked in a temporary folder of this machine, then stored as the job's objects
+(:class:`~pbrsr_jobs.store.JobFiles`). Stored names are generated (``input/asset.glb``; a
+zip's ``.gltf`` is renamed ``asset.gltf`` beside its resources).
+
+A batch (:func:`create_batch`) is all or nothing: every file is checked as a single job's
+would be, and only when all pass are its jobs queued; the first bad file refuses the batch
+with a problem naming it (``file 2 (chair.glb): ...``) and nothing is kept.
 """
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import json
 import os
+import shutil
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pbrsr_core.errors import InvalidAsset, InvalidOptions, UnprocessableAsset
+from pbrsr_core.errors import InvalidAsset, InvalidOptions, PbrsrError, UnprocessableAsset
 from pbrsr_core.options import UpscaleOptions
 from pbrsr_jobs.events import JobEvents
+from pbrsr_jobs.objstore import StoreUnavailable
 from pbrsr_jobs.settings import PRIORITIES, Settings
 from pbrsr_jobs.store import (
+    JobFiles,
     JobIndex,
     JobLayout,
     JobManifest,
@@ -32,8 +43,9 @@ from pbrsr_jobs.store import (
 )
 from pbrsr_jobs.webhooks import parse_webhook
 
+from .deletion import take_back
 from .problems import ProblemError
-from .uploads import Upload
+from .uploads import Upload, discard_uploads, file_label
 
 JOB_FUNC = "worker.tasks.run_job"
 
@@ -104,26 +116,159 @@ def _place_input(upload_path: Path, kind: str, input_dir: Path, settings: Settin
 RETRY_AFTER_S = 30
 
 
-def check_capacity(owner: str, settings: Settings, index: JobIndex, queue: Any) -> None:
-    """Refuse a submission while the queues are full (503) or the key has as many queued and
-    running jobs as it may (429), both with Retry-After; before any work on the asset."""
-    if not (settings.max_queued_jobs or settings.max_active_jobs_per_key):
+def check_capacity(
+    owner: str, settings: Settings, index: JobIndex, queue: Any, count: int = 1
+) -> None:
+    """Refuse a submission of ``count`` jobs while they do not fit: the queues would be over
+    their limit (503) or the key over its queued and running jobs (429), both with
+    Retry-After; a batch larger than a limit itself is 413. Runs before any work on the
+    assets."""
+    limit_q, limit_key = settings.max_queued_jobs, settings.max_active_jobs_per_key
+    if not (limit_q or limit_key):
         return
+    for limit, what in ((limit_key, "this API key may have queued or running"),
+                        (limit_q, "the queues may hold")):  # fmt: skip
+        if limit and count > limit:
+            raise ProblemError(
+                413, "limit-exceeded",
+                f"a batch of {count} jobs is more than {what} ({limit}); send smaller batches",
+            )  # fmt: skip
     queues = [type(queue)(q, connection=queue.connection) for q in settings.listen_queues("all")]
     waiting, per_owner = index.active_jobs(queues)
     retry = {"Retry-After": str(RETRY_AFTER_S)}
-    if settings.max_queued_jobs and waiting >= settings.max_queued_jobs:
+    adds = f"; this batch adds {count}" if count > 1 else ""
+    if limit_q and waiting + count > limit_q:
         raise ProblemError(
-            503, "queue-full", f"the queue is full ({waiting} jobs waiting); retry later",
+            503, "queue-full", f"the queue is full ({waiting} jobs waiting{adds}); retry later",
             headers=retry,
         )  # fmt: skip
     mine = per_owner.get(owner, 0)
-    if settings.max_active_jobs_per_key and mine >= settings.max_active_jobs_per_key:
+    if limit_key and mine + count > limit_key:
         raise ProblemError(
             429, "too-many-jobs",
-            f"this API key has {mine} jobs queued or running, the most it may have; retry "
-            "when one has ended", headers=retry,
+            f"this API key has {mine} jobs queued or running, of the {limit_key} it may have"
+            f"{adds}; retry when one has ended", headers=retry,
         )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class JobForm:
+    """The checked form fields every job of one submission shares."""
+
+    options: dict[str, Any]
+    webhook: dict[str, Any] | None
+    priority: str
+
+
+def parse_form(fields: dict[str, str], settings: Settings) -> JobForm:
+    """``options``, ``callback_url``/``callback_events`` and ``priority``, checked (422)."""
+    options = parse_options(fields.get("options"), settings)
+    webhook = parse_webhook(fields.get("callback_url"), fields.get("callback_events"))
+    priority = (fields.get("priority") or "normal").strip()
+    if priority not in PRIORITIES:
+        raise InvalidOptions(f"priority must be one of {', '.join(PRIORITIES)}")
+    return JobForm(options, webhook, priority)
+
+
+@dataclass(frozen=True)
+class StagedJob:
+    """A checked asset stored as a job (input and manifest objects), not yet queued."""
+
+    id: str
+    owner: str
+    meta: dict[str, Any]
+    queue: str
+
+
+def stage_job(
+    upload: Upload,
+    form: JobForm,
+    owner: str,
+    settings: Settings,
+    layout: JobLayout,
+    files: JobFiles,
+    batch_id: str | None = None,
+) -> StagedJob:
+    """Check ``upload`` (a file part came) in a staging folder of this machine and store it
+    as a new job's input and manifest objects (the upload and the staging folder are
+    removed). On any error the upload, the job's working folder and objects are removed; a
+    store that cannot be reached is StoreUnavailable (503)."""
+    assert upload.path is not None
+    job_id = new_job_id()
+    try:
+        if upload.size == 0:
+            raise InvalidAsset("the uploaded file is empty")
+        from pbrsr_core.asset import detect_kind
+
+        kind = detect_kind(upload.path)
+        staging = layout.tmp_dir(job_id, "input")
+        rel = _place_input(upload.path, kind, staging, settings)
+        output_mpix = check_asset(staging / rel, form.options, settings)
+        name = safe_display_name(upload.filename, fallback=f"asset.{kind}")
+        created = time.time()
+        files.put_input(job_id, staging)
+        files.write_manifest(
+            JobManifest(
+                id=job_id,
+                owner=owner,
+                name=name,
+                kind=kind,
+                input=rel,
+                options=form.options,
+                created_at=created,
+            )
+        )
+    except BaseException:
+        discard_uploads([upload])
+        layout.remove(job_id)
+        with contextlib.suppress(StoreUnavailable):  # unreachable: nothing more to remove
+            files.remove(job_id)
+        raise
+    shutil.rmtree(staging, ignore_errors=True)
+    layout.release(job_id)  # the filesystem backend's objects stay
+    meta = {
+        "owner": owner,
+        "name": name,
+        "kind": kind,
+        "created_at": created,
+        "options": form.options,
+        "state": JobState.QUEUED.value,
+        "priority": form.priority,
+    }
+    if form.webhook is not None:
+        meta["webhook"] = form.webhook
+    if batch_id is not None:
+        meta["batch"] = batch_id
+    return StagedJob(job_id, owner, meta, settings.queue_for(output_mpix, form.priority))
+
+
+def enqueue_staged(staged: StagedJob, settings: Settings, index: JobIndex, queue: Any) -> None:
+    """Index a staged job, announce it (``queued``) and put it on its RQ queue. When the
+    enqueue fails its index entries and events are removed (its objects are the caller's)."""
+    from rq import Retry
+
+    job_id, meta = staged.id, staged.meta
+    index.add(job_id, staged.owner, meta["created_at"])
+    events = JobEvents(index.redis, index.prefix)
+    events.publish(job_id, staged.owner, "queued", webhook=meta.get("webhook"))  # before "started"
+    if staged.queue != queue.name:
+        queue = type(queue)(staged.queue, connection=queue.connection)
+    try:
+        queue.enqueue(
+            JOB_FUNC,
+            job_id,
+            job_id=job_id,
+            meta=meta,
+            job_timeout=settings.job_timeout,
+            result_ttl=settings.retention_s,
+            failure_ttl=settings.retention_s,
+            retry=Retry(max=settings.job_retries) if settings.job_retries else None,
+            description=f"pbrsr upscale {meta['name']}",
+        )
+    except Exception:
+        index.remove(job_id)
+        events.forget(job_id)
+        raise
 
 
 def create_job(
@@ -131,83 +276,75 @@ def create_job(
     owner: str,
     settings: Settings,
     layout: JobLayout,
+    files: JobFiles,
     index: JobIndex,
     queue: Any,
 ) -> str:
     """Validate ``upload``, store it as a new job and enqueue it. Returns the job id.
 
-    On any error nothing is left behind (upload, job folder) and nothing is queued.
+    On any error nothing is left behind (upload, job objects, working folder) and nothing is
+    queued; a store that cannot be reached is StoreUnavailable (503).
     """
-    from rq import Retry
-
-    job_id = new_job_id()
     try:
         if upload.path is None:
             raise ProblemError(400, "bad-request", "the request has no 'file' part")
-        if upload.size == 0:
-            raise InvalidAsset("the uploaded file is empty")
-        options = parse_options(upload.fields.get("options"), settings)
-        webhook = parse_webhook(
-            upload.fields.get("callback_url"), upload.fields.get("callback_events")
-        )
-        priority = (upload.fields.get("priority") or "normal").strip()
-        if priority not in PRIORITIES:
-            raise InvalidOptions(f"priority must be one of {', '.join(PRIORITIES)}")
+        form = parse_form(upload.fields, settings)
         check_capacity(owner, settings, index, queue)
-        from pbrsr_core.asset import detect_kind
-
-        kind = detect_kind(upload.path)
-        rel = _place_input(upload.path, kind, layout.input_dir(job_id), settings)
-        output_mpix = check_asset(layout.input_dir(job_id) / rel, options, settings)
-        name = safe_display_name(upload.filename, fallback=f"asset.{kind}")
-        created = time.time()
-        layout.write_manifest(
-            JobManifest(
-                id=job_id,
-                owner=owner,
-                name=name,
-                kind=kind,
-                input=rel,
-                options=options,
-                created_at=created,
-            )
-        )
-        meta = {
-            "owner": owner,
-            "name": name,
-            "kind": kind,
-            "created_at": created,
-            "options": options,
-            "state": JobState.QUEUED.value,
-            "priority": priority,
-        }
-        if webhook is not None:
-            meta["webhook"] = webhook
-        index.add(job_id, owner, created)
-        events = JobEvents(index.redis, index.prefix)
-        events.publish(job_id, owner, "queued", webhook=webhook)  # before a worker's "started"
-        target = settings.queue_for(output_mpix, priority)
-        if target != queue.name:
-            queue = type(queue)(target, connection=queue.connection)
-        try:
-            queue.enqueue(
-                JOB_FUNC,
-                job_id,
-                job_id=job_id,
-                meta=meta,
-                job_timeout=settings.job_timeout,
-                result_ttl=settings.retention_s,
-                failure_ttl=settings.retention_s,
-                retry=Retry(max=settings.job_retries) if settings.job_retries else None,
-                description=f"pbrsr upscale {name}",
-            )
-        except Exception:
-            index.remove(job_id)
-            events.forget(job_id)
-            raise
     except BaseException:
-        if upload.path is not None:
-            upload.path.unlink(missing_ok=True)
-        layout.remove(job_id)
+        discard_uploads([upload])
         raise
-    return job_id
+    staged = stage_job(upload, form, owner, settings, layout, files)
+    try:
+        enqueue_staged(staged, settings, index, queue)
+    except BaseException:
+        take_back(staged.id, index, layout, files)
+        raise
+    return staged.id
+
+
+def create_batch(
+    uploads: list[Upload],
+    fields: dict[str, str],
+    owner: str,
+    settings: Settings,
+    layout: JobLayout,
+    files: JobFiles,
+    index: JobIndex,
+    queue: Any,
+) -> tuple[str, list[str]]:
+    """Validate every upload, then store and enqueue one job each as one batch. Returns the
+    batch id and the job ids in the order of the files.
+
+    All or nothing: a bad form field is refused as for one job, a bad file with a problem
+    that names it (number and name), a batch that does not fit the limits with 429/503/413;
+    on any error nothing is left behind and nothing stays queued; a store that cannot be
+    reached is StoreUnavailable (503).
+    """
+    staged: list[StagedJob] = []
+    try:
+        if not uploads:
+            raise ProblemError(400, "bad-request", "the request has no 'file' part")
+        form = parse_form(fields, settings)
+        check_capacity(owner, settings, index, queue, len(uploads))
+        batch_id = new_job_id()
+        for number, upload in enumerate(uploads, 1):
+            try:
+                staged.append(stage_job(upload, form, owner, settings, layout, files, batch_id))
+            except PbrsrError as exc:
+                label = file_label(number, upload.filename)
+                raise ProblemError(exc.http_status, exc.code, f"{label}: {exc.message}") from None
+            except ProblemError as exc:
+                label = file_label(number, upload.filename)
+                raise ProblemError(
+                    exc.status, exc.code, f"{label}: {exc.detail}", headers=exc.headers
+                ) from None
+        job_ids = [job.id for job in staged]
+        index.add_batch(batch_id, owner, time.time(), job_ids)
+        for job in staged:
+            enqueue_staged(job, settings, index, queue)
+    except BaseException:
+        discard_uploads(uploads)
+        for job in staged:
+            take_back(job.id, index, layout, files)  # queued or not
+        raise
+    return batch_id, job_ids

@@ -1,4 +1,5 @@
-"""Job views: an RQ job + its meta + the files on disk -> the API's response models."""
+"""Job views: an RQ job + its meta + the job's stored files -> the API's response models; a
+batch's jobs -> its aggregate view."""
 
 from __future__ import annotations
 
@@ -8,10 +9,19 @@ from urllib.parse import quote
 
 from pydantic import TypeAdapter, ValidationError
 
-from pbrsr_jobs.store import JobIndex, JobLayout, JobState, job_state
+from pbrsr_jobs.store import JobFiles, JobIndex, JobState, job_state
 from pbrsr_jobs.webhooks import WebhookQueue
 
-from .schemas import CropList, HistoryPoint, JobDetail, JobLinks, JobSummary, MapCrop
+from .schemas import (
+    BatchDetail,
+    BatchLinks,
+    CropList,
+    HistoryPoint,
+    JobDetail,
+    JobLinks,
+    JobSummary,
+    MapCrop,
+)
 
 DIED_MESSAGE = (
     "the worker running this job stopped unexpectedly (killed or out of memory) on every "
@@ -40,21 +50,21 @@ def state_of(job: Any) -> JobState:
 
 
 def links(
-    job_id: str, state: JobState, layout: JobLayout | None = None, files: dict | None = None
+    job_id: str, state: JobState, store: JobFiles | None = None, files: dict | None = None
 ) -> JobLinks:
     """The job's URLs; a finished job's previews, thumbnails and asset file by the names its
-    worker recorded in ``files`` (``meta['files']``), else as listed in its folders."""
+    worker recorded in ``files`` (``meta['files']``), else as the store lists them."""
     base = f"/v1/jobs/{job_id}"
     result = previews = thumbs = crops = model = None
-    if state == JobState.FINISHED and (layout is not None or files):
+    if state == JobState.FINISHED and (store is not None or files):
         result, crops = f"{base}/result", f"{base}/crops"
         if files:
             preview_list, thumb_list = files.get("previews", []), files.get("thumbs", [])
             model_name = files.get("model")
         else:
-            assert layout is not None
-            preview_list, thumb_list = layout.preview_names(job_id), layout.thumb_names(job_id)
-            model_name = layout.model_name(job_id)
+            assert store is not None
+            preview_list, thumb_list = store.preview_names(job_id), store.thumb_names(job_id)
+            model_name = store.model_name(job_id)
         previews = {n: f"{base}/previews/{n}" for n in preview_list}
         thumbs = {n: f"{base}/thumbs/{n}" for n in thumb_list}
         model = f"{base}/files/{quote(model_name)}" if isinstance(model_name, str) else None
@@ -94,7 +104,7 @@ def crop_names(files: dict | None) -> list[str]:
 
 
 def _common(
-    job: Any, index: JobIndex, layout: JobLayout | None, cancel: bool | None
+    job: Any, index: JobIndex, store: JobFiles | None, cancel: bool | None
 ) -> dict[str, Any]:
     """``cancel``: whether a cancel was requested, when the caller read it already."""
     meta = job.meta or {}
@@ -115,14 +125,15 @@ def _common(
         "error": error if state == JobState.FAILED else None,
         "cancel_requested": (not state.is_terminal)
         and (index.cancel_requested(job.id) if cancel is None else cancel),
-        "links": links(job.id, state, layout, meta.get("files")),
+        "batch": meta.get("batch"),
+        "links": links(job.id, state, store, meta.get("files")),
     }
 
 
 def summary_view(
-    job: Any, index: JobIndex, layout: JobLayout | None = None, cancel: bool | None = None
+    job: Any, index: JobIndex, store: JobFiles | None = None, cancel: bool | None = None
 ) -> JobSummary:
-    return JobSummary(**_common(job, index, layout, cancel))
+    return JobSummary(**_common(job, index, store, cancel))
 
 
 def _history(points: Any) -> list[HistoryPoint]:
@@ -145,13 +156,13 @@ _HISTORY = TypeAdapter(list[HistoryPoint])
 def detail_view(
     job: Any,
     index: JobIndex,
-    layout: JobLayout,
+    store: JobFiles,
     cancel: bool | None = None,
     deliveries: list[dict] | None = None,
 ) -> JobDetail:
     """``deliveries``: the webhook delivery log, when the caller read it already."""
     meta = job.meta or {}
-    data = _common(job, index, layout, cancel)
+    data = _common(job, index, store, cancel)
     history = _history(meta.get("history"))
     return JobDetail(
         **data,
@@ -174,3 +185,39 @@ def _deliveries(job: Any, index: JobIndex) -> list[dict]:
     if not (job.meta or {}).get("webhook"):
         return []
     return WebhookQueue(index.redis, index.prefix).deliveries(job.id)
+
+
+def batch_links(batch_id: str) -> BatchLinks:
+    base = f"/v1/batches/{batch_id}"
+    return BatchLinks(self=base, cancel=base, jobs=f"/v1/jobs?batch={batch_id}")
+
+
+def batch_status(states: list[JobState]) -> JobState:
+    """A batch's state from its jobs' (see ``BatchDetail.status``)."""
+    if not all(s.is_terminal for s in states):
+        started = any(s != JobState.QUEUED for s in states)
+        return JobState.RUNNING if started else JobState.QUEUED
+    if all(s == JobState.FINISHED for s in states):
+        return JobState.FINISHED
+    return JobState.FAILED if JobState.FAILED in states else JobState.CANCELED
+
+
+def batch_view(
+    batch_id: str, created_at: float, jobs: list[Any], index: JobIndex, store: JobFiles
+) -> BatchDetail:
+    """``jobs``: the batch's RQ jobs in order. Cancel flags are read in one round trip."""
+    cancels = index.cancel_flags([j.id for j in jobs if not state_of(j).is_terminal])
+    items = [summary_view(j, index, store, j.id in cancels) for j in jobs]
+    states = [item.status for item in items]
+    counts = {state: states.count(state) for state in JobState}
+    done = [1.0 if item.status.is_terminal else item.fraction for item in items]
+    return BatchDetail(
+        id=batch_id,
+        status=batch_status(states),
+        created_at=_dt(created_at) or datetime.now(UTC),
+        total=len(items),
+        counts=counts,
+        fraction=sum(done) / len(done) if done else 1.0,
+        jobs=items,
+        links=batch_links(batch_id),
+    )

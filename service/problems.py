@@ -20,6 +20,7 @@ from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from pbrsr_core.errors import PbrsrError
+from pbrsr_jobs.objstore import StoreUnavailable
 
 log = logging.getLogger("pbrsr.service")
 
@@ -83,7 +84,7 @@ def problem_response(
 # Responses every /v1 route may give, for the OpenAPI document.
 PROBLEM_RESPONSES: dict[int | str, dict[str, Any]] = {
     401: {"model": Problem, "description": "Missing or unknown X-API-Key."},
-    503: {"model": Problem, "description": "The job queue (Redis) is unreachable."},
+    503: {"model": Problem, "description": "The job queue (Redis) or storage is unreachable."},
 }
 
 _SLUGS = {
@@ -150,6 +151,16 @@ def install_handlers(app: FastAPI) -> None:
             503,
             "queue-unavailable",
             "the job queue is unavailable right now; try again in a minute",
+            headers={"Retry-After": "30"},
+        )
+
+    @app.exception_handler(StoreUnavailable)
+    async def _store(_: Request, exc: StoreUnavailable) -> JSONResponse:
+        log.warning("job storage unavailable: %s", exc)
+        return problem_response(
+            503,
+            "storage-unavailable",
+            "the job storage is unavailable right now; try again in a minute",
             headers={"Retry-After": "30"},
         )
 

@@ -77,6 +77,7 @@ class JobSummary(BaseModel):
     eta_s: float | None = Field(None, description="Seconds left, when known.")
     error: str | None = Field(None, description="Why the job failed (no internals).")
     cancel_requested: bool = False
+    batch: str | None = Field(None, description="The id of the batch the job came in, if any.")
     links: JobLinks
 
 
@@ -109,6 +110,46 @@ class JobPage(BaseModel):
     offset: int
     limit: int
     next: str | None = Field(None, description="The next page, if any.")
+
+
+class DownloadLink(BaseModel):
+    """A presigned URL of a job's file (``?redirect=false`` with the s3 storage backend)."""
+
+    url: str = Field(description="GET it without credentials until it expires.")
+    expires_in_s: int = Field(description="Seconds the URL stays valid.")
+
+
+class BatchLinks(BaseModel):
+    model_config = ConfigDict(populate_by_name=True, serialize_by_alias=True)
+
+    self_: str = Field(alias="self", description="This batch.")
+    cancel: str = Field(
+        description="DELETE this to cancel the jobs not yet ended (or delete an ended batch)."
+    )
+    jobs: str = Field(description="The batch's jobs as a page of GET /v1/jobs.")
+
+
+class BatchCreated(BaseModel):
+    id: str
+    jobs: list[JobCreated] = Field(description="One job per file, in the order of the files.")
+    links: BatchLinks
+
+
+class BatchDetail(BaseModel):
+    id: str
+    status: JobState = Field(
+        description="queued: no job has started; running: some job has not ended and some "
+        "has started or ended; once every job has ended: finished when all finished, else "
+        "failed when one failed, else canceled."
+    )
+    created_at: datetime
+    total: int = Field(description="Jobs of the batch (jobs deleted since not counted).")
+    counts: dict[JobState, int] = Field(description="Jobs per state (every state listed).")
+    fraction: float = Field(
+        ge=0, le=1, description="Overall progress, 0..1: the mean of the jobs' (ended ones 1)."
+    )
+    jobs: list[JobSummary] = Field(description="The jobs, in the order of the files.")
+    links: BatchLinks
 
 
 class Health(BaseModel):

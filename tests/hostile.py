@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pbrsr_bench.variants import draco_variant, meshopt_variant
 from pbrsr_core.asset.procedural import make_quad_asset
 from pbrsr_core.errors import (
     InvalidAsset,
@@ -291,4 +292,118 @@ def hostile_cases(folder: Path) -> list[HostileCase]:
         InvalidAsset,
         "outside",
     )
+
+    # --- compressed geometry (Draco, meshopt): a GLB whose JSON or compressed bytes lie
+    draco = draco_variant(_quad(case("draco_src"), "glb"), folder / "draco_src" / "d.glb")
+    meshopt = meshopt_variant(_quad(case("meshopt_src"), "glb"), folder / "meshopt_src" / "m.glb")
+
+    def glb_edited(name: str, glb: Path, fn, error, says: str, bin_fn=None) -> None:
+        json_chunk, rest = _glb_parts(glb.read_bytes())
+        doc = json.loads(json_chunk)
+        fn(doc)
+        binary = bytearray(rest[8:])
+        if bin_fn:
+            bin_fn(doc, binary)
+        js = json.dumps(doc).encode()
+        js += b" " * (-len(js) % 4)
+        body = struct.pack("<II", len(js), 0x4E4F534A) + js
+        body += struct.pack("<II", len(binary), 0x004E4942) + bytes(binary)
+        path = case(name) / "a.glb"
+        path.write_bytes(struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body)
+        add(name, path, error, says)
+
+    def draco_view(doc) -> dict:
+        ext = doc["meshes"][0]["primitives"][0]["extensions"]["KHR_draco_mesh_compression"]
+        return doc["bufferViews"][ext["bufferView"]]
+
+    def halve(doc):
+        draco_view(doc)["byteLength"] //= 2
+
+    glb_edited("draco_truncated", draco, halve, InvalidAsset, "Draco data cannot be decoded")
+
+    def scramble(doc, binary):
+        bv = draco_view(doc)
+        start, end = bv["byteOffset"] + 16, bv["byteOffset"] + bv["byteLength"]
+        binary[start:end] = np.random.default_rng(1).bytes(end - start)
+
+    glb_edited("draco_scrambled", draco, lambda doc: None, InvalidAsset, "Draco", scramble)
+
+    def not_draco(doc, binary):
+        binary[draco_view(doc)["byteOffset"]] = ord("X")
+
+    glb_edited("draco_magic", draco, lambda doc: None, InvalidAsset, "Draco data", not_draco)
+
+    def huge_counts(doc, binary):  # the header declares 2**31 vertices and triangles
+        bv = draco_view(doc)
+        start = bv["byteOffset"]
+        blob = bytes(binary[start : start + bv["byteLength"]])
+        assert blob[8] == 1  # edgebreaker: traversal type, vertices, triangles
+        pos = 12
+        for _ in range(2):
+            while blob[pos] & 0x80:
+                pos += 1
+            pos += 1
+        lie = blob[:12] + b"\x80\x80\x80\x80\x08" * 2 + blob[pos:]
+        lie += b"\x00" * (-len(lie) % 4)
+        binary[start:] = lie + binary[start + bv["byteLength"] :]
+        bv["byteLength"] = len(lie)
+        doc["buffers"][0]["byteLength"] = len(binary)
+
+    glb_edited("draco_header_lies", draco, lambda doc: None, InvalidAsset, "declares", huge_counts)
+
+    def point_cloud(doc, binary):
+        binary[draco_view(doc)["byteOffset"] + 7] = 0
+
+    glb_edited(
+        "draco_point_cloud", draco, lambda doc: None, InvalidAsset, "point cloud", point_cloud
+    )
+
+    def wrong_id(doc):
+        ext = doc["meshes"][0]["primitives"][0]["extensions"]["KHR_draco_mesh_compression"]
+        ext["attributes"]["POSITION"] = 99
+
+    glb_edited("draco_attribute_id", draco, wrong_id, InvalidAsset, "no attribute 99")
+
+    def draco_count(doc):
+        prim = doc["meshes"][0]["primitives"][0]
+        doc["accessors"][prim["attributes"]["POSITION"]]["count"] += 1
+        doc["accessors"][prim["attributes"]["NORMAL"]]["count"] += 1
+        doc["accessors"][prim["attributes"]["TANGENT"]]["count"] += 1
+        doc["accessors"][prim["attributes"]["TEXCOORD_0"]]["count"] += 1
+
+    glb_edited("draco_vertex_count", draco, draco_count, InvalidAsset, "its accessor")
+
+    def position_ext(doc) -> dict:
+        acc = doc["accessors"][doc["meshes"][0]["primitives"][0]["attributes"]["POSITION"]]
+        return doc["bufferViews"][acc["bufferView"]]["extensions"]["EXT_meshopt_compression"]
+
+    def stride(doc):
+        position_ext(doc)["byteStride"] = 16
+
+    glb_edited("meshopt_stride", meshopt, stride, InvalidAsset, "byteStride")
+
+    def count(doc):
+        position_ext(doc)["count"] += 1
+
+    glb_edited("meshopt_count", meshopt, count, InvalidAsset, "byteStride x count")
+
+    def truncated(doc):
+        position_ext(doc)["byteLength"] //= 2
+
+    glb_edited("meshopt_truncated", meshopt, truncated, InvalidAsset, "cannot be decoded")
+
+    def short_fallback(doc):
+        doc["buffers"][1]["byteLength"] = 8
+
+    glb_edited("meshopt_fallback_short", meshopt, short_fallback, InvalidAsset, "past the end")
+
+    def bomb(doc):  # 4 GiB declared, nothing behind it
+        acc = doc["accessors"][doc["meshes"][0]["primitives"][0]["attributes"]["POSITION"]]
+        bv = doc["bufferViews"][acc["bufferView"]]
+        ext = bv["extensions"]["EXT_meshopt_compression"]
+        ext["count"] = 2**32 // ext["byteStride"]
+        bv["byteLength"] = 2**32
+        doc["buffers"][1]["byteLength"] = 2**33
+
+    glb_edited("meshopt_bomb", meshopt, bomb, LimitExceeded, "decodes to")
     return cases

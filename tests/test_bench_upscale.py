@@ -1,4 +1,4 @@
-"""`pbrsr bench upscale` end to end on a tiny procedural asset (no shared assets)."""
+"""`pbrsr bench upscale` end to end on the tiny procedural assets (no shared assets)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from pbrsr_bench.upscale import bench_assets, run
-from pbrsr_core.asset import make_demo_asset
+from pbrsr_bench.upscale import bench_assets, run, summary
+from pbrsr_core.asset import load_asset, make_demo_asset, make_test_asset
 
 
 def test_bench_upscale_small_run(tmp_path: Path):
@@ -24,15 +24,19 @@ def test_bench_upscale_small_run(tmp_path: Path):
         log=said.append,
     )
     assert any("not present" in s for s in said)
-    assert [r["method"] for r in rows] == ["fast"]
+    assert [(r["asset"], r["method"]) for r in rows] == [
+        ("procedural", "fast"),
+        ("procedural-cutout", "fast"),
+    ]
     for r in rows:
         assert r["run_s"] > 0 and r["peak_rss_mib"] > 0
         assert 5.0 < r["render.psnr"] < 100.0 and "maps.albedo.psnr" in r
+    assert "maps.normal.psnr" in rows[1]  # the foliage card's normal map is scored too
     fast = rows[0]
     assert fast["curve"] and fast["curve"][0]["it"] == 0
     assert [c["seconds"] for c in fast["curve"]] == sorted(c["seconds"] for c in fast["curve"])
     saved = json.loads((tmp_path / "out" / "results.json").read_text())
-    assert len(saved["rows"]) == 1
+    assert len(saved["rows"]) == 2
     assert (tmp_path / "out" / "speed_vs_error.png").stat().st_size > 0
     assert "| procedural | fast |" in (tmp_path / "out" / "results.md").read_text()
 
@@ -51,7 +55,7 @@ def _row(asset, method, render, albedo, run_s):
 
 
 def test_summary_gains_worst_map_and_fast_share():
-    from pbrsr_bench.upscale import markdown_table, summary, summary_table
+    from pbrsr_bench.upscale import markdown_table, summary_table
 
     rows = [
         _row("a", "bicubic", 28.0, 27.0, 1.0),
@@ -89,10 +93,45 @@ def test_bench_assets_refuses_an_unknown_name(tmp_path: Path):
     assert [name for name, _ in found] == ["Chair"]
     with pytest.raises(ValueError, match="Chiar not found"):
         bench_assets(tmp_path / "w", False, 16, shared, ["Chair", "Chiar"], print)
-    # --no-shared: the procedural asset alone, whatever the shared folder holds
+    # --no-shared: the procedural assets alone, whatever the shared folder holds
     said: list[str] = []
     only = bench_assets(tmp_path / "w2", True, 16, shared, None, said.append, include_shared=False)
-    assert [name for name, _ in only] == ["procedural"] and said == []
+    assert [name for name, _ in only] == ["procedural", "procedural-cutout"] and said == []
+
+
+def test_bench_assets_adds_the_draco_variant_of_the_water_bottle(tmp_path: Path):
+    shared = tmp_path / "shared"
+    (shared / "WaterBottle").mkdir(parents=True)
+    make_test_asset(shared / "WaterBottle" / "WaterBottle.gltf", size=16)
+    said: list[str] = []
+    found = dict(bench_assets(tmp_path / "w", False, 16, shared, None, said.append, variants=True))
+    assert list(found) == ["WaterBottle", "WaterBottle-draco"]
+    variant = found["WaterBottle-draco"]
+    assert variant == tmp_path / "w" / "WaterBottle-draco" / "WaterBottle.glb"
+    plain, draco = load_asset(found["WaterBottle"]), load_asset(variant)
+    assert draco.document["extensionsRequired"] == ["KHR_draco_mesh_compression"]
+    assert draco.geometry is not None and draco.geometry.accessors
+    assert draco.mesh.num_triangles == plain.mesh.num_triangles
+    assert [im.pixels.shape for im in draco.images] == [im.pixels.shape for im in plain.images]
+    # named alone, the variant comes without its source; other benchmarks get none
+    only = bench_assets(
+        tmp_path / "w2", False, 16, shared, ["WaterBottle-draco"], print, variants=True
+    )
+    assert [name for name, _ in only] == ["WaterBottle-draco"]
+    assert [n for n, _ in bench_assets(tmp_path / "w3", False, 16, shared, None, print)] == [
+        "WaterBottle"
+    ]
+    # the variant repeats its source's maps: the summary means leave it out
+    rows = [
+        {"asset": a, "method": m, "render.psnr": p, "run_s": 1.0, "peak_rss_mib": 1.0}
+        for a, m, p in [
+            ("WaterBottle", "bicubic", 30.0),
+            ("WaterBottle", "fast", 31.0),
+            ("WaterBottle-draco", "bicubic", 20.0),
+            ("WaterBottle-draco", "fast", 30.0),
+        ]
+    ]
+    assert summary(rows)[0]["render_gain_db"] == 1.0 and summary(rows)[0]["assets"] == 1
 
 
 def test_methods_may_name_their_prior_and_unknown_ones_are_refused():

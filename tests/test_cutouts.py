@@ -8,25 +8,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pbrsr_core.asset import load_asset, make_quad_asset, save_asset
-from pbrsr_core.degrade import degrade_image
+from pbrsr_core.asset import load_asset, make_cutout_asset, make_quad_asset, save_asset
+from pbrsr_core.asset.procedural import leaf_maps
+from pbrsr_core.degrade import degrade_asset, degrade_image
 from pbrsr_core.maps import image_cutout
 from pbrsr_core.options import UpscaleOptions
 from pbrsr_core.pipeline import upscale_asset
 from pbrsr_core.prior import load_prior
-from pbrsr_core.prior.direct import bicubic_map, fill_transparent, upscale_map
+from pbrsr_core.prior.direct import bicubic_map, fill_transparent, filled_cutout, upscale_map
 
 
 def leaves(size: int = 128) -> np.ndarray:
-    """RGBA: textured discs (alpha 1) on black, fully transparent (alpha 0) background."""
-    y, x = np.mgrid[0:size, 0:size] / size
-    rgb = np.stack([0.3 + 0.5 * x, 0.6 + 0.3 * np.sin(12 * y), 0.2 + 0.3 * np.cos(9 * x * y)], -1)
-    alpha = np.zeros((size, size))
-    for cx, cy, r in [(0.3, 0.3, 0.2), (0.7, 0.35, 0.15), (0.5, 0.72, 0.22)]:
-        alpha[(x - cx) ** 2 + (y - cy) ** 2 < r * r] = 1.0
-    rgb = np.clip(rgb, 0.0, 1.0)
-    rgb[alpha == 0] = 0.0
-    return np.concatenate([rgb, alpha[..., None]], -1).astype(np.float32)
+    """RGBA: leaves (alpha 1) on a transparent background with black under it."""
+    return leaf_maps(size)["base_color"]
 
 
 def _visible_psnr(pred: np.ndarray, gt: np.ndarray) -> float:
@@ -45,6 +39,23 @@ def test_fill_keeps_visible_texels_and_fills_the_rest_from_them():
     assert (filled[~seen] >= visible.min(0) - 1e-5).all()
     assert (filled[~seen] <= visible.max(0) + 1e-5).all()
     assert filled[~seen].sum(-1).min() > 0.3
+
+
+def test_a_cutout_over_black_is_unpremultiplied_before_the_fill():
+    """Black under alpha 0 means premultiplied colour: seen texels are divided by their alpha
+    (a half-covered edge texel of 0.3 at alpha 0.6 is 0.5 of the leaf's colour), hidden ones
+    are filled from them; a cutout whose hidden texels carry colour is left as it was."""
+    rgba = np.zeros((4, 4, 4), np.float32)
+    rgba[:, :2] = (0.4, 0.2, 0.1, 1.0)
+    rgba[:, 2] = (0.3, 0.15, 0.075, 0.6)  # the edge, darkened by its coverage
+    filled = filled_cutout(rgba, seen_from=0.5)
+    assert np.allclose(filled[:, 2, :3], (0.5, 0.25, 0.125))
+    assert np.allclose(filled[..., 3], rgba[..., 3])
+    assert np.allclose(filled[:, :2], rgba[:, :2])
+    assert (filled[:, 3, :3].sum(-1) > 0.5).all()  # no black left where the renderer discards
+    bled = rgba.copy()
+    bled[:, 3, :3] = (0.4, 0.2, 0.1)  # colour under alpha 0: straight alpha, kept
+    assert np.allclose(filled_cutout(bled, seen_from=0.5)[:, 2], rgba[:, 2])
 
 
 @pytest.mark.parametrize("prior", [None, "pbr-upconv7"])
@@ -79,8 +90,14 @@ def test_the_pipeline_treats_a_mask_material_as_a_cutout(tmp_path):
     assert 0 < image_cutout(load_asset(blend), base) < 0.01  # BLEND: alpha 0 only
     opaque, _ = _cutout_asset(tmp_path, "OPAQUE")
     assert image_cutout(load_asset(opaque), base) is None  # alpha unused: its colour is seen
-    from pbrsr_core.degrade import degrade_asset
 
+
+def test_the_foliage_asset_keeps_its_visible_texels_at_or_above_bicubic(tmp_path):
+    """The procedural foliage cards (three crossing double-sided quads, MASK) through every
+    method: visible base-colour texels at or above a plain bicubic resize's."""
+    gt_path = make_cutout_asset(tmp_path / "foliage.glb", size=128)
+    base = load_asset(gt_path).materials[0].base_color.image
+    assert image_cutout(load_asset(gt_path), base) == 0.5
     lr_path = degrade_asset(gt_path, tmp_path / "lr" / gt_path.name, 4)[0]
     gt = load_asset(gt_path).images[base].pixels
     lr = load_asset(lr_path).images[base].pixels

@@ -275,3 +275,100 @@ def test_dashboard_detail_crops_wipe_and_3d_view(tmp_path):
                 assert any("/vendor/three/build/three.module.js" in u for u in requests)
     finally:
         cleanup_redis(settings)
+
+
+@pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian's chromium is not installed")
+def test_dashboard_with_a_key_and_s3_storage_never_sends_the_key_to_the_bucket(tmp_path):
+    """Images, detail crops, the 3D view's model and the download come from presigned URLs
+    the page asks for as JSON: the API key stays with the API (moto's server allows every
+    origin, as the 3D view's fetch of the model needs)."""
+    import httpx
+    from minio import Minio
+    from moto.server import ThreadedMotoServer
+    from playwright.sync_api import sync_playwright
+    from test_service_support import LONG_KEY_A, free_port, post_asset, wait_for
+
+    port = free_port()
+    s3 = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
+    s3.start()
+    endpoint = f"http://127.0.0.1:{port}"
+    raw = Minio(f"127.0.0.1:{port}", "k", "s", secure=False, region="us-east-1")
+    raw.make_bucket("dash")
+    values = {
+        "storage_backend": "s3",
+        "s3_endpoint_url": endpoint,
+        "s3_bucket": "dash",
+        "s3_access_key": "k",
+        "s3_secret_key": "s",
+        "api_keys": [LONG_KEY_A],
+    }
+    settings = make_settings(tmp_path / "api", **values)
+    worker = settings.model_copy(update={"storage_dir": tmp_path / "worker"})
+    try:
+        with (
+            worker_process(worker, tmp_path / "worker.log"),
+            api_server(settings, tmp_path / "api.log") as base,
+            httpx.Client(base_url=base, headers={"X-API-Key": LONG_KEY_A}, timeout=30) as client,
+            sync_playwright() as pw,
+        ):
+            data = asset_bytes(tmp_path, size=32)
+            job_id = post_asset(client, data, options={"method": "bicubic", "scale": 2}).json()[
+                "id"
+            ]
+            wait_for(
+                lambda: client.get(f"/v1/jobs/{job_id}").json()["status"] == "finished",
+                120,
+                0.5,
+                "the job to finish",
+            )
+            stored = raw.get_object("dash", f"jobs/{job_id}/result.zip").read()
+            browser = pw.chromium.launch(
+                executable_path=str(CHROMIUM), args=CHROMIUM_ARGS, headless=True
+            )
+            try:
+                page = browser.new_page(accept_downloads=True)
+                page.add_init_script(f"localStorage.setItem('pbrsr-api-key', '{LONG_KEY_A}')")
+                errors: list[str] = []
+                page.on("pageerror", lambda exc: errors.append(str(exc)))
+                to_bucket: list = []
+                page.on(
+                    "request", lambda req: req.url.startswith(endpoint) and to_bucket.append(req)
+                )
+                page.goto(base + "/")
+                page.click(f".job-row[data-id='{job_id}']")
+                page.wait_for_selector("#thumbs img")
+                page.wait_for_selector("#crops-box:not([hidden]) .wipe")
+                # the thumbnails load lazily: under the 3D view and the crops, once on screen
+                page.locator("#thumbs").scroll_into_view_if_needed()
+                page.wait_for_function(
+                    "[...document.querySelectorAll('#thumbs img, #crops img')]"
+                    ".every(i => i.complete && i.naturalWidth > 0)"
+                )
+                page.locator("#preview-pairs").scroll_into_view_if_needed()
+                page.wait_for_function(
+                    "[...document.querySelectorAll('#preview-pairs img')]"
+                    ".every(i => i.complete && i.naturalWidth > 0)"
+                )
+                page.locator("#model-view").scroll_into_view_if_needed()
+                page.wait_for_function(
+                    "['ready', 'error'].includes(document.getElementById('model-view')"
+                    ".dataset.state)",
+                    timeout=30_000,
+                )
+                assert page.get_attribute("#model-view", "data-state") == "ready", (
+                    page.get_attribute("#model-view", "data-error")
+                )
+                model_key = f"/dash/jobs/{job_id}/output/asset.glb?"
+                assert any(model_key in r.url for r in to_bucket)
+                with page.expect_download() as info:
+                    page.click("#download")
+                assert Path(info.value.path()).read_bytes() == stored
+                assert to_bucket, "the images and the bundle come from the bucket"
+                sent = [r.all_headers() for r in to_bucket]  # what went on the wire
+                assert not [h for h in sent if "x-api-key" in h]
+                assert errors == []
+            finally:
+                browser.close()
+    finally:
+        s3.stop()
+        cleanup_redis(settings)

@@ -24,7 +24,8 @@ from test_service_support import (
     settings_scope,
 )
 
-from pbrsr_jobs.store import JobIndex, JobLayout, sweep_expired
+from pbrsr_jobs.objstore import FilesystemStore
+from pbrsr_jobs.store import JobFiles, JobIndex, JobLayout, sweep_expired
 from service.app import create_app
 
 
@@ -109,7 +110,7 @@ def test_submit_glb_is_validated_stored_and_queued(client, settings, tmp_path):
     )
     assert stored == ["input", "input/asset.glb", "job.json"]  # generated names only
     assert list(layout.uploads_dir().iterdir()) == []  # the streamed upload was moved
-    manifest = layout.read_manifest(job_id)
+    manifest = JobFiles(FilesystemStore(settings.storage_dir)).read_manifest(job_id)
     assert manifest.options["scale"] == 2 and manifest.options["method"] == "bicubic"
     assert manifest.name == "My_Chair.glb"  # display only, sanitised
 
@@ -129,11 +130,11 @@ def test_submit_zip_of_gltf(client, settings, tmp_path):
         client, gltf_zip_bytes(tmp_path), filename="bundle.zip", options={"method": "bicubic"}
     )
     assert r.status_code == 202, r.text
-    layout = JobLayout(settings.storage_dir)
-    manifest = layout.read_manifest(r.json()["id"])
+    manifest = JobFiles(FilesystemStore(settings.storage_dir)).read_manifest(r.json()["id"])
     assert manifest.kind == "zip"
     assert manifest.input == "model/asset.gltf"
-    assert (layout.input_dir(manifest.id) / manifest.input).is_file()
+    job_dir = JobLayout(settings.storage_dir).job_dir(manifest.id)
+    assert (job_dir / "input" / manifest.input).is_file()
 
 
 def _bad_cases(tmp_path: Path) -> list[tuple[str, bytes, str | dict | None, int, str]]:
@@ -259,7 +260,7 @@ def test_cancel_queued_then_delete(client, settings, tmp_path):
 
 def test_preview_names_never_become_paths(client, settings, tmp_path):
     job_id = post_asset(client, asset_bytes(tmp_path)).json()["id"]
-    out = JobLayout(settings.storage_dir).output_dir(job_id)
+    out = JobLayout(settings.storage_dir).job_dir(job_id) / "output"
     (out / "previews").mkdir(parents=True)
     (out / "previews" / "after_studio.png").write_bytes(b"\x89PNG fake")
     for name in ("..%2Fjob.json", "%2E%2E%2F%2E%2E%2Fjob.json", "job.json", ".hidden.png"):
@@ -274,8 +275,8 @@ def test_crops_and_files_wait_for_the_end_and_serve_only_recorded_names(client, 
     base = f"/v1/jobs/{job_id}"
     _problem_ok(client.get(f"{base}/crops"), 409, "not-finished")
     _problem_ok(client.get(f"{base}/files/asset.glb"), 409, "not-finished")
-    layout = JobLayout(settings.storage_dir)
-    crops, out = layout.crops_dir(job_id), layout.output_dir(job_id)
+    job_dir = JobLayout(settings.storage_dir).job_dir(job_id)  # the filesystem store's objects
+    crops, out = job_dir / "crops", job_dir / "output"
     crops.mkdir(parents=True)
     out.mkdir(parents=True)
     for name in ("00_normal_n_lr.png", "00_normal_n_hr.png", "stray.png"):
@@ -318,6 +319,8 @@ def test_the_3d_viewer_library_comes_from_the_npm_packages(client, tmp_path):
     assert r.status_code == 200 and r.headers["content-type"].startswith("text/javascript")
     assert b"./three.core.js" in r.content
     assert client.get("/vendor/three/examples/jsm/loaders/GLTFLoader.js").status_code == 200
+    wasm = client.get("/vendor/three/examples/jsm/libs/draco/gltf/draco_decoder.wasm")
+    assert wasm.headers["content-type"] == "application/wasm" and wasm.content[:4] == b"\0asm"
     for path in ("package.json", "..%2F..%2Fpackage.json", "src/Three.js"):
         _problem_ok(client.get(f"/vendor/three/{path}"), 404)
     bare = make_settings(tmp_path, npm_dir=tmp_path / "no-node-modules")
@@ -410,7 +413,8 @@ def test_sweep_expires_old_jobs_only(client, settings, tmp_path):
     job.save_meta()
     layout = JobLayout(settings.storage_dir)
     index = JobIndex(redis, settings.key_prefix)
-    removed = sweep_expired(redis, index, layout, settings.retention_s)
+    files = JobFiles(FilesystemStore(settings.storage_dir))
+    removed = sweep_expired(redis, index, layout, files, settings.retention_s)
     assert removed == [old]
     assert not layout.job_dir(old).exists() and layout.job_dir(fresh).exists()
     assert client.get(f"/v1/jobs/{old}").status_code == 404
@@ -447,7 +451,7 @@ def test_status_of_a_finished_job_lists_no_folder_and_drops_bad_history_points(
     def no_listing(*args, **kwargs):
         raise AssertionError("a status read listed a folder")
 
-    monkeypatch.setattr(JobLayout, "list_files", no_listing)
+    monkeypatch.setattr(FilesystemStore, "list", no_listing)
     body = client.get(f"/v1/jobs/{job_id}").json()
     assert body["status"] == "finished"
     base = f"/v1/jobs/{job_id}"

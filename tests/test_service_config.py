@@ -66,7 +66,7 @@ def test_unwritable_storage_is_refused(tmp_path):
 
 def test_docs_table_lists_every_setting():
     text = (REPO / "docs" / "SERVICE.md").read_text()
-    documented = set(re.findall(r"^\| `(PBRSR_[A-Z_]+)` \|", text, flags=re.M))
+    documented = set(re.findall(r"^\| `(PBRSR_[A-Z0-9_]+)` \|", text, flags=re.M))
     assert documented == ENV_NAMES
 
 
@@ -99,6 +99,26 @@ def test_compose_file_matches_settings():
     assert services["worker-cpu"]["environment"]["PBRSR_DEVICE"] == "cpu"
     assert services["worker-gpu"]["environment"]["PBRSR_DEVICE"].startswith("cuda")
     assert "storage" in doc["volumes"]
+
+
+def test_compose_s3_override_switches_every_pbrsr_service_to_its_bucket():
+    yaml = pytest.importorskip("yaml", reason="PyYAML is needed to parse the compose files")
+    base = yaml.safe_load((REPO / "docker-compose.yml").read_text())["services"]
+    s3 = yaml.safe_load((REPO / "deploy" / "docker-compose.s3.yml").read_text())["services"]
+    bucket = s3["api"]["environment"]["PBRSR_S3_BUCKET"]
+    assert s3["minio-init"]["command"][0].endswith(f"mc mb --ignore-existing local/{bucket}")
+    for name in ("api", "worker-cpu", "worker-gpu"):
+        assert name in base
+        env = {**base[name]["environment"], **s3[name]["environment"]}
+        assert {k for k in env if k.startswith("PBRSR_")} <= ENV_NAMES
+        merged = Settings(
+            _env_file=None,
+            **{
+                k[6:].lower(): v for k, v in env.items() if k.startswith("PBRSR_") and "${" not in v
+            },
+        )
+        assert merged.storage_backend == "s3" and merged.s3_endpoint_url == "http://minio:9000"
+        assert s3[name]["depends_on"]["minio-init"]["condition"] == "service_completed_successfully"
 
 
 def test_dockerfile_has_cpu_default_and_cuda_arg():

@@ -162,8 +162,7 @@ def test_zip_entry_the_asset_does_not_use_is_never_unpacked(tmp_path):
             options = {"method": "bicubic"}
             resp = post_asset(c, z.read_bytes(), filename="asset.zip", options=options)
         assert resp.status_code == 202, resp.text
-        layout = JobLayout(settings.storage_dir)
-        input_dir = layout.input_dir(resp.json()["id"])
+        input_dir = JobLayout(settings.storage_dir).job_dir(resp.json()["id"]) / "input"
         stored = sorted(p.relative_to(input_dir).as_posix() for p in input_dir.rglob("*"))
         assert stored == ["model", "model/asset.gltf", "model/base_color.png", "model/quad.bin"]
         assert not list(settings.storage_dir.rglob("zeros.bin"))

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from pydantic import SecretStr
 
 from pbrsr_jobs.settings import Settings
 
@@ -71,6 +72,8 @@ def settings_env(settings: Settings) -> dict[str, str]:
     for name, value in settings.model_dump().items():
         if value is None:
             continue
+        if isinstance(value, SecretStr):
+            value = value.get_secret_value()
         if isinstance(value, list):
             value = ",".join(value)
         env[f"PBRSR_{name.upper()}"] = str(value)

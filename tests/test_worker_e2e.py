@@ -125,7 +125,6 @@ def test_job_runs_to_finished_with_a_complete_bundle(env):
         "output",
         "result.zip",
         "thumbs",
-        "work",
     ]
     metrics = client.get("/metrics").text
     assert 'pbrsr_jobs_completed_total{state="finished"} 1.0' in metrics

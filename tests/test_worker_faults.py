@@ -75,7 +75,6 @@ def test_killed_worker_job_is_retried_elsewhere_and_finishes(tmp_path):
                 "output",
                 "result.zip",
                 "thumbs",
-                "work",
             ]
             assert not list((job_dir / "output").rglob(".*"))
     finally:

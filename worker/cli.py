@@ -21,6 +21,7 @@ def register(app: typer.Typer) -> None:
         with needs_extra("worker", "service"):
             from redis.exceptions import ConnectionError as RedisConnectionError
 
+            from pbrsr_jobs.objstore import StoreUnavailable
             from pbrsr_jobs.settings import Settings
 
             from .runner import run_worker
@@ -34,6 +35,9 @@ def register(app: typer.Typer) -> None:
             run_worker(settings, burst=burst, name=name, max_jobs=max_jobs)
         except ValueError as exc:  # storage not writable
             typer.secho(f"error: {exc}", fg="red", err=True)
+            raise typer.Exit(2) from None
+        except StoreUnavailable as exc:
+            typer.secho(f"error: job storage: {exc}", fg="red", err=True)
             raise typer.Exit(2) from None
         except RedisConnectionError:
             typer.secho(

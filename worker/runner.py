@@ -52,8 +52,9 @@ from rq import Queue, SimpleWorker
 from rq.worker import WorkerStatus
 
 from pbrsr_core.errors import PbrsrError
+from pbrsr_jobs.objstore import open_store
 from pbrsr_jobs.settings import Settings
-from pbrsr_jobs.store import JobIndex, JobLayout, sweep_expired
+from pbrsr_jobs.store import JobFiles, JobIndex, JobLayout, sweep_expired
 
 from .tasks import WorkerContext, set_context
 from .threads import apply_threads, host_workers, process_cores, threads_per_worker
@@ -177,6 +178,8 @@ def build_worker(settings: Settings, *, name: str | None = None) -> PbrsrWorker:
 
     settings.configure_runtime()
     layout = JobLayout(settings.prepare_storage())
+    files = JobFiles(open_store(settings))
+    files.store.check()  # StoreUnavailable: the worker does not start
     redis = Redis.from_url(settings.redis_url)
     redis.ping()
     device = resolve_device(settings.device)
@@ -189,7 +192,7 @@ def build_worker(settings: Settings, *, name: str | None = None) -> PbrsrWorker:
 
     def sweep() -> None:
         if index.try_sweep_lock(settings.maintenance_s):
-            sweep_expired(redis, index, layout, settings.retention_s)
+            sweep_expired(redis, index, layout, files, settings.retention_s)
 
     worker = PbrsrWorker(
         [Queue(q, connection=redis) for q in settings.listen_queues()],
@@ -208,7 +211,12 @@ def build_worker(settings: Settings, *, name: str | None = None) -> PbrsrWorker:
     )
     set_context(
         WorkerContext(
-            settings=settings, layout=layout, index=index, device=str(device), worker_name=name
+            settings=settings,
+            layout=layout,
+            files=files,
+            index=index,
+            device=str(device),
+            worker_name=name,
         )
     )
     return worker

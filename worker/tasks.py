@@ -1,19 +1,26 @@
 """The RQ job function: one upscale run of one stored job.
 
 ``run_job(job_id)`` is what the API enqueues (by its dotted name, so the API never imports
-this module). It reads ``jobs/<id>/job.json``, runs :func:`pbrsr_core.pipeline.upscale_asset`
-on ``jobs/<id>/input/`` with a :class:`~worker.progress.JobReporter` as the progress
-callback, and publishes the result:
+this module). It reads the job's manifest and copies its input from the object store
+(:class:`~pbrsr_jobs.store.JobFiles`: a shared folder or an S3 bucket) into a
+``.tmp-input-*`` folder of this machine, runs :func:`pbrsr_core.pipeline.upscale_asset` on
+it with a :class:`~worker.progress.JobReporter` as the progress callback, and publishes the
+result:
 
-1. the pipeline writes the bundle's files into a fresh ``jobs/<id>/.tmp-output-*`` folder,
-2. every map's LR/HR detail crops (:mod:`pbrsr_core.crops`) go to a ``.tmp-crops-*`` folder
-   and thumbnails of every HR map to a ``.tmp-thumbs-*`` folder,
+1. the pipeline writes the bundle's files into a fresh ``jobs/<id>/.tmp-output-*`` folder
+   and every map's LR/HR detail crops (:mod:`pbrsr_core.crops`) into a ``.tmp-crops-*``
+   folder,
+2. thumbnails of every HR map go to a ``.tmp-thumbs-*`` folder,
 3. the zip is written as ``.tmp-bundle-*.zip``,
-4. each is renamed into place (``output/``, ``crops/``, ``thumbs/``, ``result.zip``), and
-   only then ``meta['state']`` becomes ``finished``.
+4. the thumbnails, the crops, the bundle's files and then the zip are stored as the job's
+   objects
+   (``JobFiles.publish_result``: what an earlier attempt stored goes first, and what this one
+   stored goes again if storing fails), and only then ``meta['state']`` becomes
+   ``finished``.
 
 A reader therefore never sees half a bundle; a run that dies leaves only ``.tmp-*`` entries,
-removed by the next attempt or by expiry. User errors (``PbrsrError``) and cancellation end
+removed by the next attempt or by expiry. A job that ends frees this machine's working
+files (``JobLayout.release``). User errors (``PbrsrError``) and cancellation end
 the run *normally* (RQ would otherwise retry them) with the outcome in ``meta``; internal
 errors get a generic message in ``meta`` and their traceback in the worker log. RQ's retries
 are kept for what they are for: a worker that died mid-job.
@@ -34,8 +41,9 @@ from typing import Any
 import numpy as np
 
 from pbrsr_core.errors import Cancelled, PbrsrError, StorageError
+from pbrsr_jobs.objstore import StoreUnavailable, open_store
 from pbrsr_jobs.settings import Settings
-from pbrsr_jobs.store import JobIndex, JobLayout, JobState, publish, resolve_options
+from pbrsr_jobs.store import JobFiles, JobIndex, JobLayout, JobState, resolve_options
 
 from .cancel import CancelWatchdog
 from .progress import JobReporter
@@ -52,6 +60,7 @@ class WorkerContext:
 
     settings: Settings
     layout: JobLayout
+    files: JobFiles
     index: JobIndex
     device: str  # resolved: "cpu", "cuda", "cuda:1"
     worker_name: str = "worker"
@@ -75,6 +84,7 @@ def get_context(connection: Any) -> WorkerContext:
         _CONTEXT = WorkerContext(
             settings=settings,
             layout=JobLayout(settings.prepare_storage()),
+            files=JobFiles(open_store(settings)),
             index=JobIndex(connection, settings.key_prefix),
             device=str(resolve_device(settings.device)),
         )
@@ -90,13 +100,14 @@ def run_job(job_id: str) -> dict[str, Any]:
     if job is None or job.id != job_id:
         raise RuntimeError("run_job must run inside the RQ job of the same id")
     ctx = get_context(job.connection)
-    layout, index = ctx.layout, ctx.index
+    layout, files, index = ctx.layout, ctx.files, ctx.index
     attempt = int(job.meta.get("attempt", 0)) + 1
     method = str((job.meta.get("options") or {}).get("method", "pbrsr"))
     reporter = JobReporter(job, index, interval_s=ctx.settings.progress_interval_s, method=method)
 
     if index.cancel_requested(job_id):
         reporter.finish(JobState.CANCELED)
+        layout.release(job_id)
         return {"state": JobState.CANCELED.value}
 
     layout.clear_tmp(job_id)  # what an earlier attempt on a dead worker left behind
@@ -104,9 +115,12 @@ def run_job(job_id: str) -> dict[str, Any]:
     log.info("job %s: attempt %d on %s", job_id, attempt, ctx.device)
     tmp_paths: list[Path] = []
     try:
-        manifest = layout.read_manifest(job_id)
+        manifest = files.read_manifest(job_id)
         options = resolve_options(manifest.options, ctx.settings, device=ctx.device)
-        input_path = layout.input_dir(job_id) / manifest.input
+        in_tmp = layout.tmp_dir(job_id, "input")
+        tmp_paths.append(in_tmp)
+        files.fetch_input(job_id, in_tmp)
+        input_path = in_tmp / manifest.input
         out_tmp = layout.tmp_dir(job_id, "output")
         crops_tmp = layout.tmp_dir(job_id, "crops")
         tmp_paths += [out_tmp, crops_tmp]
@@ -135,16 +149,12 @@ def run_job(job_id: str) -> dict[str, Any]:
             tmp_paths.append(bundle_tmp)
             write_bundle_zip(out_tmp, bundle_tmp)
         # published only after the watchdog is disarmed: a cancel cannot cut this short
-        publish(thumbs_tmp, layout.thumbs_dir(job_id))
-        publish(crops_tmp, layout.crops_dir(job_id))
-        publish(out_tmp, layout.output_dir(job_id))
-        publish(bundle_tmp, layout.bundle_path(job_id))
+        names = files.publish_result(job_id, out_tmp, thumbs_tmp, crops_tmp, bundle_tmp)
         summary = _summary(report)
-        # the names the API links to, so that a status read lists no folder
+        # the names the API links to: a status read lists nothing
         job.meta["files"] = {
-            "previews": layout.preview_names(job_id),
-            "thumbs": layout.thumb_names(job_id),
-            "crops": read_crop_index(layout.crops_dir(job_id)),
+            **names,
+            "crops": read_crop_index(crops_tmp),
             "model": report["input"],
         }
         reporter.finish(JobState.FINISHED, summary=summary)
@@ -168,6 +178,12 @@ def run_job(job_id: str) -> dict[str, Any]:
         )
         reporter.finish(JobState.FAILED, error=message, code="timeout")
         return {"state": JobState.FAILED.value}
+    except StoreUnavailable as exc:
+        _remove_all(tmp_paths)  # before the state changes: a reader never sees leftovers
+        log.warning("job %s: storage unavailable: %s", job_id, exc)
+        err = StorageError("the job storage was unavailable (the server's object store)")
+        reporter.finish(JobState.FAILED, error=err.message, code=err.code)
+        return {"state": JobState.FAILED.value}
     except OSError as exc:
         _remove_all(tmp_paths)  # before the state changes: a reader never sees leftovers
         if exc.errno in (errno.ENOSPC, errno.EDQUOT):
@@ -189,6 +205,7 @@ def run_job(job_id: str) -> dict[str, Any]:
         return {"state": JobState.FAILED.value}
     finally:
         _remove_all(tmp_paths)
+        layout.release(job_id)  # the job has ended (a worker that died never gets here)
         _free_memory()
 
 

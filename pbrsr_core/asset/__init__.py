@@ -14,7 +14,7 @@ from .model import (
     Mesh,
     TextureRef,
 )
-from .procedural import make_demo_asset, make_quad_asset, make_test_asset
+from .procedural import make_cutout_asset, make_demo_asset, make_quad_asset, make_test_asset
 from .validator import validate_gltf
 
 __all__ = [
@@ -32,6 +32,7 @@ __all__ = [
     "encode_images",
     "extract_zip",
     "load_asset",
+    "make_cutout_asset",
     "make_demo_asset",
     "make_quad_asset",
     "make_test_asset",

@@ -32,10 +32,12 @@ from .gltf_read import (
 from .gltf_write import encode_images, save_asset
 from .images import read_image
 from .jpeg import quant_tables
+from .mesh_codecs import DRACO, decode_geometry, meshopt_placeholders, placeholder_extent
 from .model import (
     EXTENSION_ROLES,
     REPEAT,
     Asset,
+    DecodedGeometry,
     ImageData,
     Material,
     Mesh,
@@ -288,8 +290,17 @@ def _triangles(mode: int, idx: np.ndarray) -> np.ndarray:
 
 
 class _Builder:
-    def __init__(self, doc: dict, buffers: list[bytes], limits: Limits, unwrap: bool = True):
-        self.doc, self.buffers, self.limits = doc, buffers, limits
+    def __init__(
+        self,
+        doc: dict,
+        buffers: list[bytes],
+        limits: Limits,
+        unwrap: bool = True,
+        geometry: DecodedGeometry | None = None,
+    ):
+        self.doc, self.limits = doc, limits
+        self.buffers = geometry.buffers if geometry else buffers
+        self.decoded = geometry.accessors if geometry else None
         self.unwrap = unwrap
         self.unwrapped: dict[tuple[int, int], UnwrappedPrimitive] = {}
         self.pos: list[np.ndarray] = []
@@ -330,20 +341,26 @@ class _Builder:
 
     def add_primitive(self, mi: int, pi: int, prim: dict, what: str, world: np.ndarray) -> None:
         doc, bufs = self.doc, self.buffers
+
+        def read(index, label: str) -> np.ndarray:
+            return read_accessor(doc, bufs, index, label, self.decoded)
+
         mode = prim.get("mode", 4)
         if mode not in (4, 5, 6):
             return  # points and lines carry no textured surface
+        if DRACO in (prim.get("extensions") or {}):
+            mode = 4  # Draco decodes to a triangle list
         attrs = prim.get("attributes") or {}
         if "POSITION" not in attrs:
             return
-        pos = read_accessor(doc, bufs, attrs["POSITION"], f"{what} POSITION")
+        pos = read(attrs["POSITION"], f"{what} POSITION")
         if pos.shape[1] != 3:
             raise InvalidAsset(f"{what}: POSITION is not VEC3")
         if not np.isfinite(pos).all():
             raise InvalidAsset(f"the mesh {what} has NaN or infinite vertex positions")
         nv = nv0 = pos.shape[0]
         if "indices" in prim:
-            idx = read_accessor(doc, bufs, prim["indices"], f"{what} indices")[:, 0]
+            idx = read(prim["indices"], f"{what} indices")[:, 0]
             if idx.dtype.kind == "f":
                 raise InvalidAsset(f"{what}: indices must be integers")
             if idx.size and (idx.max() >= nv or idx.min() < 0):
@@ -399,7 +416,7 @@ class _Builder:
         uvs: dict[int, np.ndarray] = {}
         for key, acc in attrs.items():
             if key.startswith("TEXCOORD_") and key[9:].isdigit():
-                uv = read_accessor(doc, bufs, acc, f"{what} {key}")
+                uv = read(acc, f"{what} {key}")
                 if uv.shape != (nv0, 2):
                     raise InvalidAsset(f"{what}: {key} must be VEC2 with one value per vertex")
                 if not np.isfinite(uv).all():
@@ -409,7 +426,7 @@ class _Builder:
             uvs[k] = uv.astype(np.float64)
 
         if "NORMAL" in attrs:
-            n = read_accessor(doc, bufs, attrs["NORMAL"], f"{what} NORMAL")
+            n = read(attrs["NORMAL"], f"{what} NORMAL")
             if n.shape != (nv0, 3):
                 raise InvalidAsset(f"{what}: NORMAL must be VEC3 with one value per vertex")
             n = np.nan_to_num(n, nan=0.0, posinf=0.0, neginf=0.0)
@@ -427,7 +444,7 @@ class _Builder:
             attrs = {k: v for k, v in attrs.items() if k != "TANGENT"}
 
         if "TANGENT" in attrs:
-            t = read_accessor(doc, bufs, attrs["TANGENT"], f"{what} TANGENT")
+            t = read(attrs["TANGENT"], f"{what} TANGENT")
             if t.shape != (nv0, 4):
                 raise InvalidAsset(f"{what}: TANGENT must be VEC4 with one value per vertex")
             t = gather(np.nan_to_num(t, nan=0.0, posinf=0.0, neginf=0.0))
@@ -545,15 +562,20 @@ def load_asset(path: Path, limits: Limits = Limits(), *, unwrap_missing_uvs: boo
     del raw
     folder = path.parent
     resources: dict[str, bytes] = {}
-    buffers = load_buffers(doc, folder, bin_chunk, kind == "glb", limits, resources)
+    placeholders = {
+        i: placeholder_extent(doc, i, limits) for i in meshopt_placeholders(doc, kind == "glb")
+    }
+    buffers = load_buffers(doc, folder, bin_chunk, kind == "glb", limits, resources, placeholders)
     check_buffer_views(doc, buffers)
+    geometry = decode_geometry(doc, buffers, set(placeholders), limits)
 
     materials = [_material(doc, i) for i in range(len(doc.get("materials", [])))]
     used = {ref.image for m in materials for ref in m.textures().values()}
-    builder = _Builder(doc, buffers, limits, unwrap_missing_uvs)
+    builder = _Builder(doc, buffers, limits, unwrap_missing_uvs, geometry)
     builder.walk(_scene_roots(doc))
     mesh = builder.build()
-    images = _load_images(doc, folder, buffers, limits, resources, used)
+    decoded_buffers = geometry.buffers if geometry else buffers  # meshopt views decoded
+    images = _load_images(doc, folder, decoded_buffers, limits, resources, used)
     by_index = {im.index: im for im in images}
     for m in materials:
         for role, ref in m.textures().items():
@@ -569,6 +591,7 @@ def load_asset(path: Path, limits: Limits = Limits(), *, unwrap_missing_uvs: boo
         kind=kind,
         resources=resources,
         generated_uvs=dict(builder.unwrapped),
+        geometry=geometry,
     )
     if builder.missing_uv:
         mi, pi, n = builder.missing_uv[0]

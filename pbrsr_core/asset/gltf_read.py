@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import struct
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Literal, overload
 
@@ -34,8 +35,8 @@ TYPE_SIZES = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9
 
 # required extensions that change how geometry or images must be decoded
 UNSUPPORTED_REQUIRED = {
-    "KHR_draco_mesh_compression": "Draco-compressed meshes",
-    "EXT_meshopt_compression": "meshoptimizer-compressed buffers",
+    "KHR_draco_mesh_compression": None,  # supported (mesh_codecs)
+    "EXT_meshopt_compression": None,  # supported (mesh_codecs)
     "KHR_texture_basisu": "KTX2/Basis textures",
     "EXT_texture_webp": "WebP textures",
     "EXT_texture_avif": "AVIF textures",
@@ -163,15 +164,21 @@ def load_buffers(
     is_glb: bool,
     limits: Limits,
     resources: dict[str, bytes],
+    placeholders: Mapping[int, int] | None = None,
 ) -> list[bytes]:
-    """The bytes of every buffer, each at least ``byteLength`` long."""
-    out = []
+    """The bytes of every buffer, each at least ``byteLength`` long, except the buffers in
+    ``placeholders`` ({index: size}: fallback buffers with no bytes in the file), which are
+    zeroed buffers of that size."""
+    out: list[bytes] = []
     for i, buf in enumerate(doc.get("buffers", [])):
         what = f"buffer {i}"
         blen = buf.get("byteLength")
         if not isinstance(blen, int) or blen < 0:
             raise InvalidAsset(f"{what} has no valid byteLength")
         uri = buf.get("uri")
+        if placeholders and i in placeholders:
+            out.append(bytes(placeholders[i]))
+            continue
         if uri is None:
             if not (is_glb and i == 0):
                 raise InvalidAsset(f"{what} has no uri")
@@ -247,11 +254,18 @@ def _read_elements(
     return np.ascontiguousarray(rows).view(dtype).reshape(count, ncomp).copy()
 
 
-def read_accessor(doc: dict, buffers: list[bytes], index: int, what: str = "") -> np.ndarray:
+def read_accessor(
+    doc: dict,
+    buffers: list[bytes],
+    index: int,
+    what: str = "",
+    decoded: Mapping[int, np.ndarray] | None = None,
+) -> np.ndarray:
     """Accessor ``index`` as a (count, ncomp) array: float64 when ``normalized`` or float,
     else its integer type widened to int64. Sparse accessors are applied. Every read is
-    bounds-checked against its bufferView."""
-    data, acc = read_accessor_raw(doc, buffers, index, what)
+    bounds-checked against its bufferView. ``decoded``: the data of accessors that Draco
+    primitives fill (:func:`pbrsr_core.asset.mesh_codecs.decode_draco`)."""
+    data, acc = read_accessor_raw(doc, buffers, index, what, decoded)
     dtype = data.dtype
     if dtype.kind == "f":
         return data.astype(np.float64)
@@ -263,10 +277,15 @@ def read_accessor(doc: dict, buffers: list[bytes], index: int, what: str = "") -
 
 
 def read_accessor_raw(
-    doc: dict, buffers: list[bytes], index: int, what: str = ""
+    doc: dict,
+    buffers: list[bytes],
+    index: int,
+    what: str = "",
+    decoded: Mapping[int, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, dict]:
     """(Accessor ``index`` as a dense (count, ncomp) array of its own component type, sparse
-    substitution applied; the accessor's JSON object)."""
+    substitution applied; the accessor's JSON object). An accessor in ``decoded`` takes its
+    data from there instead of a bufferView."""
     accessors = doc.get("accessors", [])
     label = f"accessor {index}" + (f" ({what})" if what else "")
     if not isinstance(index, int) or isinstance(index, bool) or not 0 <= index < len(accessors):
@@ -287,7 +306,9 @@ def read_accessor_raw(
     ncomp = TYPE_SIZES[atype]
     if count > 1 << 31:
         raise LimitExceeded(f"{label} has {count} elements")
-    if "bufferView" in acc:
+    if decoded is not None and index in decoded:
+        data = decoded[index]
+    elif "bufferView" in acc:
         data = _read_elements(
             doc,
             buffers,

@@ -1,11 +1,13 @@
 """Save an :class:`Asset` with chosen images replaced, editing (not regenerating) its JSON.
 
 * ``.glb``: replaced images are embedded in the BIN chunk. The chunk is repacked: every
-  bufferView that is not a replaced image keeps its bytes (and its byteOffset modulo 4, so
-  accessor alignment holds); a replaced image's bufferView entry is rewritten in place when
+  bufferView that is not a replaced image, and every ``EXT_meshopt_compression`` range, keeps
+  its bytes (and its byteOffset modulo 4, so accessor alignment holds; Draco data is a
+  bufferView like any other); a replaced image's bufferView entry is rewritten in place when
   only that image uses it, otherwise a new bufferView is appended. When something other than a
-  bufferView points into the BIN buffer (e.g. ``EXT_meshopt_compression``), the old bytes are
-  kept as they are and new images are appended instead. External files are copied.
+  bufferView points into the BIN buffer, the old bytes are kept as they are and new images are
+  appended instead. External files are copied; meshopt fallback buffers without a ``uri``
+  stay without one.
 * ``.gltf``: replaced images become files beside it (same folder as the original file, a safe
   version of its name, the output format's extension); images that were data URIs stay data
   URIs; unchanged external files are copied byte for byte; buffers stay data URIs or files as
@@ -31,6 +33,7 @@ import numpy as np
 from ..errors import InvalidOptions, StorageError
 from .gltf_read import CHUNK_BIN, CHUNK_JSON, COMPONENT_DTYPES, read_accessor_raw
 from .images import EncodedImage, ImageFormat, encode_image, output_format
+from .mesh_codecs import DRACO, draco_primitives, meshopt_placeholders, meshopt_view
 from .model import Asset, ImageData
 from .uris import encode_uri, is_data_uri, relative_path, resolve_inside, safe_stem
 
@@ -164,13 +167,16 @@ def _write_unwrapped(doc: dict, asset: Asset, out: bytearray, buffer: int) -> No
     through ``vmapping`` into a new accessor, new triangle-list indices, new TEXCOORD sets.
     Reads come from the source document and buffers (``doc`` is the copy being written)."""
     src = asset.document
+    geometry = asset.geometry
+    buffers = geometry.buffers if geometry else asset.buffers
+    decoded = geometry.accessors if geometry else None
     for (mi, pi), un in sorted(asset.generated_uvs.items()):
         prim = doc["meshes"][mi]["primitives"][pi]
         cache: dict[int, int] = {}
 
         def gathered(acc_index: int, semantic: str, un=un, cache=cache) -> int:
             if acc_index not in cache:
-                raw, acc = read_accessor_raw(src, asset.buffers, acc_index, semantic)
+                raw, acc = read_accessor_raw(src, buffers, acc_index, semantic, decoded)
                 keep_bounds = semantic == "POSITION" or ("min" in acc and raw.dtype.kind == "f")
                 cache[acc_index] = _append_accessor(
                     doc,
@@ -204,6 +210,15 @@ def _write_unwrapped(doc: dict, asset: Asset, out: bytearray, buffer: int) -> No
             target=_ELEMENT_ARRAY_BUFFER,
         )
         prim.pop("mode", None)  # strips and fans became triangle lists
+        exts = prim.get("extensions")
+        if isinstance(exts, dict) and exts.pop(DRACO, None) is not None and not exts:
+            del prim["extensions"]  # the primitive is stored uncompressed
+    if asset.generated_uvs and not draco_primitives(doc):
+        for key in ("extensionsUsed", "extensionsRequired"):
+            if DRACO in doc.get(key, []):
+                doc[key] = [e for e in doc[key] if e != DRACO]
+                if not doc[key]:
+                    del doc[key]
     out += b"\x00" * _pad(len(out))
 
 
@@ -295,9 +310,10 @@ def _save_gltf(asset: Asset, out_path: Path, encoded: dict) -> list[Path]:
     doc = copy.deepcopy(asset.document)
     w = _Writer(asset, out_path)
     replaced = set(encoded)
-    # a GLB's embedded buffer becomes a .bin file
+    # a GLB's embedded buffer becomes a .bin file (meshopt fallback buffers have no bytes)
+    placeholders = meshopt_placeholders(asset.document, asset.kind == "glb")
     for i, buf in enumerate(doc.get("buffers", [])):
-        if "uri" not in buf:
+        if "uri" not in buf and i not in placeholders:
             rel = w.unique(f"{safe_stem(out_path.name, 'asset')}.bin")
             buf["uri"] = encode_uri(rel)
             w.add_file(rel, bytes(asset.buffers[i][: buf["byteLength"]]))
@@ -355,6 +371,15 @@ def _save_glb(asset: Asset, out_path: Path, encoded: dict) -> list[Path]:
         if (encoded or asset.generated_uvs or doc.get("buffers"))
         else []
     )
+    if buffers and 0 in meshopt_placeholders(asset.document, asset.kind == "glb"):
+        # a GLB's buffer 0 without a uri is its BIN chunk: a meshopt fallback buffer goes last
+        moved = {old: old - 1 if old else len(buffers) - 1 for old in range(len(buffers))}
+        for k, v in doc.items():
+            if k != "buffers":
+                _walk_refs(
+                    v, "buffer", lambda d: d.update(buffer=moved.get(d["buffer"], d["buffer"]))
+                )
+        buffers.append(buffers.pop(0))
     has_bin = bool(buffers) and "uri" not in buffers[0]
     if has_bin:
         old_bin = bytes(asset.buffers[0][: buffers[0]["byteLength"]])
@@ -366,12 +391,7 @@ def _save_glb(asset: Asset, out_path: Path, encoded: dict) -> list[Path]:
             def shift(d):
                 d["buffer"] += 1
 
-            for bv in doc.get("bufferViews", []):
-                if isinstance(bv.get("buffer"), int):
-                    shift(bv)
-            for k, v in doc.items():
-                if k != "bufferViews":
-                    _walk_refs(v, "buffer", shift)
+            _walk_refs(doc, "buffer", shift)  # bufferViews and their meshopt ranges too
             buffers.insert(0, {"byteLength": 0})
             has_bin = True
     _copy_external(w, asset, doc, replaced | external)
@@ -404,23 +424,27 @@ def _save_glb(asset: Asset, out_path: Path, encoded: dict) -> list[Path]:
                 views[bvi]["byteOffset"] = len(new_bin)
                 views[bvi]["byteLength"] = len(encoded[i].data)
                 new_bin += encoded[i].data
-        else:  # repack: views in their byte order, dead image bytes dropped
-            order = sorted(
-                (j for j, bv in enumerate(views) if bv.get("buffer") == 0),
-                key=lambda j: views[j].get("byteOffset", 0),
-            )
-            for j in order:
-                bv = views[j]
-                old_off = bv.get("byteOffset", 0)
-                data = (
-                    encoded[inplace[j]].data
-                    if j in inplace
-                    else old_bin[old_off : old_off + bv["byteLength"]]
-                )
-                residue = 0 if j in inplace else old_off % 4
+        else:  # repack: ranges in their byte order, dead image bytes dropped
+            # (bufferView index or None, the dict holding byteOffset/byteLength)
+            ranges: list[tuple[int | None, dict]] = [
+                (j, bv) for j, bv in enumerate(views) if bv.get("buffer") == 0
+            ]
+            ranges += [
+                (None, ext)
+                for bv in views
+                if (ext := meshopt_view(bv)) is not None and ext.get("buffer") == 0
+            ]
+            ranges.sort(key=lambda r: r[1].get("byteOffset", 0))
+            for j, holder in ranges:
+                old_off = holder.get("byteOffset", 0)
+                if j is not None and j in inplace:
+                    data, residue = encoded[inplace[j]].data, 0
+                else:
+                    data = old_bin[old_off : old_off + holder["byteLength"]]
+                    residue = old_off % 4
                 new_bin += b"\x00" * ((residue - len(new_bin)) % 4)
-                bv["byteOffset"] = len(new_bin)
-                bv["byteLength"] = len(data)
+                holder["byteOffset"] = len(new_bin)
+                holder["byteLength"] = len(data)
                 new_bin += data
         placed = set(inplace.values())
         for i in sorted(replaced - placed):

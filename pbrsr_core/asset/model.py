@@ -210,6 +210,20 @@ class UnwrappedPrimitive:
 
 
 @dataclass
+class DecodedGeometry:
+    """Compressed geometry decoded for reading (see :mod:`pbrsr_core.asset.mesh_codecs`).
+
+    ``buffers``: the asset's buffers with every ``EXT_meshopt_compression`` bufferView decoded
+    into place (the asset's own ``buffers`` keep the bytes of the file, which saving writes);
+    ``accessors`` {accessor index: (count, ncomp) array of its component type}: the data of
+    the accessors that ``KHR_draco_mesh_compression`` primitives fill.
+    """
+
+    buffers: list[bytes]
+    accessors: dict[int, np.ndarray] = field(default_factory=dict)
+
+
+@dataclass
 class Asset:
     """A loaded asset: the untouched glTF document plus typed views of it."""
 
@@ -227,6 +241,8 @@ class Asset:
     # {(mesh index, primitive index): UnwrappedPrimitive}; saving writes each as a re-indexed
     # primitive (every attribute gathered, new indices, new TEXCOORD accessors).
     generated_uvs: dict[tuple[int, int], UnwrappedPrimitive] = field(default_factory=dict)
+    # Draco and meshopt geometry decoded; None when the asset has no compressed geometry.
+    geometry: DecodedGeometry | None = None
 
     def material(self, index: int) -> Material:
         return DEFAULT_MATERIAL if index < 0 else self.materials[index]

@@ -188,6 +188,52 @@ def brick_maps(size: int) -> dict[str, np.ndarray]:
     }
 
 
+def leaf_maps(size: int, leaves: int = 14, seed: int = 5) -> dict[str, np.ndarray]:
+    """A foliage card's maps: ``base_color`` RGBA (leaves with veins and mottling at alpha 1,
+    the rest transparent with black under it, as exporters leave it; about 60 % of the texels
+    transparent) and ``normal`` (encoded, OpenGL +Y up: each leaf folded along its midrib)."""
+    rng = np.random.default_rng(seed)
+    y, x = (np.mgrid[0:size, 0:size].astype(np.float64) + 0.5) / size
+    rgb = np.zeros((size, size, 3))
+    alpha = np.zeros((size, size))
+    nx, ny = np.zeros((size, size)), np.zeros((size, size))
+    for _ in range(leaves):
+        cx, cy = rng.uniform(0.15, 0.85, 2)
+        length, width = rng.uniform(0.16, 0.3), rng.uniform(0.05, 0.09)
+        angle = rng.uniform(0.0, math.pi)
+        ca, sa = math.cos(angle), math.sin(angle)
+        along = (x - cx) * ca + (y - cy) * sa  # along the midrib, in [-length, length]
+        across = -(x - cx) * sa + (y - cy) * ca
+        t = np.clip(along / length, -1.0, 1.0)
+        half_width = width * np.sqrt(np.clip(1.0 - t * t, 0.0, 1.0)) * (1.0 - 0.35 * t)
+        inside = (np.abs(along) < length) & (np.abs(across) < half_width)
+        vein = np.exp(-((across / 0.004) ** 2)) + 0.5 * np.exp(
+            -(((np.abs(across) - 0.6 * np.abs(along - 0.3 * length) * 0.5) / 0.003) ** 2)
+        ) * (np.abs(across) < half_width * 0.9)
+        hue = rng.uniform(-0.08, 0.08)
+        mottling = 0.85 + 0.15 * np.sin(90 * along + 17 * hue) * np.cos(70 * across)
+        leaf = np.stack(
+            [
+                (0.22 + hue + 0.3 * vein) * mottling,
+                (0.48 + 0.6 * hue + 0.25 * vein) * mottling,
+                (0.12 + 0.15 * vein) * mottling,
+            ],
+            axis=-1,
+        )
+        rgb[inside] = leaf[inside]
+        alpha[inside] = 1.0
+        fold = np.sign(across) * 0.35  # the two halves tilt away from the midrib
+        nx[inside] = (-fold * sa)[inside]
+        ny[inside] = (fold * ca)[inside]
+    n = np.stack([nx, -ny, np.ones_like(nx)], axis=-1)  # image y down -> tangent +Y up
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    f32 = np.float32
+    return {
+        "base_color": np.concatenate([np.clip(rgb, 0, 1), alpha[..., None]], -1).astype(f32),
+        "normal": (n * 0.5 + 0.5).astype(f32),
+    }
+
+
 def _pattern(size: int, seed: int, channels: int = 3) -> np.ndarray:
     """A smooth colourful deterministic test pattern (H, W, C) float32 in [0, 1]."""
     y, x = np.mgrid[0:size, 0:size].astype(np.float64) / max(size, 1)
@@ -202,6 +248,13 @@ def _pattern(size: int, seed: int, channels: int = 3) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- factories
+def _write_one_node(b: GltfBuilder, path: Path, node: int) -> Path:
+    """Write ``b`` with one scene holding ``node``, as ``.glb`` or ``.gltf`` by suffix."""
+    b.doc["scenes"] = [{"nodes": [node]}]
+    b.doc["scene"] = 0
+    return b.write(path, kind="glb" if path.suffix.lower() == ".glb" else "gltf")
+
+
 def make_demo_asset(path: Path, size: int = 128) -> Path:
     """Write the demo asset (``.glb`` or ``.gltf`` by suffix) with size x size textures."""
     path = Path(path)
@@ -231,11 +284,45 @@ def make_demo_asset(path: Path, size: int = 128) -> Path:
             "primitives": [b.primitive(pos, tri, nrm=nrm, uvs={0: uv}, material=mat)],
         },
     )
-    node = b.add("nodes", {"name": "demo", "mesh": mesh})
-    b.doc["scenes"] = [{"nodes": [node]}]
-    b.doc["scene"] = 0
-    kind = "glb" if path.suffix.lower() == ".glb" else "gltf"
-    return b.write(path, kind=kind)
+    return _write_one_node(b, path, b.add("nodes", {"name": "demo", "mesh": mesh}))
+
+
+def make_cutout_asset(path: Path, size: int = 256) -> Path:
+    """A foliage asset (``.glb`` or ``.gltf`` by suffix): three double-sided cards crossing at
+    60 degrees around the vertical axis, one material with alphaMode MASK (cutoff 0.5) reading
+    :func:`leaf_maps` at size x size (base colour with alpha, normal map)."""
+    path = Path(path)
+    maps = leaf_maps(size)
+    b = GltfBuilder()
+    b.doc["asset"]["extras"] = {"pbrsr": "procedural cutout asset"}
+    color = b.texture(b.image(maps["base_color"], name="leaves_base_color"))
+    normal = b.texture(b.image(maps["normal"], name="leaves_normal"))
+    mat = b.add(
+        "materials",
+        {
+            "name": "leaves",
+            "pbrMetallicRoughness": {
+                "baseColorTexture": {"index": color},
+                "metallicFactor": 0.0,
+                "roughnessFactor": 0.6,
+            },
+            "normalTexture": {"index": normal},
+            "alphaMode": "MASK",
+            "alphaCutoff": 0.5,
+            "doubleSided": True,
+        },
+    )
+    pos, nrm, uv, tri = grid_quad(4, 0.5)
+    primitives = []
+    for k in range(3):
+        a = math.radians(60.0 * k)
+        rot = np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
+        tng = np.tile([*(rot @ [1.0, 0.0, 0.0]), 1.0], (pos.shape[0], 1))
+        primitives.append(
+            b.primitive(pos @ rot.T, tri, nrm=nrm @ rot.T, uvs={0: uv}, tng=tng, material=mat)
+        )
+    mesh = b.add("meshes", {"name": "cards", "primitives": primitives})
+    return _write_one_node(b, path, b.add("nodes", {"name": "foliage", "mesh": mesh}))
 
 
 def make_quad_asset(

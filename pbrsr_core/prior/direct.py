@@ -189,17 +189,32 @@ HIDDEN_ALPHA = 0.5 / 255
 """Alpha at or below which a texel is transparent whatever the material."""
 
 
+BLACK = 2.0 / 255
+"""The largest colour value under alpha 0 that still counts as black (premultiplied)."""
+
+
 def filled_cutout(pixels: np.ndarray, seen_from: float = HIDDEN_ALPHA) -> np.ndarray:
     """A cutout's map (colour + alpha) with the colour of its texels whose alpha is not above
     ``seen_from`` (a MASK material's alphaCutoff: the renderer discards them) filled from the
-    ones that are (:func:`fill_transparent`); alpha as it was."""
+    ones that are (:func:`fill_transparent`); alpha as it was.
+
+    When the colour under alpha 0 is black, the map's colour is premultiplied by its alpha
+    (the edge texels of a cutout resized over black are darkened by it), so the seen texels'
+    colour is divided by their alpha first: the fill and every filter then see the leaf's own
+    colour at its edges, not a dark rim."""
     a = _as_hwc(pixels)
     n = a.shape[2] - 1
-    visible = a[..., n] > seen_from
+    alpha = a[..., n]
+    visible = alpha > seen_from
     if a.shape[2] not in (2, 4) or visible.all():
         return a
     filled = a.copy()
-    filled[..., :n] = fill_transparent(a[..., :n], visible)
+    colour = a[..., :n]
+    hidden = alpha <= HIDDEN_ALPHA
+    if hidden.any() and float(colour[hidden].max()) <= BLACK:
+        straight = colour / np.maximum(alpha, HIDDEN_ALPHA)[..., None]
+        colour = np.where(visible[..., None], np.clip(straight, 0.0, 1.0), colour)
+    filled[..., :n] = fill_transparent(colour, visible)
     return filled
 
 

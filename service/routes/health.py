@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import contextlib
-import os
-import uuid
-
 from fastapi import APIRouter, Response
 
-from ..deps import LayoutDep, RedisDep
+from pbrsr_jobs.objstore import StoreUnavailable
+
+from ..deps import FilesDep, RedisDep
 from ..schemas import Health, Readiness
 
 router = APIRouter(tags=["health"])
@@ -25,20 +23,16 @@ def healthz() -> Health:
     responses={503: {"model": Readiness, "description": "Redis or storage unavailable."}},
     summary="Readiness: Redis reachable and storage writable",
 )
-def readyz(response: Response, redis: RedisDep, layout: LayoutDep) -> Readiness:
+def readyz(response: Response, redis: RedisDep, files: FilesDep) -> Readiness:
     try:
         redis_ok = bool(redis.ping())
     except Exception:  # noqa: BLE001 - any failure means not ready
         redis_ok = False
-    storage_ok = True
-    probe = layout.root / f".ready-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     try:
-        probe.write_bytes(b"ok")
-    except OSError:
+        files.store.check()  # an object written and deleted (a folder or the bucket)
+        storage_ok = True
+    except StoreUnavailable:
         storage_ok = False
-    finally:
-        with contextlib.suppress(OSError):
-            probe.unlink(missing_ok=True)
     ok = redis_ok and storage_ok
     if not ok:
         response.status_code = 503

@@ -8,18 +8,21 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, BackgroundTasks, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import FileResponse
+from fastapi.responses import FileResponse, RedirectResponse
 from pydantic import BaseModel
 from rq.exceptions import InvalidJobOperation, NoSuchJobError
 from rq.job import Job
 
 from pbrsr_jobs.events import JobEvents
 from pbrsr_jobs.idempotency import IdempotencyKeys
-from pbrsr_jobs.store import JobIndex, JobState, check_job_id, sweep_expired
+from pbrsr_jobs.settings import Settings
+from pbrsr_jobs.store import JobFiles, JobIndex, JobState, check_job_id, sweep_expired
 from pbrsr_jobs.webhooks import LOG_ENTRIES, WebhookQueue
 
+from ..deletion import delete_job
 from ..deps import (
     AsyncRedisDep,
+    FilesDep,
     IndexDep,
     LayoutDep,
     OwnerDep,
@@ -31,14 +34,14 @@ from ..idempotency import IdempotencyKeyHeader, check_key, create_once
 from ..intake import create_job
 from ..job_views import crop_list, crop_names, detail_view, links, state_of, summary_view
 from ..problems import PROBLEM_RESPONSES, Problem, ProblemError
-from ..schemas import CropList, JobCreated, JobDetail, JobPage
+from ..schemas import CropList, DownloadLink, JobCreated, JobDetail, JobPage
 from ..uploads import receive_upload
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=PROBLEM_RESPONSES)
 
 _NOT_FOUND = {404: {"model": Problem, "description": "No such job (or not yours)."}}
 
-_UPLOAD_BODY = {
+UPLOAD_BODY = {
     "requestBody": {
         "required": True,
         "content": {
@@ -80,7 +83,7 @@ def fetch_job(job_id: str, owner: str, redis: Any, index: JobIndex) -> Job:
     "",
     status_code=202,
     response_model=JobCreated,
-    openapi_extra=_UPLOAD_BODY,
+    openapi_extra=UPLOAD_BODY,
     responses={
         200: {"model": JobCreated, "description": "A retry: the Idempotency-Key's first job."},
         400: {"model": Problem, "description": "Not a readable asset, or a bad Idempotency-Key."},
@@ -101,6 +104,7 @@ async def submit_job(
     settings: SettingsDep,
     owner: OwnerDep,
     layout: LayoutDep,
+    files: FilesDep,
     index: IndexDep,
     queue: QueueDep,
     idempotency_key: IdempotencyKeyHeader = None,
@@ -111,12 +115,12 @@ async def submit_job(
     limits = settings.limits()
     dest = layout.new_upload_path()
     upload = await receive_upload(request, dest, limits.max_file_bytes, digest=key is not None)
-    create = partial(create_job, upload, owner, settings, layout, index, queue)
+    create = partial(create_job, upload, owner, settings, layout, files, index, queue)
     if key is None:
         job_id = await run_in_threadpool(create)
     else:
         keys = IdempotencyKeys(index.redis, settings.key_prefix, settings.idempotency_ttl_s)
-        job_id, created = await create_once(keys, owner, key, upload, create)
+        job_id, created = await create_once(keys, owner, key, [upload], upload.fields, create)
         if not created:
             response.status_code = 200
     response.headers["Location"] = f"/v1/jobs/{job_id}"
@@ -129,35 +133,62 @@ def list_jobs(
     settings: SettingsDep,
     owner: OwnerDep,
     layout: LayoutDep,
+    files: FilesDep,
     index: IndexDep,
     background: BackgroundTasks,
     status: Annotated[JobState | None, Query(description="Only jobs in this state.")] = None,
+    batch: Annotated[
+        str | None, Query(description="Only the jobs of this batch, in the order of its files.")
+    ] = None,
     offset: Annotated[int, Query(ge=0)] = 0,
     limit: Annotated[int, Query(ge=1, le=1000)] = 20,
 ) -> Response:
-    """Newest first; ``offset``/``limit`` pagination; optional ``status`` filter."""
+    """Newest first (a batch's jobs: in the order of its files); ``offset``/``limit``
+    pagination; optional ``status`` and ``batch`` filters (an unknown batch, or another
+    key's, is 404)."""
     limit = min(limit, settings.page_size_max)
     if index.try_sweep_lock(settings.maintenance_s):
-        background.add_task(sweep_expired, redis, index, layout, settings.retention_s)
-    if status is None:
+        background.add_task(sweep_expired, redis, index, layout, files, settings.retention_s)
+    if status is None and batch is None:
         ids, total = index.page(owner, offset, limit)
         jobs = [j for j in Job.fetch_many(ids, connection=redis) if j is not None]
     else:
-        all_ids, _ = index.page(owner, 0, 1_000_000)
-        matching = []
-        for start in range(0, len(all_ids), 500):
-            batch = Job.fetch_many(all_ids[start : start + 500], connection=redis)
-            matching.extend(j for j in batch if j is not None and state_of(j) == status)
+        if batch is None:
+            all_ids, _ = index.page(owner, 0, 1_000_000)
+        else:
+            all_ids = fetch_batch(batch, owner, index)[1]
+        matching = [
+            j for j in fetch_jobs(all_ids, redis) if status is None or state_of(j) == status
+        ]
         total = len(matching)
         jobs = matching[offset : offset + limit]
     cancels = index.cancel_flags([j.id for j in jobs if not state_of(j).is_terminal])
-    items = [summary_view(j, index, layout, j.id in cancels) for j in jobs]
+    items = [summary_view(j, index, files, j.id in cancels) for j in jobs]
     nxt = None
     if offset + limit < total:
         nxt = f"/v1/jobs?offset={offset + limit}&limit={limit}"
         if status is not None:
             nxt += f"&status={status.value}"
+        if batch is not None:
+            nxt += f"&batch={batch}"
     return _json(JobPage(items=items, total=total, offset=offset, limit=limit, next=nxt))
+
+
+def fetch_jobs(job_ids: list[str], redis: Any) -> list[Job]:
+    """The RQ jobs of ``job_ids`` that still exist, in order, read 500 at a time."""
+    jobs: list[Job] = []
+    for start in range(0, len(job_ids), 500):
+        chunk = Job.fetch_many(job_ids[start : start + 500], connection=redis)
+        jobs.extend(j for j in chunk if j is not None)
+    return jobs
+
+
+def fetch_batch(batch_id: str, owner: str, index: JobIndex) -> tuple[float, list[str]]:
+    """The caller's batch (creation time, job ids), or 404 (also for someone else's)."""
+    found = index.batch(batch_id) if check_job_id(batch_id) else None
+    if found is None or found[0] != owner:
+        raise ProblemError(404, "not-found", "no such batch")
+    return found[1], found[2]
 
 
 @router.get("/{job_id}", response_model=JobDetail, responses=_NOT_FOUND, summary="Job status")
@@ -166,7 +197,7 @@ async def get_job(
     aredis: AsyncRedisDep,
     redis: RedisDep,
     owner: OwnerDep,
-    layout: LayoutDep,
+    files: FilesDep,
     index: IndexDep,
 ) -> Response:
     """Status, stage, progress, ETA, latest losses/metrics, timings, history, error, links.
@@ -191,9 +222,9 @@ async def get_job(
     sent = WebhookQueue.decode_log(log)
     if job.meta.get("state") == JobState.FINISHED.value and "files" not in job.meta:
         # finished before its worker recorded its files: list them off the event loop
-        detail = await run_in_threadpool(detail_view, job, index, layout, bool(cancel), sent)
+        detail = await run_in_threadpool(detail_view, job, index, files, bool(cancel), sent)
     else:
-        detail = detail_view(job, index, layout, bool(cancel), sent)
+        detail = detail_view(job, index, files, bool(cancel), sent)
     return _json(detail)
 
 
@@ -217,6 +248,7 @@ def cancel_job(
     settings: SettingsDep,
     owner: OwnerDep,
     layout: LayoutDep,
+    files: FilesDep,
     index: IndexDep,
 ) -> Any:
     """Queued: canceled at once. Running: the worker stops within about 2 s (poll the job).
@@ -224,21 +256,58 @@ def cancel_job(
     job = fetch_job(job_id, owner, redis, index)
     state = state_of(job)
     if state.is_terminal:
-        with contextlib.suppress(NoSuchJobError):
-            job.delete()
-        layout.remove(job_id)
-        index.remove(job_id)
-        JobEvents(redis, settings.key_prefix).forget(job_id)
+        delete_job(job.id, index, layout, files)
         return Response(status_code=204)
-    index.request_cancel(job_id, settings.job_timeout + 3600)
+    cancel_active(job, state, owner, settings, index)
+    return detail_view(job, index, files)
+
+
+def cancel_active(
+    job: Job, state: JobState, owner: str, settings: Settings, index: JobIndex
+) -> None:
+    """Cancel a job not yet ended (``state``): flag it for its worker; a queued one is
+    taken off its queue at once and announced ``cancelled``."""
+    index.request_cancel(job.id, settings.job_timeout + 3600)
     if state == JobState.QUEUED:
         with contextlib.suppress(InvalidJobOperation):
             job.cancel()
         job.refresh()
         if state_of(job) == JobState.CANCELED:  # a worker did not take it first
             webhook = (job.meta or {}).get("webhook")
-            JobEvents(redis, settings.key_prefix).publish(job_id, owner, "cancelled", {}, webhook)
-    return detail_view(job, index, layout)
+            JobEvents(index.redis, index.prefix).publish(job.id, owner, "cancelled", {}, webhook)
+
+
+_DOWNLOAD = {
+    307: {"description": "With the s3 storage backend: a presigned URL of the file."},
+}
+RedirectQuery = Annotated[
+    bool,
+    Query(
+        description="false: with the s3 backend, answer the presigned URL as JSON "
+        "(DownloadLink) instead of redirecting to it (a browser's fetch with X-API-Key, which "
+        "must not follow the key to the bucket). The filesystem backend serves the file."
+    ),
+]
+
+
+def _download(
+    files: JobFiles,
+    key: str,
+    media_type: str,
+    filename: str | None,
+    link_expiry_s: int | None,
+) -> Response:
+    """The object ``key``: a 307 to a presigned URL when the store gives one (s3), or that
+    URL as JSON when ``link_expiry_s`` (its validity) is given; else the file itself."""
+    url = files.store.url(key, filename=filename, media_type=media_type)
+    if url is not None and link_expiry_s is not None:
+        return _json(DownloadLink(url=url, expires_in_s=link_expiry_s))
+    if url is not None:
+        return RedirectResponse(url, status_code=307)
+    path = files.store.local_path(key)
+    if path is None:
+        raise ProblemError(404, "not-found", "this file is gone (the job may have expired)")
+    return FileResponse(path, media_type=media_type, filename=filename)
 
 
 @router.get(
@@ -246,37 +315,44 @@ def cancel_job(
     response_class=FileResponse,
     responses={
         **_NOT_FOUND,
+        **_DOWNLOAD,
         200: {"content": {"application/zip": {}}, "description": "The bundle."},
         409: {"model": Problem, "description": "The job has not finished."},
     },
     summary="Download the bundle",
 )
 def get_result(
-    job_id: str, redis: RedisDep, owner: OwnerDep, layout: LayoutDep, index: IndexDep
-) -> FileResponse:
+    job_id: str,
+    redis: RedisDep,
+    owner: OwnerDep,
+    settings: SettingsDep,
+    files: FilesDep,
+    index: IndexDep,
+    redirect: RedirectQuery = True,
+) -> Response:
     """A zip: the upscaled asset in the input's form, every HR map, report.json, previews."""
+    link = None if redirect else settings.s3_presign_expiry_s
     job = fetch_job(job_id, owner, redis, index)
     state = state_of(job)
-    path = layout.bundle_path(job_id)
-    if state != JobState.FINISHED or not path.is_file():
+    key = files.bundle_key(job_id)
+    if state != JobState.FINISHED or not files.store.exists(key):
         raise ProblemError(
             409, "not-finished", f"the job is {state.value}; the result exists once it finished"
         )
     name = (job.meta or {}).get("name", "asset").rsplit(".", 1)[0] or "asset"
     scale = ((job.meta or {}).get("options") or {}).get("scale", "")
-    return FileResponse(path, media_type="application/zip", filename=f"{name}-pbrsr-x{scale}.zip")
+    return _download(files, key, "application/zip", f"{name}-pbrsr-x{scale}.zip", link)
 
 
-def _file_in(job_id: str, name: str, names: list[str], folder: Any) -> FileResponse:
-    if name not in names:  # only names that exist in the folder: never a path from the URL
+def _named(name: str, names: list[str]) -> None:
+    if name not in names:  # only names the store lists: never a path from the URL
         raise ProblemError(404, "not-found", f"no file '{name[:64]}' for this job")
-    return FileResponse(folder / name, media_type="image/png")
 
 
 @router.get(
     "/{job_id}/previews/{name}",
     response_class=FileResponse,
-    responses={**_NOT_FOUND, 200: {"content": {"image/png": {}}}},
+    responses={**_NOT_FOUND, **_DOWNLOAD, 200: {"content": {"image/png": {}}}},
     summary="A before/after render",
 )
 def get_preview(
@@ -284,21 +360,22 @@ def get_preview(
     name: str,
     redis: RedisDep,
     owner: OwnerDep,
-    layout: LayoutDep,
+    settings: SettingsDep,
+    files: FilesDep,
     index: IndexDep,
-) -> FileResponse:
+    redirect: RedirectQuery = True,
+) -> Response:
     """``preview.png`` (side by side) or ``before_<env>.png`` / ``after_<env>.png``."""
+    link = None if redirect else settings.s3_presign_expiry_s
     fetch_job(job_id, owner, redis, index)
-    names = layout.preview_names(job_id)
-    out = layout.output_dir(job_id)
-    folder = out if name == "preview.png" else out / "previews"
-    return _file_in(job_id, name, names, folder)
+    _named(name, files.preview_names(job_id))
+    return _download(files, files.preview_key(job_id, name), "image/png", None, link)
 
 
 @router.get(
     "/{job_id}/thumbs/{name}",
     response_class=FileResponse,
-    responses={**_NOT_FOUND, 200: {"content": {"image/png": {}}}},
+    responses={**_NOT_FOUND, **_DOWNLOAD, 200: {"content": {"image/png": {}}}},
     summary="A thumbnail of one HR map",
 )
 def get_thumb(
@@ -306,11 +383,15 @@ def get_thumb(
     name: str,
     redis: RedisDep,
     owner: OwnerDep,
-    layout: LayoutDep,
+    settings: SettingsDep,
+    files: FilesDep,
     index: IndexDep,
-) -> FileResponse:
+    redirect: RedirectQuery = True,
+) -> Response:
+    link = None if redirect else settings.s3_presign_expiry_s
     fetch_job(job_id, owner, redis, index)
-    return _file_in(job_id, name, layout.thumb_names(job_id), layout.thumbs_dir(job_id))
+    _named(name, files.thumb_names(job_id))
+    return _download(files, files.thumb_key(job_id, name), "image/png", None, link)
 
 
 def _finished_files(job: Job) -> dict:
@@ -339,7 +420,7 @@ def list_crops(job_id: str, redis: RedisDep, owner: OwnerDep, index: IndexDep) -
 @router.get(
     "/{job_id}/crops/{name}",
     response_class=FileResponse,
-    responses={**_NOT_FOUND, 200: {"content": {"image/png": {}}}},
+    responses={**_NOT_FOUND, **_DOWNLOAD, 200: {"content": {"image/png": {}}}},
     summary="One LR or HR detail crop",
 )
 def get_crop(
@@ -347,12 +428,15 @@ def get_crop(
     name: str,
     redis: RedisDep,
     owner: OwnerDep,
-    layout: LayoutDep,
+    settings: SettingsDep,
+    files: FilesDep,
     index: IndexDep,
-) -> FileResponse:
+    redirect: RedirectQuery = True,
+) -> Response:
+    link = None if redirect else settings.s3_presign_expiry_s
     job = fetch_job(job_id, owner, redis, index)
-    files = (job.meta or {}).get("files") or {}
-    return _file_in(job_id, name, crop_names(files), layout.crops_dir(job_id))
+    _named(name, crop_names((job.meta or {}).get("files")))
+    return _download(files, files.crop_key(job_id, name), "image/png", None, link)
 
 
 _MEDIA_TYPES = {
@@ -370,7 +454,11 @@ _MEDIA_TYPES = {
 @router.get(
     "/{job_id}/files/{path:path}",
     response_class=FileResponse,
-    responses={**_NOT_FOUND, 409: {"model": Problem, "description": "Not finished."}},
+    responses={
+        **_NOT_FOUND,
+        **_DOWNLOAD,
+        409: {"model": Problem, "description": "Not finished."},
+    },
     summary="One file of the finished bundle",
 )
 def get_file(
@@ -378,15 +466,18 @@ def get_file(
     path: str,
     redis: RedisDep,
     owner: OwnerDep,
-    layout: LayoutDep,
+    settings: SettingsDep,
+    files: FilesDep,
     index: IndexDep,
-) -> FileResponse:
+    redirect: RedirectQuery = True,
+) -> Response:
     """A file of the bundle by its path inside it (``links.model`` is the upscaled asset; a
     ``.gltf``'s relative URIs resolve to its buffers and images here)."""
+    link = None if redirect else settings.s3_presign_expiry_s
     job = fetch_job(job_id, owner, redis, index)
     _finished_files(job)
-    if path not in layout.output_files(job_id):  # only paths that exist: never one to follow
+    if path not in files.output_files(job_id):  # only paths the store lists: never one to follow
         raise ProblemError(404, "not-found", f"no file '{path[:64]}' in this job's result")
     suffix = "." + path.rsplit(".", 1)[-1].lower() if "." in path else ""
     media = _MEDIA_TYPES.get(suffix, "application/octet-stream")
-    return FileResponse(layout.output_dir(job_id) / path, media_type=media)
+    return _download(files, files.output_key(job_id, path), media, None, link)

@@ -25,6 +25,11 @@ VIEWER_FILES = frozenset(
         "examples/jsm/controls/OrbitControls.js",
         "examples/jsm/environments/RoomEnvironment.js",
         "examples/jsm/loaders/GLTFLoader.js",
+        "examples/jsm/loaders/DRACOLoader.js",
+        "examples/jsm/libs/meshopt_decoder.module.js",
+        # fetched by DRACOLoader when a model has Draco meshes
+        "examples/jsm/libs/draco/gltf/draco_wasm_wrapper.js",
+        "examples/jsm/libs/draco/gltf/draco_decoder.wasm",
         "examples/jsm/utils/BufferGeometryUtils.js",
         "examples/jsm/utils/SkeletonUtils.js",
         "LICENSE",
@@ -44,5 +49,5 @@ def vendor_file(path: str, settings: SettingsDep) -> FileResponse:
             "not-found",
             "the dashboard's 3D viewer (npm package 'three') is not installed: run scripts/setup",
         )
-    media = "text/javascript" if path.endswith(".js") else "text/plain"
+    media = {".js": "text/javascript", ".wasm": "application/wasm"}.get(file.suffix, "text/plain")
     return FileResponse(file, media_type=media, headers={"Cache-Control": "max-age=86400"})

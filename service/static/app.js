@@ -13,7 +13,7 @@ const state = {
   file: null,
   selected: null,
   detail: null,
-  blobUrls: new Map(), // url -> object URL (images fetched with the API key)
+  blobUrls: new Map(), // url -> object URL (files fetched with the API key)
   shownFiles: "",
   shownCrops: "",
   waitingViewer: false,
@@ -39,13 +39,24 @@ async function api(path, init) {
   return resp.json();
 }
 
-async function imageUrl(path) {
+// A job's file fetched with the API key: the file itself, or (s3 storage) a presigned URL
+// as JSON, so that the key never follows a redirect to the bucket.
+async function keyedFile(path) {
+  const resp = await fetch(`${path}?redirect=false`, { headers: headers() });
+  if (!resp.ok) throw new Error(`cannot load ${path}`);
+  if ((resp.headers.get("content-type") || "").startsWith("application/json")) {
+    return { url: (await resp.json()).url, resp: null };
+  }
+  return { url: URL.createObjectURL(await resp.blob()), resp };
+}
+
+// A URL the page loads a job's file from without sending the API key: the API's own path
+// when there is no key, else a blob: URL of the bytes or a presigned URL of the bucket.
+async function fileUrl(path) {
   if (!state.key) return path;
   if (state.blobUrls.has(path)) return state.blobUrls.get(path);
-  const resp = await fetch(path, { headers: headers() });
-  if (!resp.ok) throw new Error(`cannot load ${path}`);
-  const url = URL.createObjectURL(await resp.blob());
-  state.blobUrls.set(path, url);
+  const { url, resp } = await keyedFile(path);
+  if (resp) state.blobUrls.set(path, url); // a presigned URL expires: asked again next time
   return url;
 }
 
@@ -161,6 +172,10 @@ function jobRow(job) {
   const bits = [fmtTime(job.created_at)];
   if (job.status === "running") bits.push(job.stage || "starting", job.eta_s != null ? `ETA ${fmtDuration(job.eta_s)}` : "");
   if (job.status === "failed" && job.error) bits.push(job.error.slice(0, 80));
+  if (job.batch) {
+    bits.push(`batch ${job.batch.slice(0, 8)}`);
+    sub.title = `batch ${job.batch}`;
+  }
   sub.textContent = bits.filter(Boolean).join(" · ");
   const bar = document.createElement("div");
   bar.className = "bar thin";
@@ -276,7 +291,7 @@ async function figure(caption, url) {
   const img = document.createElement("img");
   img.alt = caption;
   img.loading = "lazy";
-  try { img.src = await imageUrl(url); } catch (_) { /* leave it empty */ }
+  try { img.src = await fileUrl(url); } catch (_) { /* leave it empty */ }
   const cap = document.createElement("figcaption");
   cap.textContent = caption;
   fig.append(img, cap);
@@ -310,7 +325,7 @@ function renderModel(job) {
     const notes = { loading: "Loading the model…", error: `Cannot show the model: ${view.dataset.error}` };
     status.textContent = notes[view.dataset.state] || "";
   };
-  window.pbrsrViewer.show(view, url, headers()).then(
+  window.pbrsrViewer.show(view, url, fileUrl).then(
     () => { if (state.selected === job.id) note(); },
     (err) => { status.textContent = `Cannot show the model: ${err.message || err}`; },
   );
@@ -350,7 +365,7 @@ async function wipeFigure(crop) {
   lr.className = "wipe-lr";
   hr.alt = `${crop.label}: result`;
   lr.alt = `${crop.label}: input`;
-  try { [hr.src, lr.src] = await Promise.all([imageUrl(crop.hr), imageUrl(crop.lr)]); } catch (_) { /* left empty */ }
+  try { [hr.src, lr.src] = await Promise.all([fileUrl(crop.hr), fileUrl(crop.lr)]); } catch (_) { /* left empty */ }
   const line = document.createElement("div");
   line.className = "wipe-line";
   box.append(hr, lr, line);
@@ -418,12 +433,14 @@ async function cancelSelected() {
 async function download(event) {
   if (!state.key) return; // a plain link works without a key
   event.preventDefault();
-  const resp = await fetch($("download").getAttribute("href"), { headers: headers() });
-  if (!resp.ok) return;
-  const name = (resp.headers.get("content-disposition") || "").match(/filename="?([^";]+)"?/);
+  let file;
+  try { file = await keyedFile($("download").getAttribute("href")); } catch (_) { return; }
   const a = document.createElement("a");
-  a.href = URL.createObjectURL(await resp.blob());
-  a.download = name ? name[1] : "result.zip";
+  a.href = file.url;
+  if (file.resp) { // the bytes: name them as the server does
+    const name = (file.resp.headers.get("content-disposition") || "").match(/filename="?([^";]+)"?/);
+    a.download = name ? name[1] : "result.zip";
+  } // a presigned URL names the download itself
   a.click();
 }
 

@@ -6,15 +6,51 @@
 // It is set up when its container first comes on screen and draws on demand (after a load, a
 // resize or a camera move), never in a loop: on a machine without a GPU the browser renders
 // WebGL on the CPU.
-// window.pbrsrViewer.show(container, url, headers) loads a model; .clear(container) drops it.
+// window.pbrsrViewer.show(container, url, resolve) loads a model: url is its API path, and
+// resolve(path) gives a URL to load that path (or a .gltf's buffer or image beside it) from
+// without the API key (app.js's fileUrl: with s3 storage a presigned URL of the bucket, which
+// must then allow the dashboard's origin: CORS). .clear(container) drops the model.
 // The container's data-state says "loading", "ready" (data-frames counts the draws) or
 // "error" (data-error says why).
 import * as THREE from "three";
+import { DRACOLoader } from "three/addons/loaders/DRACOLoader.js";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
+import { MeshoptDecoder } from "three/addons/libs/meshopt_decoder.module.js";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { RoomEnvironment } from "three/addons/environments/RoomEnvironment.js";
 
 const BACKGROUND = 0x2e2e2e;
+const DRACO_DECODER = "/vendor/three/examples/jsm/libs/draco/gltf/";
+let draco = null; // one DRACOLoader (its decoder workers) for every model
+
+// The JSON of a .gltf or of a .glb's first chunk.
+function gltfJson(data) {
+  const bytes = new Uint8Array(data);
+  const magic = new TextDecoder().decode(bytes.subarray(0, 4));
+  if (magic !== "glTF") return JSON.parse(new TextDecoder().decode(bytes));
+  const length = new DataView(data).getUint32(12, true);
+  return JSON.parse(new TextDecoder().decode(bytes.subarray(20, 20 + length)));
+}
+
+// The model at API path `url`, its relative buffers and images resolved beside it.
+async function loadModel(url, resolve) {
+  const resp = await fetch(await resolve(url));
+  if (!resp.ok) throw new Error(`cannot load the model (${resp.status})`);
+  const data = await resp.arrayBuffer();
+  const json = gltfJson(data);
+  const base = THREE.LoaderUtils.extractUrlBase(url);
+  const uris = [...(json.buffers || []), ...(json.images || [])]
+    .map((item) => item.uri)
+    .filter((uri) => typeof uri === "string" && uri && !/^([a-z][a-z0-9+.-]*:|\/)/i.test(uri));
+  const urls = new Map(
+    await Promise.all([...new Set(uris)].map(async (uri) => [base + uri, await resolve(base + uri)])),
+  );
+  const manager = new THREE.LoadingManager();
+  manager.setURLModifier((u) => urls.get(u) || u);
+  if (!draco) draco = new DRACOLoader().setDecoderPath(DRACO_DECODER);
+  const loader = new GLTFLoader(manager).setDRACOLoader(draco).setMeshoptDecoder(MeshoptDecoder);
+  return loader.parseAsync(data, base);
+}
 
 class ModelView {
   constructor(container) {
@@ -57,15 +93,13 @@ class ModelView {
     this.container.dataset.frames = String(this.frames);
   }
 
-  async show(url, headers) {
+  async show(url, resolve) {
     if (url === this.url) return;
     this.url = url;
     this.container.dataset.state = "loading";
-    const loader = new GLTFLoader();
-    loader.setRequestHeader(headers || {});
     let gltf;
     try {
-      gltf = await loader.loadAsync(url);
+      gltf = await loadModel(url, resolve);
     } catch (err) {
       if (url !== this.url) return;
       this.container.dataset.state = "error";
@@ -143,10 +177,10 @@ function onScreen(container) {
 const wanted = new WeakMap(); // container -> the model URL last asked for
 window.pbrsrViewer = {
   // rejects when the browser has no WebGL
-  show: async (container, url, headers) => {
+  show: async (container, url, resolve) => {
     wanted.set(container, url);
     if (!views.has(container)) await onScreen(container);
-    if (wanted.get(container) === url) await viewOf(container).show(url, headers);
+    if (wanted.get(container) === url) await viewOf(container).show(url, resolve);
   },
   clear: (container) => {
     wanted.delete(container);
