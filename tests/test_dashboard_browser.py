@@ -2,7 +2,8 @@
 Playwright): a real ``pbrsr serve`` and ``pbrsr worker`` on localhost; drop a procedural
 asset on the page, watch the progress bar move (pushed by the event stream), see the job
 finish, download the bundle; a finished job's detail crops with their wipe sliders and its
-3D view (WebGL, drawn by SwiftShader on the CPU here).
+3D view (WebGL, drawn by SwiftShader on the CPU here), also of Draco and meshopt results;
+with a key and S3 storage, nothing the page loads from the bucket carries the key.
 The screenshots are kept as test-artifacts/dashboard.png and dashboard-detail.png."""
 
 from __future__ import annotations
@@ -273,6 +274,55 @@ def test_dashboard_detail_crops_wipe_and_3d_view(tmp_path):
                 # nothing from elsewhere (blob: URLs are the GLB's own images)
                 assert [u for u in requests if not u.startswith((base, "blob:"))] == []
                 assert any("/vendor/three/build/three.module.js" in u for u in requests)
+    finally:
+        cleanup_redis(settings)
+
+
+@pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian's chromium is not installed")
+def test_dashboard_3d_view_draws_draco_and_meshopt_results(tmp_path):
+    """A result keeps its input's compressed geometry: the 3D view decodes it (Draco's
+    decoder and meshopt's from the service's node_modules)."""
+    from pbrsr_bench.variants import draco_variant, meshopt_variant
+    from pbrsr_core.asset import make_test_asset
+
+    settings = make_settings(tmp_path)
+    src = make_test_asset(tmp_path / "src.glb", size=32)
+    variants = {
+        "draco": draco_variant(src, tmp_path / "draco.glb"),
+        "meshopt": meshopt_variant(src, tmp_path / "meshopt.glb"),
+    }
+    try:
+        with (
+            api_server(settings, tmp_path / "api.log") as base,
+            httpx.Client(base_url=base, timeout=60) as api,
+        ):
+            ids = {}
+            for kind, path in variants.items():
+                files = {"file": (f"{kind}.glb", path.read_bytes(), "model/gltf-binary")}
+                r = api.post("/v1/jobs", files=files, data={"options": '{"method": "bicubic"}'})
+                ids[kind] = r.json()["id"]
+            with worker_process(settings, tmp_path / "worker.log", extra=["--burst"]) as proc:
+                wait_for(lambda: proc.poll() is not None, 120, 0.2, "the burst worker to end")
+            for job_id in ids.values():
+                assert api.get(f"/v1/jobs/{job_id}").json()["status"] == "finished"
+
+            with dashboard_page(base) as (page, errors, requests):
+                for kind, job_id in ids.items():
+                    page.click(f".job-row[data-id='{job_id}']")
+                    page.wait_for_selector("#model-box:not([hidden])")
+                    page.locator("#model-view").scroll_into_view_if_needed()
+                    page.wait_for_function(  # picking a job cleared the previous model
+                        "['ready', 'error'].includes(document.getElementById('model-view')"
+                        ".dataset.state)",
+                        timeout=30_000,
+                    )
+                    state = page.get_attribute("#model-view", "data-state")
+                    assert state == "ready", (kind, page.get_attribute("#model-view", "data-error"))
+                    stats = page.evaluate(CANVAS_STATS)
+                    assert stats["differ"] > 0.01 and stats["colours"] > 200, (kind, stats)
+                    page.locator("#job-list").scroll_into_view_if_needed()
+                assert any(u.endswith("/draco/gltf/draco_decoder.wasm") for u in requests)
+                assert errors == []
     finally:
         cleanup_redis(settings)
 
