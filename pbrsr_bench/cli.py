@@ -300,25 +300,47 @@ def load_cmd(
 
 @bench_app.command("service")
 def service_cmd(
+    asset: str = typer.Option(
+        "procedural", "--asset", "-a", help="procedural, or a shared asset folder name."
+    ),
+    preset: str = typer.Option("fast", help="fast, balanced, quality or paper."),
+    method: str = typer.Option("pbrsr", help="pbrsr, direct or bicubic."),
+    scale: int = typer.Option(4, help="Upscaling factor (the input is degraded by it first)."),
+    workers: int = typer.Option(2, min=1, help="Workers of the parallel batch."),
+    jobs: int = typer.Option(0, min=0, help="Jobs in each batch (0: as many as --workers)."),
+    procedural_size: int = typer.Option(1536, help="HR texture size of the procedural asset."),
     duration: float = typer.Option(
-        30.0, help="Seconds of polling alone, then of polling with uploads."
+        15.0, min=0.0, help="Seconds of polling alone, then with uploads (0: skip the API)."
     ),
     pollers: int = typer.Option(50, help="Concurrent clients polling job status and lists."),
     uploaders: int = typer.Option(10, help="Concurrent 20 MB uploads."),
     upload_mb: float = typer.Option(20.0, help="Size of each big upload (MB); a valid GLB."),
     out: Path = typer.Option(Path("bench-out/service"), "--out", "-o", help="Output directory."),
 ) -> None:
-    """The API alone (the first phases of ``bench load``, no job drain): status-poll
-    throughput and p50/p99 latency with concurrent clients, and throughput of concurrent big
-    uploads, against one API process on loopback."""
-    _load_report(
-        out,
+    """The job service on loopback with real workers: one job through the service (upload to
+    succeeded) against `pbrsr upscale` on the same asset, options and threads; --jobs jobs on
+    --workers workers against the same jobs on one; and, first, the API alone (the polling
+    and upload phases of ``bench load``). Fails (exit 1) on any API error or failed job."""
+    require_extra("bench", "bench", ("httpx", "redis"))
+    from pbrsr_bench.service import print_table, run
+
+    _report(
+        run,
+        print_table,
+        [out / "service.json", out / "service.png"],
+        lambda result: not result["ok"],
+        out_dir=out,
+        asset=asset,
+        method=method,
+        preset=preset,
+        scale=scale,
+        workers=workers,
+        jobs=jobs,
+        procedural_size=procedural_size,
         duration=duration,
-        baseline=duration,
         pollers=pollers,
         uploaders=uploaders,
         upload_mb=upload_mb,
-        jobs=0,
     )
 
 

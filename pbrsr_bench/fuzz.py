@@ -21,7 +21,7 @@ outside the case's own folder are escapes too.
 
 Mutations draw their choices through a small :class:`Draw` interface, so the same mutators run
 from a seeded numpy generator here (case ``i`` of seed ``s`` is reproducible) and from
-hypothesis' ``st.data()`` in ``tests/test_fuzz.py`` (with shrinking).
+hypothesis' ``st.data()`` in ``tests/core/asset/test_fuzz.py`` (with shrinking).
 """
 
 from __future__ import annotations
@@ -49,6 +49,7 @@ from pbrsr_core.asset.gltf_write import save_asset
 from pbrsr_core.errors import PbrsrError
 from pbrsr_core.limits import Limits
 
+from .results import pyplot, write_result
 from .shared import SHARED_ASSETS
 
 # small limits keep every case fast (a mutated size field cannot ask for gigabytes)
@@ -627,16 +628,11 @@ def run(
         "peak_rss_mib": round(peak, 1),
         "shared_assets": SHARED_ASSETS.is_dir() and shared,
     }
-    (out_dir / "fuzz.json").write_text(json.dumps(result, indent=2))
-    _plot(result, out_dir / "fuzz.png")
-    return result
+    return write_result(result, out_dir, "fuzz", _plot)
 
 
 def _plot(result: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     names = list(result["outcomes"])
     counts = [result["outcomes"][n] for n in names]

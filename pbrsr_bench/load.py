@@ -22,6 +22,11 @@ b. ``big uploads``: ``uploaders`` concurrent clients post ``big_uploads`` GLBs o
    The jobs of a and b are then canceled and deleted through the API (counted as requests).
 c. ``drain``: ``jobs`` small bicubic jobs are submitted and drained by ``workers`` worker
    processes (started and idle before the clock starts); finished must equal submitted.
+   Meanwhile every job is followed on its own event stream and on the key's stream (opened
+   before the first submission), and its webhooks (every event but progress) go to a
+   receiver in this process that checks their signatures (:mod:`pbrsr_bench.events`):
+   events received and lost per channel, and the latency from each event's timestamp to its
+   receipt. A lost event or a bad signature fails the run.
 
 ``run(...)`` returns a JSON-able dict (also written to ``out_dir/load.json``), ``print_table``
 prints it with rich, and ``load.png`` plots latency distributions and the drain curve.
@@ -170,24 +175,41 @@ class ServiceStack:
         self.base_url = base
         return base
 
-    def start_workers(self, n: int, timeout: float = 120.0) -> None:
-        import httpx
-
+    def start_workers(
+        self, n: int, timeout: float = 120.0, env: dict[str, str] | None = None
+    ) -> None:
+        """Start ``n`` worker processes (``env``: settings over :meth:`env`'s) and wait until
+        every worker of the stack is registered."""
         tag = uuid.uuid4().hex[:6]
-        for i in range(n):
+        first = len(self.workers)
+        for i in range(first, first + n):
             args = [sys.executable, "-m", "pbrsr_core", "worker", "--name", f"load-{tag}-{i}"]
-            proc = _popen(args, self.env(), self.log_dir / f"worker-{i}.log")
+            proc = _popen(args, {**self.env(), **(env or {})}, self.log_dir / f"worker-{i}.log")
             self.procs.append(proc)
             self.workers.append(proc)
+        wanted = len(self.workers)
 
         def registered() -> bool:
             for i, p in enumerate(self.workers):
                 if p.poll() is not None:
                     raise LoadBenchError(f"worker {i} exited; see {self.log_dir}/worker-{i}.log")
-            text = httpx.get(self.base_url + "/metrics", timeout=5).text
-            return _gauge(text, "pbrsr_workers") >= n
+            return self.registered_workers() >= wanted
 
-        _wait(registered, timeout, f"{n} workers to register", 0.25)
+        _wait(registered, timeout, f"{wanted} workers to register", 0.25)
+
+    def registered_workers(self) -> int:
+        """Workers registered in Redis, as the API's ``/metrics`` counts them."""
+        import httpx
+
+        return int(_gauge(httpx.get(self.base_url + "/metrics", timeout=5).text, "pbrsr_workers"))
+
+    def stop_workers(self, timeout: float = 60.0) -> None:
+        """Stop every worker (warm shutdown) and wait until none is registered."""
+        for proc in self.workers:
+            stop_process(proc)
+            self.procs.remove(proc)
+        self.workers.clear()
+        _wait(lambda: self.registered_workers() == 0, timeout, "the workers to unregister", 0.25)
 
     def close(self) -> None:
         for proc in reversed(self.procs):
@@ -383,11 +405,15 @@ async def _request(
     return resp
 
 
-def _upload(client: Any, payload: tuple[str, bytes], options: dict) -> Any:
-    """The (not yet awaited) multipart POST /v1/jobs of ``payload``."""
+def upload_request(
+    client: Any, payload: tuple[str, bytes], options: dict, fields: dict[str, str] | None = None
+) -> Any:
+    """The multipart POST /v1/jobs of ``payload`` (not yet awaited with an async client);
+    ``fields``: more form fields (``callback_url``, ...)."""
     name, data = payload
     files = {"file": (name, data, "application/octet-stream")}
-    return client.post("/v1/jobs", files=files, data={"options": json.dumps(options)})
+    form = {"options": json.dumps(options), **(fields or {})}
+    return client.post("/v1/jobs", files=files, data=form)
 
 
 async def _mixed_phase(
@@ -425,7 +451,7 @@ async def _mixed_phase(
             while time.monotonic() < t_end:
                 payload = payloads[n % len(payloads)]
                 resp = await _request(
-                    rec, "upload", _upload(client, payload, options), 202, len(payload[1])
+                    rec, "upload", upload_request(client, payload, options), 202, len(payload[1])
                 )
                 if resp is not None:
                     ids.append(resp.json()["id"])
@@ -458,7 +484,7 @@ async def _upload_phase(
             while queue:
                 queue.pop()
                 resp = await _request(
-                    rec, kind, _upload(client, payload, options), 202, len(payload[1])
+                    rec, kind, upload_request(client, payload, options), 202, len(payload[1])
                 )
                 if resp is not None:
                     ids.append(resp.json()["id"])
@@ -486,77 +512,91 @@ async def _delete_jobs(base: str, ids: list[str], rec: Recorder, concurrency: in
         await asyncio.gather(*(deleter() for _ in range(concurrency)))
 
 
+def job_states(client: Any, wanted: set[str], rec: Recorder) -> dict[str, str]:
+    """The status of every job in ``wanted``, read from the pages of ``GET /v1/jobs``."""
+    import httpx
+
+    states: dict[str, str] = {}
+    url: str | None = "/v1/jobs?limit=100"
+    while url:
+        try:
+            page = client.get(url)
+        except httpx.HTTPError as exc:
+            rec.error("list_jobs", f"{type(exc).__name__}: {exc}")
+            break
+        if page.status_code != 200:
+            rec.error("list_jobs", f"HTTP {page.status_code}")
+            break
+        body = page.json()
+        states.update({j["id"]: j["status"] for j in body["items"] if j["id"] in wanted})
+        url = body.get("next")
+    return states
+
+
+def webhook_secret(client: Any) -> str:
+    """The caller's webhook signing secret (``GET /v1/webhook-secret``)."""
+    resp = client.get("/v1/webhook-secret")
+    if resp.status_code != 200:
+        raise LoadBenchError(f"GET /v1/webhook-secret: HTTP {resp.status_code}")
+    return str(resp.json()["secret"])
+
+
 def _drain_phase(
     stack: ServiceStack,
     jobs: int,
     payloads: list[tuple[str, bytes]],
     timeout: float,
     log: Callable[[str], None],
+    grace: float = 30.0,
 ) -> dict[str, Any]:
-    """Submit ``jobs`` bicubic jobs and wait until every one has ended (or ``timeout``)."""
+    """Submit ``jobs`` bicubic jobs, each with a webhook to a local receiver and followed on
+    its own event stream (the key's stream open from before the first), and wait until every
+    one has ended (or ``timeout``), then up to ``grace`` s for the outcomes on every channel."""
     import httpx
+
+    from .events import WEBHOOK_EVENTS, EventWatch, WebhookReceiver, delivery_report
 
     rec = Recorder()
     options = {"method": "bicubic", "scale": 2}
     ids: list[str] = []
     curve: list[tuple[float, int]] = []
     with httpx.Client(base_url=stack.base_url, timeout=60) as client:
-        t0 = time.perf_counter()
-        for i in range(jobs):
-            name, data = payloads[i % len(payloads)]
-            t = time.perf_counter()
-            files = {"file": (name, data, "application/octet-stream")}
-            try:
-                r = client.post("/v1/jobs", files=files, data={"options": json.dumps(options)})
-            except httpx.HTTPError as exc:
-                rec.error("submit", f"{type(exc).__name__}: {exc}")
-                continue
-            if r.status_code != 202:
-                rec.error("submit", f"HTTP {r.status_code}: {r.text[:200]}")
-                continue
-            rec.ok("submit", time.perf_counter() - t)
-            ids.append(r.json()["id"])
-        submit_s = time.perf_counter() - t0
-        wanted = set(ids)
-        states: dict[str, str] = {}
-        deadline = time.monotonic() + timeout
-        last_report = 0.0
-        while True:
-            states = {}
-            url: str | None = "/v1/jobs?limit=100"
-            while url:
+        receiver = WebhookReceiver(webhook_secret(client))
+        with receiver, EventWatch(stack.base_url) as watch:
+            fields = {"callback_url": receiver.url, "callback_events": ",".join(WEBHOOK_EVENTS)}
+            t0 = time.perf_counter()
+            for i in range(jobs):
+                t = time.perf_counter()
                 try:
-                    page = client.get(url)
+                    r = upload_request(client, payloads[i % len(payloads)], options, fields)
                 except httpx.HTTPError as exc:
-                    rec.error("list_jobs", f"{type(exc).__name__}: {exc}")
+                    rec.error("submit", f"{type(exc).__name__}: {exc}")
+                    continue
+                if r.status_code != 202:
+                    rec.error("submit", f"HTTP {r.status_code}: {r.text[:200]}")
+                    continue
+                rec.ok("submit", time.perf_counter() - t)
+                ids.append(r.json()["id"])
+                watch.job(ids[-1])
+            submit_s = time.perf_counter() - t0
+            deadline = time.monotonic() + timeout
+            last_report = 0.0
+            while True:
+                states = job_states(client, set(ids), rec)
+                ended = sum(1 for s in states.values() if s in _TERMINAL)
+                elapsed = time.perf_counter() - t0
+                curve.append((elapsed, sum(1 for s in states.values() if s == "finished")))
+                if elapsed - last_report > 10:
+                    log(f"drain: {ended}/{len(ids)} ended after {elapsed:.0f} s")
+                    last_report = elapsed
+                if ended == len(ids) or time.monotonic() > deadline:
                     break
-                if page.status_code != 200:
-                    rec.error("list_jobs", f"HTTP {page.status_code}")
-                    break
-                body = page.json()
-                states.update({j["id"]: j["status"] for j in body["items"] if j["id"] in wanted})
-                url = body.get("next")
-            ended = sum(1 for s in states.values() if s in _TERMINAL)
-            elapsed = time.perf_counter() - t0
-            curve.append((elapsed, sum(1 for s in states.values() if s == "finished")))
-            if elapsed - last_report > 10:
-                log(f"drain: {ended}/{len(ids)} ended after {elapsed:.0f} s")
-                last_report = elapsed
-            if ended == len(ids) or time.monotonic() > deadline:
-                break
-            time.sleep(0.25)
-        total_s = time.perf_counter() - t0
-        durations = []
-        for job_id in ids:
-            r = client.get(f"/v1/jobs/{job_id}")
-            if r.status_code == 200:
-                j = r.json()
-                if j.get("started_at") and j.get("ended_at"):
-                    from datetime import datetime
-
-                    s = datetime.fromisoformat(j["started_at"])
-                    e = datetime.fromisoformat(j["ended_at"])
-                    durations.append((e - s).total_seconds())
+                time.sleep(0.25)
+            total_s = time.perf_counter() - t0
+            durations = _run_seconds(client, ids)
+            waited = watch.wait_outcomes(ids, grace, receiver)
+            events = delivery_report(ids, watch, receiver)
+            events["waited_seconds"] = waited
     counts = {s: sum(1 for v in states.values() if v == s) for s in ("queued", "running")}
     counts.update({s: sum(1 for v in states.values() if v == s) for s in _TERMINAL})
     dur = np.asarray(durations, dtype=np.float64)
@@ -574,10 +614,115 @@ def _drain_phase(
         "timed_out": sum(counts[s] for s in _TERMINAL) < len(ids),
         "curve": curve,
         "ids": ids,
+        "events": events,
     }
 
 
+def _run_seconds(client: Any, ids: list[str]) -> list[float]:
+    """Each ended job's run time (``ended_at - started_at`` of ``GET /v1/jobs/{id}``)."""
+    from datetime import datetime
+
+    out = []
+    for job_id in ids:
+        r = client.get(f"/v1/jobs/{job_id}")
+        if r.status_code == 200:
+            j = r.json()
+            if j.get("started_at") and j.get("ended_at"):
+                s = datetime.fromisoformat(j["started_at"])
+                e = datetime.fromisoformat(j["ended_at"])
+                out.append((e - s).total_seconds())
+    return out
+
+
 # ----------------------------------------------------------------------------- the run
+def api_phases(
+    stack: ServiceStack,
+    work: Path,
+    result: dict[str, Any],
+    *,
+    duration: float,
+    baseline: float,
+    pollers: int,
+    uploaders: int,
+    upload_mb: float,
+    big_uploads: int,
+    request_timeout: float,
+    small_size: int,
+    log: Callable[[str], None],
+) -> None:
+    """Phases a and b and the deletion of their jobs (the module docstring) against
+    ``stack``'s API, no worker running; their results go into ``result``."""
+    if duration <= 0 or pollers < 0 or uploaders < 0:
+        raise LoadBenchError("duration must be > 0 and counts >= 0")
+    if pollers + uploaders == 0:
+        raise LoadBenchError("phase a needs at least one poller or uploader")
+    log("building payloads")
+    payloads = small_payloads(work / "payloads", size=small_size)
+    big = big_payload(work / "payloads", upload_mb) if big_uploads else None
+    ids: list[str] = []
+    seed_rec = Recorder()
+    for i in range(4):  # jobs to poll from the first request on
+        asyncio.run(_upload_phase(stack.base_url, 1, 1, payloads[i], ids, seed_rec, "seed"))
+    if seed_rec.errors or not ids:
+        raise LoadBenchError(f"could not submit the first jobs: {seed_rec.errors[:3]}")
+
+    if baseline > 0 and pollers > 0:
+        log(f"baseline: {pollers} pollers alone for {baseline:.0f} s")
+        prec = Recorder()
+        pwall = asyncio.run(
+            _mixed_phase(stack.base_url, baseline, pollers, 0, payloads, ids, prec, request_timeout)
+        )
+        result["poll_only"] = {
+            "wall_seconds": pwall,
+            "kinds": prec.summary(pwall),
+            "errors": len(prec.errors),
+            "error_samples": [f"{k}: {e}" for k, e in prec.errors[:20]],
+        }
+
+    log(f"phase a: {pollers} pollers + {uploaders} uploaders for {duration:.0f} s")
+    rec = Recorder()
+    wall = asyncio.run(
+        _mixed_phase(
+            stack.base_url, duration, pollers, uploaders, payloads, ids, rec, request_timeout
+        )
+    )
+    result["mixed"] = {
+        "wall_seconds": wall,
+        "kinds": rec.summary(wall),
+        "errors": len(rec.errors),
+        "error_samples": [f"{k}: {e}" for k, e in rec.errors[:20]],
+        "requests_per_s": sum(len(v) for v in rec.latencies.values()) / wall,
+        "latencies_ms": {k: [x * 1e3 for x in v] for k, v in rec.latencies.items()},
+    }
+
+    if big is not None:
+        mb = len(big[1]) / _MB
+        log(f"phase b: {big_uploads} uploads of {mb:.1f} MB, {uploaders} at a time")
+        brec = Recorder()
+        bwall = asyncio.run(
+            _upload_phase(stack.base_url, max(1, uploaders), big_uploads, big, ids, brec)
+        )
+        result["big"] = {
+            "wall_seconds": bwall,
+            "mb_each": mb,
+            "kinds": brec.summary(bwall),
+            "errors": len(brec.errors),
+            "error_samples": [f"{k}: {e}" for k, e in brec.errors[:20]],
+            "mb_per_s_total": mb * len(brec.latencies.get("big_upload", [])) / bwall,
+        }
+
+    log(f"deleting the {len(ids)} jobs of phases a and b")
+    drec = Recorder()
+    t0 = time.perf_counter()
+    asyncio.run(_delete_jobs(stack.base_url, ids, drec))
+    result["cleanup"] = {
+        "kinds": drec.summary(time.perf_counter() - t0),
+        "errors": len(drec.errors),
+        "error_samples": [f"{k}: {e}" for k, e in drec.errors[:20]],
+    }
+    result["ratios"] = _ratios(result)
+
+
 def run(
     out_dir: Path = Path("bench-out/load"),
     *,
@@ -602,10 +747,8 @@ def run(
     0 skips phase b; ``jobs`` 0 skips phase c. ``redis_url`` None = a private
     ``redis-server`` when installed (else db 13 of 127.0.0.1:6379 with a private prefix).
     """
-    if duration <= 0 or pollers < 0 or uploaders < 0 or jobs < 0 or workers < 1:
-        raise LoadBenchError("duration must be > 0, counts >= 0 and workers >= 1")
-    if pollers + uploaders == 0:
-        raise LoadBenchError("phase a needs at least one poller or uploader")
+    if jobs < 0 or workers < 1:
+        raise LoadBenchError("jobs must be >= 0 and workers >= 1")
     big_uploads = uploaders if big_uploads is None else big_uploads
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -624,90 +767,30 @@ def run(
         }
     }
     try:
-        log("building payloads")
-        payloads = small_payloads(work / "payloads", size=small_size)
         tiny = small_payloads(work / "tiny", n=2, size=16)
-        big = big_payload(work / "payloads", upload_mb) if big_uploads else None
         with service_stack(work, redis_url) as stack:
             result["config"]["private_redis"] = stack.private_redis
             log(f"API at {stack.base_url} (redis {'private' if stack.private_redis else 'shared'})")
-            ids: list[str] = []
-            seed_rec = Recorder()
-            for i in range(4):  # jobs to poll from the first request on
-                asyncio.run(_upload_phase(stack.base_url, 1, 1, payloads[i], ids, seed_rec, "seed"))
-            if seed_rec.errors or not ids:
-                raise LoadBenchError(f"could not submit the first jobs: {seed_rec.errors[:3]}")
-
-            if baseline > 0 and pollers > 0:
-                log(f"baseline: {pollers} pollers alone for {baseline:.0f} s")
-                prec = Recorder()
-                pwall = asyncio.run(
-                    _mixed_phase(
-                        stack.base_url, baseline, pollers, 0, payloads, ids, prec, request_timeout
-                    )
-                )
-                result["poll_only"] = {
-                    "wall_seconds": pwall,
-                    "kinds": prec.summary(pwall),
-                    "errors": len(prec.errors),
-                    "error_samples": [f"{k}: {e}" for k, e in prec.errors[:20]],
-                }
-
-            log(f"phase a: {pollers} pollers + {uploaders} uploaders for {duration:.0f} s")
-            rec = Recorder()
-            wall = asyncio.run(
-                _mixed_phase(
-                    stack.base_url,
-                    duration,
-                    pollers,
-                    uploaders,
-                    payloads,
-                    ids,
-                    rec,
-                    request_timeout,
-                )
+            api_phases(
+                stack,
+                work,
+                result,
+                duration=duration,
+                baseline=baseline,
+                pollers=pollers,
+                uploaders=uploaders,
+                upload_mb=upload_mb,
+                big_uploads=big_uploads,
+                request_timeout=request_timeout,
+                small_size=small_size,
+                log=log,
             )
-            result["mixed"] = {
-                "wall_seconds": wall,
-                "kinds": rec.summary(wall),
-                "errors": len(rec.errors),
-                "error_samples": [f"{k}: {e}" for k, e in rec.errors[:20]],
-                "requests_per_s": sum(len(v) for v in rec.latencies.values()) / wall,
-                "latencies_ms": {k: [x * 1e3 for x in v] for k, v in rec.latencies.items()},
-            }
-
-            if big is not None:
-                mb = len(big[1]) / _MB
-                log(f"phase b: {big_uploads} uploads of {mb:.1f} MB, {uploaders} at a time")
-                brec = Recorder()
-                bwall = asyncio.run(
-                    _upload_phase(stack.base_url, max(1, uploaders), big_uploads, big, ids, brec)
-                )
-                result["big"] = {
-                    "wall_seconds": bwall,
-                    "mb_each": mb,
-                    "kinds": brec.summary(bwall),
-                    "errors": len(brec.errors),
-                    "error_samples": [f"{k}: {e}" for k, e in brec.errors[:20]],
-                    "mb_per_s_total": mb * len(brec.latencies.get("big_upload", [])) / bwall,
-                }
-
-            log(f"deleting the {len(ids)} jobs of phases a and b")
-            drec = Recorder()
-            t0 = time.perf_counter()
-            asyncio.run(_delete_jobs(stack.base_url, ids, drec))
-            result["cleanup"] = {
-                "kinds": drec.summary(time.perf_counter() - t0),
-                "errors": len(drec.errors),
-                "error_samples": [f"{k}: {e}" for k, e in drec.errors[:20]],
-            }
-
             if jobs:
                 log(f"phase c: starting {workers} workers")
                 t0 = time.perf_counter()
                 stack.start_workers(workers)
                 start_s = time.perf_counter() - t0
-                log(f"phase c: {jobs} bicubic jobs")
+                log(f"phase c: {jobs} bicubic jobs, followed by SSE and webhooks")
                 drain = _drain_phase(stack, jobs, tiny, drain_timeout, log)
                 drain["workers_start_seconds"] = start_s
                 drain["workers_alive"] = sum(1 for p in stack.workers if p.poll() is None)
@@ -722,17 +805,19 @@ def run(
     return result
 
 
+def api_passed(result: dict[str, Any]) -> bool:
+    """No error in any API phase of ``result`` that ran."""
+    phases = ("poll_only", "mixed", "big", "cleanup")
+    return all(result[p]["errors"] == 0 for p in phases if p in result)
+
+
 def _passed(result: dict[str, Any]) -> bool:
-    result["ratios"] = _ratios(result)
-    ok = result["mixed"]["errors"] == 0 and result["cleanup"]["errors"] == 0
-    if "poll_only" in result:
-        ok = ok and result["poll_only"]["errors"] == 0
-    if "big" in result:
-        ok = ok and result["big"]["errors"] == 0
+    ok = api_passed(result)
     if "drain" in result:
         d = result["drain"]
         wanted = result["config"]["jobs"]
         ok = ok and d["submit_errors"] == 0 and d["finished"] == d["submitted"] == wanted
+        ok = ok and d["events"]["lost"] == 0 and d["events"]["bad_signatures"] == 0
     return bool(ok)
 
 
@@ -740,6 +825,7 @@ def _write(result: dict[str, Any], out_dir: Path) -> None:
     slim = json.loads(json.dumps(result, default=str))
     slim.get("mixed", {}).pop("latencies_ms", None)
     slim.get("drain", {}).pop("ids", None)
+    slim.get("drain", {}).get("events", {}).pop("latencies_ms", None)
     (out_dir / "load.json").write_text(json.dumps(slim, indent=2))
     _plot(result, out_dir / "load.png")
 
@@ -750,21 +836,14 @@ def _plot(result: dict[str, Any], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
-    ax = axes[0]
-    for kind, values in sorted(result["mixed"].get("latencies_ms", {}).items()):
-        v = np.sort(np.asarray(values))
-        if v.size:
-            ax.plot(v, np.arange(1, v.size + 1) / v.size, label=f"{kind} (n={v.size})")
-    ax.set_xscale("log")
-    ax.set_xlabel("latency (ms)")
-    ax.set_ylabel("fraction of requests")
+    fig, axes = plt.subplots(1, 3, figsize=(18, 4.5))
     cfg = result["config"]
-    ax.set_title(f"phase a: {cfg['pollers']} pollers + {cfg['uploaders']} uploaders")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
-    ax = axes[1]
+    title = f"phase a: {cfg['pollers']} pollers + {cfg['uploaders']} uploaders"
+    latency_cdf(axes[0], result["mixed"].get("latencies_ms", {}), title, "requests")
     drain = result.get("drain")
+    events = drain["events"]["latencies_ms"] if drain else {}
+    latency_cdf(axes[2], events, "phase c: event published -> received", "events")
+    ax = axes[1]
     if drain and drain["curve"]:
         t, n = zip(*drain["curve"], strict=True)
         ax.plot(t, n, drawstyle="steps-post")
@@ -780,6 +859,21 @@ def _plot(result: dict[str, Any], path: Path) -> None:
     plt.close(fig)
 
 
+def latency_cdf(ax: Any, latencies: dict[str, list[float]], title: str, what: str) -> None:
+    """The distribution of each kind's latencies (ms) on ``ax``, log x."""
+    for kind, values in sorted(latencies.items()):
+        v = np.sort(np.asarray(values))
+        if v.size:
+            ax.plot(v, np.arange(1, v.size + 1) / v.size, label=f"{kind} (n={v.size})")
+    ax.set_xscale("log")
+    ax.set_xlabel("latency (ms)")
+    ax.set_ylabel(f"fraction of {what}")
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    if any(latencies.values()):
+        ax.legend()
+
+
 def _ratios(result: dict[str, Any]) -> list[dict[str, Any]]:
     """p50 of each status read over /healthz's p50 in the same phase, against its target."""
     out = []
@@ -792,15 +886,23 @@ def _ratios(result: dict[str, Any]) -> list[dict[str, Any]]:
     return out
 
 
-def print_table(result: dict[str, Any]) -> None:
-    """The results as rich tables: one row per request kind, then the drain."""
+def wide_console() -> Any:
+    """A rich console at least 110 columns wide (the benchmarks' tables)."""
     from rich.console import Console
+
+    return Console(width=max(Console().width, 110))
+
+
+def _ms(v: float | None) -> str:
+    return "-" if v is None else f"{v:.1f}"
+
+
+def print_api(out: Any, result: dict[str, Any], title: str) -> None:
+    """The API phases of ``result`` on the console ``out``: one row per phase and request
+    kind, then the status reads against ``/healthz``."""
     from rich.table import Table
 
-    def ms(v: float | None) -> str:
-        return "-" if v is None else f"{v:.1f}"
-
-    table = Table(title="pbrsr bench load")
+    table = Table(title=title)
     for col in ("phase", "request", "count", "errors", "req/s", "p50 ms", "p99 ms", "max ms"):
         table.add_column(col, justify="left" if col in ("phase", "request") else "right")
     table.add_column("MB/s", justify="right")
@@ -817,21 +919,34 @@ def print_table(result: dict[str, Any]) -> None:
                 str(row["requests"]),
                 str(row["errors"]),
                 f"{row['per_s']:.1f}",
-                ms(row["p50_ms"]),
-                ms(row["p99_ms"]),
-                ms(row["max_ms"]),
+                _ms(row["p50_ms"]),
+                _ms(row["p99_ms"]),
+                _ms(row["max_ms"]),
                 mbs,
             )
-    console = Console(width=max(Console().width, 110))
-    console.print(table)
+    out.print(table)
     if result.get("ratios"):
         t1 = Table(title="status reads against /healthz (p50 over p50, same phase)")
         for col in ("request", "phase", "ratio", "target", "met"):
             t1.add_column(col, justify="left" if col in ("request", "phase") else "right")
         for r in result["ratios"]:
-            met = "[green]yes[/green]" if r["met"] else "[red]no[/red]"
-            t1.add_row(r["request"], r["phase"], f"{r['ratio']:.2f}x", f"{r['target']:.0f}x", met)
-        console.print(t1)
+            t1.add_row(
+                r["request"], r["phase"], f"{r['ratio']:.2f}x", f"{r['target']:.0f}x", met(r["met"])
+            )
+        out.print(t1)
+
+
+def met(ok: bool) -> str:
+    """A target's yes/no, coloured."""
+    return "[green]yes[/green]" if ok else "[red]no[/red]"
+
+
+def print_table(result: dict[str, Any]) -> None:
+    """The results as rich tables: one row per request kind, then the drain and its events."""
+    from rich.table import Table
+
+    out = wide_console()
+    print_api(out, result, "pbrsr bench load")
     drain = result.get("drain")
     if drain:
         t2 = Table(title="drain")
@@ -847,5 +962,28 @@ def print_table(result: dict[str, Any]) -> None:
             f"{drain['jobs_per_s']:.2f}",
             "-" if p50 is None else f"{p50:.2f}",
         )
-        console.print(t2)
-    console.print("[green]PASS[/green]" if result["ok"] else "[red]FAIL[/red]")
+        out.print(t2)
+        print_events(out, drain["events"])
+    out.print("[green]PASS[/green]" if result["ok"] else "[red]FAIL[/red]")
+
+
+def print_events(out: Any, events: dict[str, Any]) -> None:
+    """The event channels of :func:`pbrsr_bench.events.delivery_report` as a table."""
+    from rich.table import Table
+
+    table = Table(title=f"events of {events['jobs']} jobs (published -> received)")
+    for col in ("channel", "events", "timed", "lost", "p50 ms", "p99 ms", "max ms"):
+        table.add_column(col, justify="left" if col == "channel" else "right")
+    for name, c in events["channels"].items():
+        lost = f"[red]{c['lost']}[/red]" if c["lost"] else "0"
+        table.add_row(
+            name, str(c["events"]), str(c["timed"]), lost, _ms(c["p50_ms"]), _ms(c["p99_ms"]),
+            _ms(c["max_ms"]),
+        )  # fmt: skip
+    out.print(table)
+    notes = [f"{events['reconnects']} stream reconnects", f"{events['stream_errors']} errors"]
+    if events["bad_signatures"]:
+        notes.append(f"[red]{events['bad_signatures']} bad webhook signatures[/red]")
+    for c in events["channels"].values():
+        notes.extend(c["lost_samples"][:3])
+    out.print("; ".join(notes))

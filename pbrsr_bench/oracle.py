@@ -29,6 +29,7 @@ from pbrsr_core.metrics import MAP_CHANNELS, RenderEvaluator, images_for
 from pbrsr_core.options import UpscaleOptions
 from pbrsr_core.pipeline import upscale_asset
 
+from .results import pyplot
 from .shared import SHARED_ASSETS
 from .upscale import bench_assets, cpu_evaluator, eval_lights
 
@@ -153,10 +154,7 @@ def markdown_table(rows: list[dict]) -> str:
 
 
 def plot(rows: list[dict], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     names = list(MAP_CHANNELS)
     fig, ax = plt.subplots(figsize=(max(6, 1.6 * len(rows)), 4))

@@ -24,6 +24,7 @@ from pbrsr_core.degrade import degrade_asset
 from pbrsr_core.optim.presets import PAPER
 from pbrsr_core.options import DEFAULT_PRIOR
 
+from .results import pyplot, write_result
 from .shared import SHARED_ASSETS
 from .upscale import bench_assets, run_subprocess
 
@@ -134,16 +135,11 @@ def run(
         "per_view_s": {k: sample.get(k, 0.0) / views for k in PER_VIEW},
         "per_step_s": {k: sample.get(k, 0.0) / iterations for k in PER_STEP},
     }
-    (out_dir / "paper.json").write_text(json.dumps(result, indent=2))
-    plot(result, out_dir / "paper.png")
-    return result
+    return write_result(result, out_dir, "paper", plot)
 
 
 def plot(result: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     full = result["full"]["timings"]
     stages = sorted(full, key=full.get)

@@ -28,6 +28,7 @@ from pbrsr_core.prior import load_prior
 from pbrsr_core.prior.base import Prior
 from pbrsr_core.prior.tiling import count_tiles
 
+from .results import pyplot
 from .shared import SHARED_ASSETS
 
 NATURAL = ("astronaut", "coffee", "chelsea", "rocket", "immunohistochemistry")
@@ -251,10 +252,7 @@ def run(
 
 
 def _plot(rows: list[PriorRow], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     labels = [f"{r.prior}\nx{r.scale}" for r in rows]
     xs = np.arange(len(rows))

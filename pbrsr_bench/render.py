@@ -19,7 +19,6 @@ Writes ``render.json`` and ``render.png`` to the output directory and prints a r
 
 from __future__ import annotations
 
-import json
 import os
 import statistics
 import threading
@@ -34,6 +33,7 @@ from pbrsr_core.render import camera as cam
 from pbrsr_core.render import light as light_mod
 from pbrsr_core.render import raster, shade, shapes
 
+from .results import pyplot, write_result
 from .shared import SHARED_ASSETS
 
 TARGET_GBUFFER_S = 0.5  # 100k triangles at 1024^2
@@ -242,16 +242,11 @@ def run(
         "rows": rows,
         "shading_profile": profile_rows,
     }
-    (out_dir / "render.json").write_text(json.dumps(result, indent=2))
-    plot(result, out_dir / "render.png")
-    return result
+    return write_result(result, out_dir, "render", plot)
 
 
 def plot(result: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     rows = result["rows"]
     labels = [f"{r['case'][:18]}\n{r['resolution']}" for r in rows]

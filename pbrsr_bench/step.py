@@ -17,7 +17,6 @@ Writes ``step.json`` and ``step.png`` and prints a table.
 
 from __future__ import annotations
 
-import json
 import statistics
 import time
 from collections.abc import Callable
@@ -32,6 +31,8 @@ from pbrsr_core.optim.presets import get_preset
 from pbrsr_core.optim.schedule import channel_lr
 from pbrsr_core.optim.step import regularize_grads
 from pbrsr_core.optim.whole_map import MapAdam
+
+from .results import pyplot, write_result
 
 FLOOR_ARRAYS = 8  # float32 arrays per texel channel a step must move (see the docstring)
 PASSES = ("regularize", "adam_project")
@@ -113,7 +114,7 @@ def run(
                     "total_ms": round(total * 1e3, 2),
                     "floor_ms": round(floor * 1e3, 3),
                     "over_floor": round(total / floor, 2),
-                    "copy_gb_s": round(bw / 1e9, 1),
+                    "copy_gb_s": float(f"{bw / 1e9:.3g}"),  # 3 digits at any rate
                 }
             )
     result = {
@@ -123,16 +124,11 @@ def run(
         "threads": torch.get_num_threads(),
         "rows": rows,
     }
-    (out_dir / "step.json").write_text(json.dumps(result, indent=2))
-    plot(result, out_dir / "step.png")
-    return result
+    return write_result(result, out_dir, "step", plot)
 
 
 def plot(result: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     rows = result["rows"]
     labels = [f"{r['size']}²" for r in rows]

@@ -324,8 +324,23 @@ def meshopt_variant(src: Path, dst: Path, *, filters: bool = True) -> Path:
     return var.write(dst)
 
 
+def draco_ktx2_variant(src: Path, dst: Path) -> Path:
+    """Write ``dst`` (a ``.glb``): :func:`draco_variant` of ``src`` with every image as KTX2
+    (``KHR_texture_basisu``: colour maps sRGB ETC1S, the others linear UASTC with Zstandard,
+    mipmapped; pbrsr's own KTX2 writer), as web pipelines ship assets. Returns ``dst``."""
+    from pbrsr_core.asset import save_asset
+
+    draco = draco_variant(src, dst.with_name(f"{dst.stem}-draco.glb"))
+    asset = load_asset(draco)
+    save_asset(asset, dst, {im.index: im.pixels for im in asset.images}, image_format="ktx2")
+    draco.unlink()
+    return dst
+
+
 BENCH_VARIANTS: dict[str, tuple[str, Callable[[Path, Path], Path]]] = {
     "WaterBottle-draco": ("WaterBottle", draco_variant),
+    "WaterBottle-draco-ktx2": ("WaterBottle", draco_ktx2_variant),
 }
 """Variants ``pbrsr bench upscale`` adds: {name: (shared asset it is made from, maker)}, so
-the speed table shows what decoding and keeping compressed geometry costs."""
+the speed table shows what decoding compressed geometry and textures, and writing them back
+the same way, cost."""

@@ -6,7 +6,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Protocol
 
-from .errors import LimitExceeded
+from .errors import InvalidAsset, LimitExceeded
 
 
 @dataclass(frozen=True)
@@ -40,3 +40,14 @@ def check_output_size(images: Iterable[_Sized], scale: int, limits: Limits) -> N
                 f"{img.width * scale}x{img.height * scale}, over the output limit of "
                 f"{limits.max_output_dim} pixels per side"
             )
+
+
+def check_image_size(w: int, h: int, name: str, limits: Limits) -> None:
+    """Refuse an input image whose header declares an empty size (InvalidAsset) or a side
+    over ``max_texture_dim`` (LimitExceeded), before any pixel is decoded."""
+    if w <= 0 or h <= 0:
+        raise InvalidAsset(f"the image '{name}' declares an empty size {w}x{h}")
+    if w > limits.max_texture_dim or h > limits.max_texture_dim:
+        raise LimitExceeded(
+            f"the image '{name}' is {w}x{h}; the limit is {limits.max_texture_dim} per side"
+        )

@@ -11,7 +11,7 @@ DEFAULT_PRIOR = "pbr-upconv7"
 (pbrsr_core/prior/texture.py), whose kinds without trained weights use waifu2x-photo."""
 
 Method = Literal["pbrsr", "direct", "bicubic"]
-ImageFormat = Literal["same", "png", "png16", "exr", "jpeg"]
+ImageFormat = Literal["same", "png", "png16", "exr", "jpeg", "ktx2", "webp", "avif"]
 
 
 class UpscaleOptions(BaseModel):
@@ -41,8 +41,10 @@ class UpscaleOptions(BaseModel):
     )
     image_format: ImageFormat = Field(
         "same",
-        description="Output image format; 'same' keeps each input image's format "
-        "(bit depth never below the input's).",
+        description="Output image format; 'same' keeps each input image's format and "
+        "encoding (KTX2 codec, supercompression and transfer function; lossless WebP; bit "
+        "depth never below the input's). ktx2, webp and avif put the textures in "
+        "KHR_texture_basisu, EXT_texture_webp and EXT_texture_avif.",
     )
     device: str = Field("auto", description="auto, cpu, cuda or cuda:N.")
     unwrap_missing_uvs: bool = Field(

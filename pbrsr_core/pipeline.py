@@ -524,6 +524,7 @@ def _write_bundle(
             "input": file_name,
             "options": options.model_dump(),
             "device": str(device),
+            "threads": torch.get_num_threads(),  # torch's intra-op threads (numba follows)
             "images": [
                 {
                     "index": img.index,

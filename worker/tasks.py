@@ -51,7 +51,7 @@ from .progress import JobReporter
 log = logging.getLogger("pbrsr.worker")
 
 THUMB_SIZE = 256
-_STORED = {".png", ".jpg", ".jpeg", ".glb", ".exr", ".ktx2", ".webp"}
+_STORED = {".png", ".jpg", ".jpeg", ".glb", ".exr", ".ktx2", ".webp", ".avif"}
 
 
 @dataclass
@@ -216,7 +216,7 @@ def _bundle_event():
 
 
 def _summary(report: dict[str, Any]) -> dict[str, Any]:
-    keys = ("wall_seconds", "device", "timings", "metrics", "final_losses")
+    keys = ("wall_seconds", "device", "threads", "timings", "metrics", "final_losses")
     out = {k: report[k] for k in keys if k in report}
     out["maps"] = [img.get("file") for img in report.get("images", []) if isinstance(img, dict)]
     return out

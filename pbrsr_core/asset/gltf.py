@@ -29,13 +29,15 @@ from .gltf_read import (
     parse_json,
     read_accessor,
 )
+from .gltf_textures import texture_sources
 from .gltf_write import encode_images, save_asset
-from .images import read_image
+from .images import read_texture
 from .jpeg import quant_tables
 from .mesh_codecs import DRACO, decode_geometry, meshopt_placeholders, placeholder_extent
 from .model import (
     EXTENSION_ROLES,
     REPEAT,
+    SRGB_ROLES,
     Asset,
     DecodedGeometry,
     ImageData,
@@ -45,6 +47,7 @@ from .model import (
     UnwrappedPrimitive,
 )
 from .tangents import generate_tangents, safe_normalize
+from .texture_codecs import Ktx2Encoding, transfer
 from .unwrap import unwrap_triangles
 from .uris import decode_data_uri, is_data_uri, read_resource, relative_path, safe_stem
 
@@ -131,16 +134,9 @@ def _texture_ref(doc: dict, info: dict, what: str) -> TextureRef | None:
     textures = doc.get("textures", [])
     ti = get_index(info, "index", len(textures), what)
     tex = textures[ti]
-    source = tex.get("source")
-    if source is None:
-        exts = tex.get("extensions") or {}
-        for name in ("KHR_texture_basisu", "EXT_texture_webp", "EXT_texture_avif"):
-            if name in exts:
-                raise UnsupportedAsset(
-                    f"texture {ti} is only available as {name}, which pbrsr cannot read"
-                )
+    image, _ = texture_sources(doc, ti)
+    if image is None:
         return None
-    image = get_index(tex, "source", len(doc.get("images", [])), f"texture {ti}")
     texcoord = _texcoord_set(info.get("texCoord", 0), what)
     uv_transform = None
     ktt = (info.get("extensions") or {}).get("KHR_texture_transform")
@@ -220,8 +216,9 @@ def _load_images(
     buffers: list[bytes],
     limits: Limits,
     resources: dict[str, bytes],
-    used: set[int],
+    roles: dict[int, set[str]],
 ) -> list[ImageData]:
+    """Every image decoded, with the material roles that use it (``roles``)."""
     out = []
     for i, img in enumerate(doc.get("images", [])):
         what = f"image {i}"
@@ -237,19 +234,32 @@ def _load_images(
                 resources[label] = data
         else:
             raise InvalidAsset(f"{what} has neither a uri nor a bufferView")
+        used_as = roles.get(i, set())
         try:
-            pixels, depth, mime = read_image(data, label, limits)
+            pixels, depth, mime, encoding = read_texture(data, label, limits)
         except (UnsupportedAsset, InvalidAsset):
-            if i in used:
+            if used_as:
                 raise
-            # an image no material slot uses and pbrsr cannot decode (e.g. a KTX2 source of
-            # KHR_texture_basisu): kept as an empty placeholder, saved byte for byte
+            # an image no material slot uses and pbrsr cannot decode (e.g. the DDS image of
+            # MSFT_texture_dds): kept as an empty placeholder, saved byte for byte
             declared = img.get("mimeType")
             pixels = np.zeros((0, 0, 4), dtype=np.float32)
             depth, mime = 8, declared if isinstance(declared, str) else "application/octet-stream"
+            encoding = None
+        if isinstance(encoding, Ktx2Encoding):
+            pixels = transfer(pixels, encoding.srgb, bool(used_as & SRGB_ROLES))
         jpeg = quant_tables(data) if mime == "image/jpeg" else None
         out.append(
-            ImageData(index=i, name=label, pixels=pixels, bit_depth=depth, mime=mime, jpeg=jpeg)
+            ImageData(
+                index=i,
+                name=label,
+                pixels=pixels,
+                bit_depth=depth,
+                mime=mime,
+                roles=set(used_as),
+                jpeg=jpeg,
+                encoding=encoding,
+            )
         )
     return out
 
@@ -570,17 +580,15 @@ def load_asset(path: Path, limits: Limits = Limits(), *, unwrap_missing_uvs: boo
     geometry = decode_geometry(doc, buffers, set(placeholders), limits)
 
     materials = [_material(doc, i) for i in range(len(doc.get("materials", [])))]
-    used = {ref.image for m in materials for ref in m.textures().values()}
+    roles: dict[int, set[str]] = {}
+    for m in materials:
+        for role, ref in m.textures().items():
+            roles.setdefault(ref.image, set()).add(role)
     builder = _Builder(doc, buffers, limits, unwrap_missing_uvs, geometry)
     builder.walk(_scene_roots(doc))
     mesh = builder.build()
     decoded_buffers = geometry.buffers if geometry else buffers  # meshopt views decoded
-    images = _load_images(doc, folder, decoded_buffers, limits, resources, used)
-    by_index = {im.index: im for im in images}
-    for m in materials:
-        for role, ref in m.textures().items():
-            if ref.image in by_index:
-                by_index[ref.image].roles.add(role)
+    images = _load_images(doc, folder, decoded_buffers, limits, resources, roles)
     asset = Asset(
         document=doc,
         buffers=buffers,

@@ -37,9 +37,9 @@ TYPE_SIZES = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9
 UNSUPPORTED_REQUIRED = {
     "KHR_draco_mesh_compression": None,  # supported (mesh_codecs)
     "EXT_meshopt_compression": None,  # supported (mesh_codecs)
-    "KHR_texture_basisu": "KTX2/Basis textures",
-    "EXT_texture_webp": "WebP textures",
-    "EXT_texture_avif": "AVIF textures",
+    "KHR_texture_basisu": None,  # supported (asset.texture_codecs)
+    "EXT_texture_webp": None,  # supported
+    "EXT_texture_avif": None,  # supported
     "KHR_mesh_quantization": None,  # supported
     "KHR_texture_transform": None,  # supported
 }

@@ -13,6 +13,10 @@
   URIs; unchanged external files are copied byte for byte; buffers stay data URIs or files as
   they were (a GLB's embedded buffer becomes ``<name>.bin``).
 
+Textures keep ``KHR_texture_basisu`` / ``EXT_texture_webp`` / ``EXT_texture_avif`` exactly
+where their images are still in that format, and gain or lose them where a requested format
+changes it (:mod:`pbrsr_core.asset.gltf_textures`).
+
 Every file is written atomically (temp file + rename) and only inside the output's folder.
 """
 
@@ -32,10 +36,22 @@ import numpy as np
 
 from ..errors import InvalidOptions, StorageError
 from .gltf_read import CHUNK_BIN, CHUNK_JSON, COMPONENT_DTYPES, read_accessor_raw
-from .images import EncodedImage, ImageFormat, encode_image, output_format
+from .gltf_textures import TEXTURE_EXTENSIONS, fallback_images, sync_texture_extensions
+from .images import (
+    TEXTURE_FORMATS,
+    EncodedImage,
+    ImageFormat,
+    encode_image,
+    output_encoding,
+    output_format,
+)
 from .mesh_codecs import DRACO, draco_primitives, meshopt_placeholders, meshopt_view
-from .model import Asset, ImageData
+from .model import SRGB_ROLES, Asset, ImageData
+from .texture_codecs import Ktx2Encoding, TextureEncoding, transfer
 from .uris import encode_uri, is_data_uri, relative_path, resolve_inside, safe_stem
+
+GLTF_MIMES = frozenset({"image/png", "image/jpeg", *TEXTURE_EXTENSIONS.values()})
+"""Image types a glTF names (the core's and its image extensions'), which a GLB may embed."""
 
 
 def _walk_refs(obj, key: str, fn) -> None:
@@ -228,13 +244,24 @@ def encode_images(
     """{image index: :class:`EncodedImage`} for every replaced image, in the format
     :func:`output_format` picks for it (images given already encoded are kept as they are).
 
+    The PNG/JPEG fallback of a replaced KTX2/WebP/AVIF image
+    (:func:`~pbrsr_core.asset.gltf_textures.fallback_images`) is replaced by the same pixels,
+    in its own format when ``image_format`` asks for KTX2/WebP/AVIF (a fallback must stay
+    PNG/JPEG). A KTX2 image is written with :func:`output_encoding`'s parameters, its pixels
+    moved from its role's colour space to its transfer function.
+
     The images are encoded on up to as many threads as the process may use cores: the PNG
     and JPEG encoders release the GIL (four 2048² PNGs: 1.85 s on one thread, 1.13 s on two,
     the same bytes)."""
     by_index = {im.index: im for im in asset.images}
     n_images = len(asset.document.get("images", []))
     out: dict[int, EncodedImage] = {}
-    todo: dict[int, tuple[np.ndarray, int, ImageFormat, str, str]] = {}
+    todo: dict[int, tuple[np.ndarray, int, ImageFormat, str, str, TextureEncoding | None]] = {}
+    fallbacks = fallback_images(asset.document)
+    new_images = dict(new_images)
+    for fallback, shown in fallbacks.items():
+        if fallback not in new_images and isinstance(new_images.get(shown), np.ndarray):
+            new_images[fallback] = new_images[shown]
     for i, pixels in new_images.items():
         if not isinstance(i, int) or not 0 <= i < n_images:
             raise InvalidOptions(f"there is no image {i!r} to replace")
@@ -251,13 +278,21 @@ def encode_images(
             pixels=arr,
             bit_depth=src.bit_depth if src else 8,
             mime=src.mime if src else "image/png",
+            roles=set(src.roles) if src else set(),
+            encoding=src.encoding if src else None,
         )
-        fmt, bits, mime, ext = output_format(probe, image_format)
-        todo[i] = (arr, bits, fmt, mime, ext)
+        requested = image_format
+        if i in fallbacks and image_format in TEXTURE_FORMATS:
+            requested = "same"
+        fmt, bits, mime, ext = output_format(probe, requested)
+        encoding = output_encoding(probe, fmt)
+        if isinstance(encoding, Ktx2Encoding):
+            arr = transfer(arr, bool(probe.roles & SRGB_ROLES), encoding.srgb)
+        todo[i] = (arr, bits, fmt, mime, ext, encoding)
 
     def encode(i: int) -> EncodedImage:
-        arr, bits, fmt, mime, ext = todo[i]
-        return EncodedImage(encode_image(arr, bits, fmt), mime, ext, fmt, bits)
+        arr, bits, fmt, mime, ext, encoding = todo[i]
+        return EncodedImage(encode_image(arr, bits, fmt, encoding), mime, ext, fmt, bits)
 
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     workers = min(len(todo), cores or 1)
@@ -337,10 +372,11 @@ def _save_gltf(asset: Asset, out_path: Path, encoded: dict) -> list[Path]:
             rel = w.unique(_image_file_name(asset, doc, i, ext))
             img["uri"] = encode_uri(rel)
             w.add_file(rel, data)
-        if mime in ("image/png", "image/jpeg") and (was_data or "mimeType" in img):
+        if mime in GLTF_MIMES and (was_data or "mimeType" in img):
             img["mimeType"] = mime
-        elif mime not in ("image/png", "image/jpeg"):
+        elif mime not in GLTF_MIMES:
             img.pop("mimeType", None)
+    sync_texture_extensions(doc, _written_mime(asset, encoded))
     main = (json.dumps(doc, indent=2, ensure_ascii=False) + "\n").encode("utf-8")
     return w.flush(main)
 
@@ -349,21 +385,28 @@ def _pad(n: int, align: int = 4) -> int:
     return -n % align
 
 
+def _written_mime(asset: Asset, encoded: dict[int, EncodedImage]):
+    """image index -> the MIME type of the image as it is written."""
+    by_index = {im.index: im.mime for im in asset.images}
+    return lambda i: encoded[i].mime if i in encoded else by_index.get(i, "")
+
+
 def _save_glb(asset: Asset, out_path: Path, encoded: dict) -> list[Path]:
     doc = copy.deepcopy(asset.document)
     w = _Writer(asset, out_path)
     replaced = set(encoded)
-    # a GLB embeds only PNG/JPEG validly: other formats become files beside it
+    sync_texture_extensions(doc, _written_mime(asset, encoded))
+    # a GLB embeds only the formats glTF names validly: EXR/TIFF become files beside it
     for i in sorted(replaced):
         data, mime, ext = encoded[i].data, encoded[i].mime, encoded[i].ext
-        if mime not in ("image/png", "image/jpeg"):
+        if mime not in GLTF_MIMES:
             img = doc["images"][i]
             img.pop("bufferView", None)
             img.pop("mimeType", None)
             rel = w.unique(_image_file_name(asset, doc, i, ext))
             img["uri"] = encode_uri(rel)
             w.add_file(rel, data)
-    encoded = {i: e for i, e in encoded.items() if e.mime in ("image/png", "image/jpeg")}
+    encoded = {i: e for i, e in encoded.items() if e.mime in GLTF_MIMES}
     external = replaced - set(encoded)
     replaced = set(encoded)
     buffers = (
@@ -483,10 +526,12 @@ def save_asset(
     in ``new_images`` ({glTF image index: (H, W, C) float32 [0, 1] as stored, or an
     :class:`EncodedImage` from :func:`encode_images`}) replaced.
 
-    ``image_format``: "same", "png", "png16", "exr" or "jpeg" (see
+    ``image_format``: "same", "png", "png16", "exr", "jpeg", "ktx2", "webp" or "avif" (see
     :func:`pbrsr_core.asset.images.output_format`: precision never drops below the input's).
-    A ``.glb`` can embed only PNG/JPEG validly: a replaced image written as EXR/TIFF goes to a
-    file beside the ``.glb`` instead. Returns the written paths, the main file first.
+    A ``.glb`` embeds PNG, JPEG, KTX2, WebP and AVIF: a replaced image written as EXR/TIFF goes
+    to a file beside the ``.glb`` instead. Textures name their images through the image
+    extensions their formats need (``gltf_textures.sync_texture_extensions``). Returns the
+    written paths, the main file first.
     """
     out_path = Path(out_path)
     suffix = out_path.suffix.lower()

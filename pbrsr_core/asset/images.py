@@ -1,18 +1,21 @@
-"""Texture files through OpenImageIO: PNG 8/16-bit, JPEG, EXR (half/float), TIFF.
+"""Texture files: PNG 8/16-bit, JPEG, EXR (half/float), TIFF through OpenImageIO; KTX2
+(Basis Universal), WebP and AVIF through :mod:`pbrsr_core.asset.texture_codecs`.
 
 Pixels are numpy ``(H, W, C)`` float32 in [0, 1] as stored (no colour conversion here; see
 ``pbrsr_core.colour``). Decisions, documented once:
 
 * The header is checked against :class:`~pbrsr_core.limits.Limits` *before* any pixel is
-  decoded (PNG and JPEG headers are parsed here, EXR/TIFF through OpenImageIO's header read),
-  so a decompression bomb costs a few bytes of reading.
-* Bytes whose magic is not PNG/JPEG/EXR/TIFF are :class:`InvalidAsset` ("not an image"), except
-  known image formats pbrsr does not take (WebP, KTX2, GIF, BMP): :class:`UnsupportedAsset`.
+  decoded (PNG and JPEG headers are parsed here, EXR/TIFF through OpenImageIO's header read,
+  KTX2/WebP/AVIF in ``texture_codecs``), so a decompression bomb costs a few bytes of reading.
+* Bytes whose magic is none of these formats are :class:`InvalidAsset` ("not an image"),
+  except known image formats pbrsr does not take (KTX 1, GIF, BMP, JPEG 2000):
+  :class:`UnsupportedAsset`.
 * Grey images are expanded to RGB (grey+alpha to RGBA), as glTF samplers see them.
 * Alpha is read and written *unassociated* (straight), as PNG stores it.
 * EXR: NaN or infinite texels are refused (``InvalidAsset``): a texture with NaN is broken
   and silently replacing values would hide it. Finite values are clipped to [0, 1].
-* Bit depth: 8 and 16 for integer formats; 16 for half EXR, 32 for float EXR/TIFF.
+* Bit depth: 8 and 16 for integer formats; 16 for half EXR, 32 for float EXR/TIFF; 8 for
+  KTX2, WebP and AVIF.
 """
 
 from __future__ import annotations
@@ -21,25 +24,48 @@ import os
 import struct
 import tempfile
 from pathlib import Path
-from typing import Literal, NamedTuple
+from typing import Literal, NamedTuple, cast
 
 import numpy as np
 import OpenImageIO as oiio
 
 from ..errors import InvalidAsset, InvalidOptions, LimitExceeded, UnsupportedAsset
-from ..limits import Limits
-from .model import ImageData
+from ..limits import Limits, check_image_size
+from .basis_encoder import MAX_PIXELS as KTX2_MAX_PIXELS
+from .model import SRGB_ROLES, ImageData
+from .texture_codecs import (
+    TextureEncoding,
+    TextureFormat,
+    decode_texture,
+    default_encoding,
+    encode_texture,
+    sniff_texture_format,
+)
 
-ImageFormat = Literal["png", "jpeg", "exr", "tiff"]
+ImageFormat = Literal["png", "jpeg", "exr", "tiff", "ktx2", "webp", "avif"]
+TEXTURE_FORMATS: frozenset[ImageFormat] = frozenset({"ktx2", "webp", "avif"})
+"""The formats :mod:`pbrsr_core.asset.texture_codecs` reads and writes (8 bits per channel)."""
 
 MIME: dict[ImageFormat, str] = {
     "png": "image/png",
     "jpeg": "image/jpeg",
     "exr": "image/x-exr",
     "tiff": "image/tiff",
+    "ktx2": "image/ktx2",
+    "webp": "image/webp",
+    "avif": "image/avif",
 }
-EXT: dict[ImageFormat, str] = {"png": ".png", "jpeg": ".jpg", "exr": ".exr", "tiff": ".tif"}
+EXT: dict[ImageFormat, str] = {
+    "png": ".png",
+    "jpeg": ".jpg",
+    "exr": ".exr",
+    "tiff": ".tif",
+    "ktx2": ".ktx2",
+    "webp": ".webp",
+    "avif": ".avif",
+}
 FORMAT_OF_MIME: dict[str, ImageFormat] = {v: k for k, v in MIME.items()}
+_LOSSLESS_MIMES = {"image/png", "image/x-exr", "image/tiff"}
 
 
 class EncodedImage(NamedTuple):
@@ -53,8 +79,7 @@ class EncodedImage(NamedTuple):
 
 
 _UNSUPPORTED_MAGIC = {
-    b"RIFF": "WebP",
-    b"\xabKTX": "KTX",
+    b"\xabKTX 11": "KTX 1",
     b"GIF8": "GIF",
     b"BM": "BMP",
     b"\x00\x00\x00\x0cjP": "JPEG 2000",
@@ -71,9 +96,14 @@ def sniff_format(head: bytes) -> ImageFormat:
         return "exr"
     if head.startswith((b"II*\x00", b"MM\x00*")):
         return "tiff"
+    texture = sniff_texture_format(head)
+    if texture is not None:
+        return texture
     for magic, what in _UNSUPPORTED_MAGIC.items():
         if head.startswith(magic):
-            raise UnsupportedAsset(f"{what} images are not supported (use PNG, JPEG, EXR, TIFF)")
+            raise UnsupportedAsset(
+                f"{what} images are not supported (use PNG, JPEG, EXR, TIFF, KTX2, WebP, AVIF)"
+            )
     raise InvalidAsset("not an image (unknown file signature)")
 
 
@@ -109,15 +139,6 @@ def _jpeg_size(data: bytes) -> tuple[int, int]:
     raise InvalidAsset("truncated JPEG header (no frame marker)")
 
 
-def _check_dims(w: int, h: int, name: str, limits: Limits) -> None:
-    if w <= 0 or h <= 0:
-        raise InvalidAsset(f"the image '{name}' declares an empty size {w}x{h}")
-    if w > limits.max_texture_dim or h > limits.max_texture_dim:
-        raise LimitExceeded(
-            f"the image '{name}' is {w}x{h}; the limit is {limits.max_texture_dim} per side"
-        )
-
-
 def _read_with_oiio(
     filename: str, fmt: ImageFormat, name: str, limits: Limits
 ) -> tuple[np.ndarray, int, str]:
@@ -133,7 +154,7 @@ def _read_with_oiio(
         )
     try:
         spec = inp.spec()
-        _check_dims(spec.width, spec.height, name, limits)
+        check_image_size(spec.width, spec.height, name, limits)
         if spec.depth > 1 or spec.nchannels < 1 or spec.nchannels > 4:
             raise UnsupportedAsset(
                 f"the image '{name}' has {spec.nchannels} channels/depth {spec.depth}; "
@@ -173,44 +194,65 @@ def read_image(
     corrupt, NaN), UnsupportedAsset (a known format pbrsr does not take) and LimitExceeded
     (dimensions over ``limits.max_texture_dim``, checked from the header before decoding).
     """
+    pixels, depth, mime, _ = read_texture(data, name, limits)
+    return pixels, depth, mime
+
+
+def read_texture(
+    data: bytes | Path, name: str, limits: Limits = Limits()
+) -> tuple[np.ndarray, int, str, TextureEncoding | None]:
+    """:func:`read_image`, with the encoding a KTX2 or WebP file needs to be written back as
+    it was (:mod:`~pbrsr_core.asset.texture_codecs`; None for the other formats)."""
     if isinstance(data, (str, Path)):
         path = Path(data)
         with open(path, "rb") as f:
             head = f.read(1 << 16)
         if not head:
             raise InvalidAsset(f"the image '{name}' is empty")
-        try:
-            fmt = sniff_format(head)
-        except InvalidAsset as exc:
-            raise InvalidAsset(f"the image '{name}' is {exc.message}") from None
+        fmt = _sniff(head, name)
+        if fmt in TEXTURE_FORMATS:
+            return _read_texture_format(path.read_bytes(), fmt, name, limits)
         _precheck(fmt, head, name, limits)
-        return _read_with_oiio(str(path), fmt, name, limits)
+        return (*_read_with_oiio(str(path), fmt, name, limits), None)
     data = bytes(data)
     if not data:
         raise InvalidAsset(f"the image '{name}' is empty")
-    try:
-        fmt = sniff_format(data[:16])
-    except InvalidAsset as exc:
-        raise InvalidAsset(f"the image '{name}' is {exc.message}") from None
+    fmt = _sniff(data[:16], name)
+    if fmt in TEXTURE_FORMATS:
+        return _read_texture_format(data, fmt, name, limits)
     _precheck(fmt, data, name, limits)
     fd, tmp = tempfile.mkstemp(prefix="pbrsr-img-", suffix=EXT[fmt])
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
-        return _read_with_oiio(tmp, fmt, name, limits)
+        return (*_read_with_oiio(tmp, fmt, name, limits), None)
     finally:
         os.unlink(tmp)
 
 
+def _sniff(head: bytes, name: str) -> ImageFormat:
+    try:
+        return sniff_format(head)
+    except InvalidAsset as exc:
+        raise InvalidAsset(f"the image '{name}' is {exc.message}") from None
+
+
+def _read_texture_format(
+    data: bytes, fmt: ImageFormat, name: str, limits: Limits
+) -> tuple[np.ndarray, int, str, TextureEncoding | None]:
+    pixels, encoding = decode_texture(data, cast(TextureFormat, fmt), name, limits)
+    return np.ascontiguousarray(pixels), 8, MIME[fmt], encoding
+
+
 def _precheck(fmt: ImageFormat, head: bytes, name: str, limits: Limits) -> None:
     if fmt == "png":
-        _check_dims(*_png_size(head), name, limits)
+        check_image_size(*_png_size(head), name, limits)
     elif fmt == "jpeg":
         try:
             w, h = _jpeg_size(head)
         except InvalidAsset:
             return  # frame marker beyond the first bytes read: OIIO's header read checks it
-        _check_dims(w, h, name, limits)
+        check_image_size(w, h, name, limits)
 
 
 def _oiio_type(fmt: ImageFormat, bit_depth: int) -> str:
@@ -231,11 +273,18 @@ def _oiio_type(fmt: ImageFormat, bit_depth: int) -> str:
     raise InvalidOptions(f"unknown image format {fmt!r}")
 
 
-def write_image(path: Path, pixels: np.ndarray, bit_depth: int, fmt: ImageFormat) -> Path:
+def write_image(
+    path: Path,
+    pixels: np.ndarray,
+    bit_depth: int,
+    fmt: ImageFormat,
+    encoding: TextureEncoding | None = None,
+) -> Path:
     """Write ``pixels`` (H, W, C) float32 [0, 1], C in 1..4, to ``path`` atomically.
 
     ``fmt``: "png" (8/16), "jpeg" (8, quality 95, 4:4:4; no alpha: C must be 1 or 3), "exr"
-    (16 half / 32 float, zip compression), "tiff" (8/16/32).
+    (16 half / 32 float, zip compression), "tiff" (8/16/32); "ktx2", "webp", "avif" (8) as
+    ``encoding`` says (:func:`pbrsr_core.asset.texture_codecs.encode_texture`).
     """
     path = Path(path)
     arr = np.asarray(pixels, dtype=np.float32)
@@ -254,16 +303,20 @@ def write_image(path: Path, pixels: np.ndarray, bit_depth: int, fmt: ImageFormat
     strips = range(0, h, rows)
     if not all(np.isfinite(arr[y : y + rows]).all() for y in strips):
         raise ValueError("pixels contain NaN or infinite values")
-    spec = oiio.ImageSpec(w, h, c, _oiio_type(fmt, bit_depth))
-    spec.attribute("oiio:UnassociatedAlpha", 1)
-    if fmt == "jpeg":
-        spec.attribute("Compression", "jpeg:95")
-        spec.attribute("jpeg:subsampling", "4:4:4")
-    elif fmt == "exr" or fmt == "tiff":
-        spec.attribute("compression", "zip")
     fd, tmp = tempfile.mkstemp(prefix=".pbrsr-", suffix=EXT[fmt], dir=path.parent)
     os.close(fd)
     try:
+        if fmt in TEXTURE_FORMATS:
+            Path(tmp).write_bytes(encode_texture(arr, cast(TextureFormat, fmt), encoding))
+            os.replace(tmp, path)
+            return path
+        spec = oiio.ImageSpec(w, h, c, _oiio_type(fmt, bit_depth))
+        spec.attribute("oiio:UnassociatedAlpha", 1)
+        if fmt == "jpeg":
+            spec.attribute("Compression", "jpeg:95")
+            spec.attribute("jpeg:subsampling", "4:4:4")
+        elif fmt == "exr" or fmt == "tiff":
+            spec.attribute("compression", "zip")
         out = oiio.ImageOutput.create(tmp)
         if out is None or not out.open(tmp, spec):
             raise OSError(f"cannot write image: {oiio.geterror()}")
@@ -282,20 +335,25 @@ def write_image(path: Path, pixels: np.ndarray, bit_depth: int, fmt: ImageFormat
     return path
 
 
-def encode_image(pixels: np.ndarray, bit_depth: int, fmt: ImageFormat) -> bytes:
+def encode_image(
+    pixels: np.ndarray, bit_depth: int, fmt: ImageFormat, encoding: TextureEncoding | None = None
+) -> bytes:
     """The encoded bytes of :func:`write_image`'s file (for embedding in a GLB/data URI)."""
     with tempfile.TemporaryDirectory(prefix="pbrsr-enc-") as d:
-        p = write_image(Path(d) / f"image{EXT[fmt]}", pixels, bit_depth, fmt)
+        p = write_image(Path(d) / f"image{EXT[fmt]}", pixels, bit_depth, fmt, encoding)
         return p.read_bytes()
 
 
 def output_format(image: ImageData, requested: str = "same") -> tuple[ImageFormat, int, str, str]:
     """The output ``(fmt, bit_depth, mime, ext)`` for ``image`` under ``requested``.
 
-    ``requested`` is "same", "png", "png16", "exr" or "jpeg". Precision never drops below the
-    input's: a request that would lose precision is *upgraded* (not refused): 16-bit input asked
-    as "png"/"jpeg" gives 16-bit PNG; 32-bit float input asked as anything but "exr" gives a
-    float EXR. An image with alpha asked as "jpeg" gives PNG (JPEG has no alpha).
+    ``requested`` is "same", "png", "png16", "exr", "jpeg", "ktx2", "webp" or "avif".
+    Precision never drops below the input's: a request that would lose precision is
+    *upgraded* (not refused): 16-bit input asked as "png"/"jpeg"/"ktx2"/"webp"/"avif" gives
+    16-bit PNG; 32-bit float input asked as anything but "exr" gives a float EXR. An image
+    with alpha asked as "jpeg" gives PNG (JPEG has no alpha), and so does one asked as (or
+    kept as) "ktx2" whose sides are not multiples of 4 (``KHR_texture_basisu`` requires them)
+    or that has more texels than the KTX2 encoder takes (:data:`KTX2_MAX_PIXELS`).
     """
     src = FORMAT_OF_MIME.get(image.mime, "png")
     depth = image.bit_depth
@@ -308,13 +366,18 @@ def output_format(image: ImageData, requested: str = "same") -> tuple[ImageForma
         fmt, bits = "png", 16
     elif requested == "exr":
         fmt, bits = "exr", max(16, depth)
-    elif requested == "jpeg":
-        fmt, bits = "jpeg", 8
+    elif requested in ("jpeg", "ktx2", "webp", "avif"):
+        fmt, bits = cast(ImageFormat, requested), 8
     else:
         raise InvalidOptions(
-            f"unknown image format {requested!r}: use same, png, png16, exr or jpeg"
+            f"unknown image format {requested!r}: use same, png, png16, exr, jpeg, ktx2, "
+            "webp or avif"
         )
     if fmt == "jpeg" and image.channels == 4:
+        fmt = "png"
+    if fmt == "ktx2" and (
+        image.width % 4 or image.height % 4 or image.width * image.height > KTX2_MAX_PIXELS
+    ):
         fmt = "png"
     if depth > bits:
         if depth >= 32:
@@ -326,3 +389,15 @@ def output_format(image: ImageData, requested: str = "same") -> tuple[ImageForma
     if fmt == "tiff" and bits not in (8, 16, 32):
         bits = 32
     return fmt, bits, MIME[fmt], EXT[fmt]
+
+
+def output_encoding(image: ImageData, fmt: ImageFormat) -> TextureEncoding | None:
+    """The encoding ``image`` is written with as ``fmt``: its own when it keeps its KTX2/WebP
+    format, else :func:`~pbrsr_core.asset.texture_codecs.default_encoding` for its role (a
+    colour map or data) and source (WebP lossless from a lossless source)."""
+    if fmt not in TEXTURE_FORMATS:
+        return None
+    if FORMAT_OF_MIME.get(image.mime) == fmt and image.encoding is not None:
+        return image.encoding
+    lossless = image.mime in _LOSSLESS_MIMES or getattr(image.encoding, "lossless", False)
+    return default_encoding(cast(TextureFormat, fmt), bool(image.roles & SRGB_ROLES), lossless)

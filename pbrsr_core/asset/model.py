@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from .jpeg import JpegQuant
+from .texture_codecs import TextureEncoding
 
 MapRole = Literal["base_color", "metallic_roughness", "normal", "occlusion", "emissive"]
 MAP_ROLES: tuple[MapRole, ...] = (
@@ -169,9 +170,12 @@ class ImageData:
 
     ``pixels`` (H, W, C) float32 in [0, 1] as stored (see module docstring); ``bit_depth`` is
     8, 16 or 32 (float); ``mime`` is the source type ("image/png", "image/jpeg",
-    "image/x-exr", "image/tiff"); ``roles`` lists the material slots that use the image.
-    ``name`` is a safe, asset-relative label for messages and output file names.
+    "image/x-exr", "image/tiff", "image/ktx2", "image/webp", "image/avif"); ``roles`` lists the
+    material slots that use the image. ``name`` is a safe, asset-relative label for messages
+    and output file names.
     ``jpeg``: the quantisation tables of a 4:4:4 JPEG file (``asset.jpeg``), else None.
+    ``encoding``: how a KTX2 or WebP file is encoded (``asset.texture_codecs``), else None;
+    a KTX2 image's pixels are in its role's colour space even where its DFD says otherwise.
     """
 
     index: int
@@ -181,6 +185,7 @@ class ImageData:
     mime: str
     roles: set[str] = field(default_factory=set)
     jpeg: JpegQuant | None = None
+    encoding: TextureEncoding | None = None
 
     @property
     def height(self) -> int:

@@ -16,7 +16,8 @@ def register(app: typer.Typer) -> None:
         image_format: str = typer.Option(
             "same",
             "--format",
-            help="LR image format: same (JPEG stays JPEG, compressed again), png, png16, exr.",
+            help="LR image format: same (JPEG stays JPEG, compressed again; KTX2, WebP, AVIF "
+            "keep their encodings), png, png16, exr, jpeg, ktx2, webp, avif.",
         ),
     ) -> None:
         """Make the LR input of the evaluation protocol: Gaussian blur (sigma = 0.375 x

@@ -48,7 +48,12 @@ def register(app: typer.Typer) -> None:
         envmap: Annotated[str | None, typer.Option(help=".hdr/.exr environment")] = None,
         seed: Annotated[int, typer.Option()] = 0,
         image_format: Annotated[
-            str, typer.Option("--format", help="same, png, png16, exr, jpeg")
+            str,
+            typer.Option(
+                "--texture-format",
+                "--format",
+                help="same, png, png16, exr, jpeg, ktx2, webp, avif",
+            ),
         ] = "same",
         device: Annotated[str, typer.Option(help="auto, cpu, cuda, cuda:N")] = "auto",
         overwrite: Annotated[bool, typer.Option(help="replace an existing output folder")] = False,

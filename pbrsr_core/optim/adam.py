@@ -6,7 +6,7 @@ paid by every CLI call and every benchmark subprocess. The update itself is the 
 ``torch.optim.Adam(fused=True)`` calls, ``aten::_fused_adam_`` (one pass over a parameter, its
 gradient and its two moments; CPU and CUDA), with torch's defaults: betas (0.9, 0.999),
 eps 1e-8, no weight decay, bias-corrected with a per-parameter step count.
-tests/test_adam.py compares it with ``torch.optim.Adam`` step for step.
+tests/core/optim/test_adam.py compares it with ``torch.optim.Adam`` step for step.
 """
 
 from __future__ import annotations

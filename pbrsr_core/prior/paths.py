@@ -5,8 +5,9 @@ from ``PBRSR_CACHE_DIR`` and ``PBRSR_NPM_DIR``):
 
 - ``cache_dir``: converted weights; default ``~/.cache/pbrsr`` (the entry points:
   ``$XDG_CACHE_HOME/pbrsr`` when that is set).
-- ``npm_dir``: the ``node_modules`` directory holding ``@upscalerjs/esrgan-thick``;
-  default the repository's ``tools/npm/node_modules``.
+- ``npm_dir``: the ``node_modules`` directory holding ``@upscalerjs/esrgan-thick`` (and
+  ``ktx2-encoder``, :mod:`pbrsr_core.asset.basis_encoder`); default the repository's
+  ``tools/npm/node_modules``.
 """
 
 from __future__ import annotations
@@ -22,5 +23,5 @@ def cache_dir() -> Path:
 
 
 def npm_dir() -> Path:
-    """The ``node_modules`` directory that holds the npm weight packages."""
+    """The ``node_modules`` directory that holds the npm packages."""
     return runtime.npm_dir()

@@ -105,7 +105,7 @@ class RRDNPrior(Prior):
     # outputs near it (measured at x2: 7e-2 at the edge, < 1e-3 beyond 6 LR px, < 1e-6 beyond
     # 14), so tiles share 32 px and the blend ignores the outer 8.
     default_overlap = 32
-    bf16_validated = True  # 56 dB from float32 at x4 (tests/test_prior_rrdn.py checks >= 45)
+    bf16_validated = True  # 56 dB from float32 at x4 (tests/core/prior/test_rrdn.py checks >= 45)
 
     def __init__(self, device: torch.device | str = "cpu") -> None:
         super().__init__()

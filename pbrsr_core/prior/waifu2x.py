@@ -6,8 +6,8 @@ removal), read from the ncnn model files inside the PyPI package ``waifu2x-ncnn-
 Each pass doubles the size; x4 and x8 run it two and three times, clamping to [0, 1] between
 passes as an image file would. The package itself is never imported (its ncnn/Vulkan library
 is not needed): the model files are found through the installed distribution's file list.
-The torch network reproduces the package's own ncnn output to 59 dB (tests/test_prior_waifu2x.py
-runs both where the package's library loads).
+The torch network reproduces the package's own ncnn output to 59 dB
+(tests/core/prior/test_waifu2x.py runs both where the package's library loads).
 
 Why it is the default (``pbrsr bench prior``, 16 albedo crops of the shared assets and 5
 photos, LR by ``pbrsr degrade``'s protocol, x4): +1.35 dB over bicubic on textures and +1.23

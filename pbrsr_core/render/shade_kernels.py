@@ -407,13 +407,20 @@ def _np(t: torch.Tensor) -> np.ndarray:
     return t.detach().contiguous().numpy()
 
 
+@numba.njit(**_INL)
+def _encoded_normal(t, p, sx):
+    """(v0, v1, v2, |v|^2) of v = (2 t[p] - 1) * (sx, sx, 1): the tangent-space normal an
+    encoded normal-map sample stands for, before normalising."""
+    v0 = (2.0 * _f64(t[p, 0]) - 1.0) * sx
+    v1 = (2.0 * _f64(t[p, 1]) - 1.0) * sx
+    v2 = 2.0 * _f64(t[p, 2]) - 1.0
+    return v0, v1, v2, v0 * v0 + v1 * v1 + v2 * v2
+
+
 @numba.njit(**_PAR)
 def _decode_fwd(t, sx, out):
     for p in numba.prange(t.shape[0]):
-        v0 = (2.0 * _f64(t[p, 0]) - 1.0) * sx
-        v1 = (2.0 * _f64(t[p, 1]) - 1.0) * sx
-        v2 = 2.0 * _f64(t[p, 2]) - 1.0
-        n2 = v0 * v0 + v1 * v1 + v2 * v2
+        v0, v1, v2, n2 = _encoded_normal(t, p, sx)
         if n2 > NORMAL_MIN2:
             sn = math.sqrt(max(n2, NORM_EPS2))
             out[p, 0], out[p, 1], out[p, 2] = v0 / sn, v1 / sn, v2 / sn
@@ -424,10 +431,7 @@ def _decode_fwd(t, sx, out):
 @numba.njit(**_PAR)
 def _decode_bwd(t, sx, g, gt):
     for p in numba.prange(t.shape[0]):
-        v0 = (2.0 * _f64(t[p, 0]) - 1.0) * sx
-        v1 = (2.0 * _f64(t[p, 1]) - 1.0) * sx
-        v2 = 2.0 * _f64(t[p, 2]) - 1.0
-        n2 = v0 * v0 + v1 * v1 + v2 * v2
+        v0, v1, v2, n2 = _encoded_normal(t, p, sx)
         if n2 > NORMAL_MIN2:
             sn = math.sqrt(max(n2, NORM_EPS2))
             n0, n1, nz = v0 / sn, v1 / sn, v2 / sn

@@ -1,0 +1,235 @@
+"""`pbrsr bench upscale` end to end on the tiny procedural assets (no shared assets)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pbrsr_bench.upscale import bench_assets, run, summary
+from pbrsr_core.asset import load_asset, make_demo_asset, make_test_asset
+
+
+def test_bench_upscale_small_run(tmp_path: Path):
+    said: list[str] = []
+    rows = run(
+        out_dir=tmp_path / "out",
+        methods=("fast",),
+        prior="bicubic",
+        eval_res=64,
+        eval_views=4,
+        procedural_size=64,
+        shared=tmp_path / "no-shared-assets",
+        log=said.append,
+    )
+    assert any("not present" in s for s in said)
+    assert [(r["asset"], r["method"]) for r in rows] == [
+        ("procedural", "fast"),
+        ("procedural-cutout", "fast"),
+    ]
+    for r in rows:
+        assert r["run_s"] > 0 and r["peak_rss_mib"] > 0
+        assert 5.0 < r["render.psnr"] < 100.0 and "maps.albedo.psnr" in r
+    assert "maps.normal.psnr" in rows[1]  # the foliage card's normal map is scored too
+    fast = rows[0]
+    assert fast["curve"] and fast["curve"][0]["it"] == 0
+    assert [c["seconds"] for c in fast["curve"]] == sorted(c["seconds"] for c in fast["curve"])
+    saved = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert len(saved["rows"]) == 2
+    assert (tmp_path / "out" / "speed_vs_error.png").stat().st_size > 0
+    assert "| procedural | fast |" in (tmp_path / "out" / "results.md").read_text()
+
+
+def _row(asset, method, render, albedo, run_s):
+    return {
+        "asset": asset,
+        "method": method,
+        "render.psnr": render,
+        "maps.albedo.psnr": albedo,
+        "maps.normal.psnr": 30.0,
+        "run_s": run_s,
+        "peak_rss_mib": 100.0 * run_s,
+        "curve": [],
+    }
+
+
+def test_summary_gains_worst_map_and_fast_share():
+    from pbrsr_bench.upscale import markdown_table, summary_table
+
+    rows = [
+        _row("a", "bicubic", 28.0, 27.0, 1.0),
+        _row("a", "fast", 28.4, 27.5, 10.0),
+        _row("a", "balanced", 29.0, 26.8, 40.0),
+        _row("b", "bicubic", 30.0, 31.0, 1.0),
+        _row("b", "fast", 30.2, 31.1, 10.0),
+        _row("b", "balanced", 30.6, 31.2, 40.0),
+        _row("procedural", "bicubic", 20.0, 20.0, 1.0),  # left out of the means
+        _row("procedural", "balanced", 30.0, 10.0, 1.0),
+    ]
+    rows[0]["maps.emissive.psnr"], rows[1]["maps.emissive.psnr"] = 40.0, 39.0
+    s = {r["method"]: r for r in summary(rows)}
+    assert set(s) == {"fast", "balanced"}
+    assert s["fast"]["worst_map_db"] == -1.0 and s["fast"]["worst_map_at"] == "a emissive"
+    del rows[1]["maps.emissive.psnr"]
+    s = {r["method"]: r for r in summary(rows)}
+    assert s["balanced"]["render_gain_db"] == 0.8 and s["fast"]["render_gain_db"] == 0.3
+    assert s["balanced"]["worst_map_db"] == -0.2 and s["balanced"]["worst_map_at"] == "a albedo"
+    assert s["fast"]["worst_map_db"] == 0.0  # normals equal, albedo above
+    assert s["balanced"]["mean_run_s"] == 40.0 and s["balanced"]["max_peak_mib"] == 4000
+    table = markdown_table(rows)
+    assert "| occlusion | emissive |" in table and "| 27.50 | - | - | 30.00 | - | - |" in table
+    text = summary_table(rows)
+    assert (
+        "fast keeps 37 % of balanced's mean render-PSNR gain in 25 % of its mean run time" in text
+    )
+
+
+def test_bench_assets_refuses_an_unknown_name(tmp_path: Path):
+    shared = tmp_path / "shared"
+    (shared / "Chair").mkdir(parents=True)
+    make_demo_asset(shared / "Chair" / "chair.glb", size=16)
+    found = bench_assets(tmp_path / "w", False, 16, shared, ["Chair"], print)
+    assert [name for name, _ in found] == ["Chair"]
+    with pytest.raises(ValueError, match="Chiar not found"):
+        bench_assets(tmp_path / "w", False, 16, shared, ["Chair", "Chiar"], print)
+    # --no-shared: the procedural assets alone, whatever the shared folder holds
+    said: list[str] = []
+    only = bench_assets(tmp_path / "w2", True, 16, shared, None, said.append, include_shared=False)
+    assert [name for name, _ in only] == ["procedural", "procedural-cutout"] and said == []
+
+
+def test_bench_assets_adds_the_draco_variant_of_the_water_bottle(tmp_path: Path):
+    shared = tmp_path / "shared"
+    (shared / "WaterBottle").mkdir(parents=True)
+    make_test_asset(shared / "WaterBottle" / "WaterBottle.gltf", size=16)
+    said: list[str] = []
+    found = dict(bench_assets(tmp_path / "w", False, 16, shared, None, said.append, variants=True))
+    assert list(found) == ["WaterBottle", "WaterBottle-draco", "WaterBottle-draco-ktx2"]
+    variant = found["WaterBottle-draco"]
+    assert variant == tmp_path / "w" / "WaterBottle-draco" / "WaterBottle.glb"
+    plain, draco = load_asset(found["WaterBottle"]), load_asset(variant)
+    assert draco.document["extensionsRequired"] == ["KHR_draco_mesh_compression"]
+    assert draco.geometry is not None and draco.geometry.accessors
+    assert draco.mesh.num_triangles == plain.mesh.num_triangles
+    assert [im.pixels.shape for im in draco.images] == [im.pixels.shape for im in plain.images]
+    ktx2 = load_asset(found["WaterBottle-draco-ktx2"])
+    assert set(ktx2.document["extensionsRequired"]) == {
+        "KHR_draco_mesh_compression",
+        "KHR_texture_basisu",
+    }
+    assert ktx2.mesh.num_triangles == plain.mesh.num_triangles
+    for im, ref in zip(ktx2.images, plain.images, strict=True):
+        assert im.pixels.shape == ref.pixels.shape
+        assert im.mime == ("image/ktx2" if ref.bit_depth == 8 else "image/png")  # 16 bits kept
+        # Basis on 16² test patterns: the colours kept, not the texels (ETC1S blocks)
+        assert np.abs(im.pixels.mean((0, 1)) - ref.pixels.mean((0, 1))).max() < 0.05
+    # named alone, the variant comes without its source; other benchmarks get none
+    only = bench_assets(
+        tmp_path / "w2", False, 16, shared, ["WaterBottle-draco"], print, variants=True
+    )
+    assert [name for name, _ in only] == ["WaterBottle-draco"]
+    assert [n for n, _ in bench_assets(tmp_path / "w3", False, 16, shared, None, print)] == [
+        "WaterBottle"
+    ]
+    # the variant repeats its source's maps: the summary means leave it out
+    rows = [
+        {"asset": a, "method": m, "render.psnr": p, "run_s": 1.0, "peak_rss_mib": 1.0}
+        for a, m, p in [
+            ("WaterBottle", "bicubic", 30.0),
+            ("WaterBottle", "fast", 31.0),
+            ("WaterBottle-draco", "bicubic", 20.0),
+            ("WaterBottle-draco", "fast", 30.0),
+        ]
+    ]
+    assert summary(rows)[0]["render_gain_db"] == 1.0 and summary(rows)[0]["assets"] == 1
+
+
+def test_methods_may_name_their_prior_and_unknown_ones_are_refused():
+    from pbrsr_bench.upscale import check_methods, method_options
+
+    assert method_options("direct@bicubic", 4, "waifu2x-photo")["prior"] == "bicubic"
+    assert method_options("direct", 4, "waifu2x-photo")["prior"] == "waifu2x-photo"
+    opts = method_options("balanced@pbr-upconv7", 2, "bicubic")
+    assert opts == {"method": "pbrsr", "preset": "balanced", "scale": 2, "prior": "pbr-upconv7"}
+    check_methods(("bicubic", "direct@waifu2x-photo", "fast@pbr-upconv7"), "bicubic")
+    with pytest.raises(ValueError, match="unknown method 'fastest'"):
+        check_methods(("fastest",), "bicubic")
+    with pytest.raises(ValueError, match="nosuchprior"):
+        check_methods(("direct@nosuchprior",), "bicubic")
+
+
+def test_methods_take_preset_changes():
+    from pbrsr_bench.upscale import check_methods, parse_method
+
+    name, prior, changes = parse_method("balanced@pbr-upconv7+lambda_pix=0+pseudo_gt_prior=bicubic")
+    assert (name, prior) == ("balanced", "pbr-upconv7")
+    assert changes == {"lambda_pix": 0, "pseudo_gt_prior": "bicubic"}
+    assert parse_method("fast") == ("fast", None, {})
+    check_methods(("balanced+iterations=50+pseudo_gt_prior=waifu2x-photo",), "bicubic")
+    with pytest.raises(ValueError, match="not key=value"):
+        check_methods(("balanced+lambda_pix",), "bicubic")
+    with pytest.raises(ValueError, match="only a PBR-SR preset"):
+        check_methods(("direct+lambda_pix=0",), "bicubic")
+    with pytest.raises(ValueError, match="no_such_field"):
+        check_methods(("balanced+no_such_field=1",), "bicubic")
+    with pytest.raises(ValueError, match="unknown prior 'nope'"):
+        check_methods(("balanced+pseudo_gt_prior=nope",), "bicubic")
+
+
+def _bench_cli():
+    import typer
+
+    from pbrsr_bench import cli as bench
+
+    app = typer.Typer()
+    bench.register(app)
+    return app
+
+
+def test_publish_writes_the_summary_between_the_markers_only(tmp_path):
+    from typer.testing import CliRunner
+
+    rows = [
+        _row("procedural", "bicubic", 20.0, 20.0, 1.0),
+        _row("a", "bicubic", 28.0, 27.0, 1.0),
+        _row("a", "fast", 28.4, 27.5, 10.0),
+        _row("b", "bicubic", 30.0, 31.0, 1.0),
+        _row("b", "fast", 31.0, 31.2, 14.0),
+    ]
+    meta = {"scale": 4, "prior": "pbr-upconv7", "eval_res": 256, "eval_views": 40}
+    meta.update(lights=["a.hdr", "b.hdr"], machine="a test CPU, 2 cores")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "results.json").write_text(json.dumps({**meta, "rows": rows}))
+    doc = tmp_path / "README.md"
+    head, tail = "# Title\n\ntext before\n", "\ntext after\n"
+    doc.write_text(head + "<!-- bench:upscale -->\nold numbers\n<!-- /bench:upscale -->" + tail)
+    res = CliRunner().invoke(_bench_cli(), ["bench", "publish", str(out), "--docs", str(doc)])
+    assert res.exit_code == 0, res.output
+    text = doc.read_text()
+    assert text.startswith(head + "<!-- bench:upscale -->\n") and text.endswith(tail)
+    assert "old numbers" not in text
+    assert "| fast | 2 | +0.70 dB |" in text  # mean of +0.4 and +1.0 over the shared a, b
+    assert "2 shared assets (a, b)" in text and "a test CPU, 2 cores" in text
+    assert "`pbrsr bench upscale --methods bicubic,fast --eval-views 40`" in text
+    # a second run replaces the section again, nothing else
+    again = CliRunner().invoke(_bench_cli(), ["bench", "publish", str(out), "--docs", str(doc)])
+    assert again.exit_code == 0 and doc.read_text() == text
+
+
+def test_docs_without_markers_are_refused_before_the_bench_runs(tmp_path):
+    from typer.testing import CliRunner
+
+    doc = tmp_path / "plain.md"
+    doc.write_text("# no markers\n")
+    out = tmp_path / "out"
+    res = CliRunner().invoke(
+        _bench_cli(), ["bench", "upscale", "-o", str(out), "--docs", str(doc), "--no-shared"]
+    )
+    assert res.exit_code == 2
+    assert "no '<!-- bench:upscale -->'" in res.output
+    assert not out.exists() and doc.read_text() == "# no markers\n"
+    res = CliRunner().invoke(_bench_cli(), ["bench", "publish", str(out), "--docs", str(doc)])
+    assert res.exit_code == 2 and "no results.json" in res.output

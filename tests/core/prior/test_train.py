@@ -1,0 +1,395 @@
+"""Training texture priors (pbrsr_core/prior/train): the split, the symmetries of normal maps,
+a tiny network trained on procedural textures (loss falls, a resumed run is exact), the
+weights file, the texture prior that loads it, and `pbrsr priors train` end to end."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+import torch
+
+from pbrsr_core.errors import InvalidOptions, PriorUnavailable
+from pbrsr_core.prior.registry import check_name, load_prior
+from pbrsr_core.prior.texture import TexturePrior
+from pbrsr_core.prior.train.data import (
+    CropSampler,
+    dihedral,
+    load_materials,
+    read_manifest,
+    split_materials,
+)
+from pbrsr_core.prior.train.loop import TrainConfig, build_network, train
+from pbrsr_core.prior.train.weights import load_network, save_network
+from pbrsr_core.prior.waifu2x import UpConv7
+from tests.clirun import run_cli
+
+TINY = (4, 8)
+
+
+def _height(size: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:size, 0:size] / size
+    h = np.zeros((size, size))
+    for _ in range(6):
+        fx, fy, ph = rng.uniform(1, 9), rng.uniform(1, 9), rng.uniform(0, 6.3)
+        h += np.sin(2 * np.pi * (fx * x + fy * y) + ph) / (fx + fy)
+    return (h - h.min()) / (np.ptp(h) + 1e-9)
+
+
+def normals_from_height(h: np.ndarray, strength: float = 4.0) -> np.ndarray:
+    """Encoded OpenGL normals (+X right, +Y up) of a height field (rows run down)."""
+    d_row, d_col = np.gradient(h)
+    n = np.stack(
+        [-d_col * strength * h.shape[1], d_row * strength * h.shape[0], np.ones_like(h)], -1
+    )
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return (n * 0.5 + 0.5).astype(np.float32)
+
+
+def _write(path: Path, pixels: np.ndarray) -> None:
+    a = np.clip(np.round(pixels * 255), 0, 255).astype(np.uint8)
+    spec = oiio.ImageSpec(a.shape[1], a.shape[0], 1 if a.ndim == 2 else a.shape[2], oiio.UINT8)
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), spec)
+    out.write_image(a)
+    out.close()
+
+
+def make_texture_folder(root: Path, n: int = 10, size: int = 128) -> Path:
+    """A manifest and ``n`` procedural materials: basecolor everywhere, normal/roughness/
+    metallic on every other one."""
+    manifest = {}
+    for i in range(n):
+        name = f"mat{i:02d}"
+        (root / name).mkdir(parents=True)
+        h = _height(size, i)
+        rng = np.random.default_rng(100 + i)
+        tint = rng.uniform(0.2, 0.9, 3)
+        files = {"basecolor": "basecolor.png"}
+        _write(root / name / "basecolor.png", h[..., None] * tint + 0.05 * (1 - h[..., None]))
+        if i % 2 == 0:
+            files.update(normal="normal.png", roughness="roughness.png", metallic="metallic.png")
+            _write(root / name / "normal.png", normals_from_height(h))
+            _write(root / name / "roughness.png", 1 - 0.7 * h)
+            _write(root / name / "metallic.png", (h > 0.6).astype(np.float32))
+        manifest[name] = {"files": files, "maps": list(files)}
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    return root
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    return make_texture_folder(tmp_path_factory.mktemp("textures"))
+
+
+@pytest.fixture(scope="module")
+def materials(folder):
+    manifest = read_manifest(folder)
+    train_names, held = split_materials(manifest)
+    return load_materials(folder, train_names, manifest), load_materials(folder, held, manifest)
+
+
+def test_split_is_deterministic_by_material_and_keeps_quotas():
+    manifest = {f"m{i}": {"files": {"basecolor": "b.jpg"}} for i in range(60)}
+    for i in range(0, 60, 3):
+        manifest[f"m{i}"]["files"]["normal"] = "n.jpg"
+    a_train, a_held = split_materials(manifest)
+    b_train, b_held = split_materials(dict(reversed(list(manifest.items()))))
+    assert (a_train, a_held) == (b_train, b_held)
+    assert not set(a_train) & set(a_held) and len(a_train) + len(a_held) == 60
+    assert 12 <= len(a_held) <= 16  # basecolor quota 12, normal quota 4 (20 // 5)
+    assert sum("normal" in manifest[m]["files"] for m in a_held) == 4
+
+
+@pytest.mark.parametrize("op", range(8))
+def test_dihedral_moves_normal_vectors_with_the_pixels(op):
+    """Transforming a height field and deriving its normals equals transforming the normals."""
+    h = _height(48, 3)
+    n = torch.from_numpy(normals_from_height(h)).permute(2, 0, 1)[None].double()
+    h_t = dihedral(torch.from_numpy(h)[None, None].expand(1, 3, -1, -1), op, "colour")
+    expect = torch.from_numpy(normals_from_height(h_t[0, 0].numpy())).permute(2, 0, 1)[None]
+    got = dihedral(n, op, "normal")
+    assert torch.allclose(got.float(), expect, atol=1e-5)
+    if op:  # a pixel move alone (the colour rule) is wrong for a normal map
+        assert not torch.allclose(dihedral(n, op, "colour").float(), expect, atol=1e-3)
+
+
+def test_sampler_batches_are_a_function_of_seed_and_step(materials):
+    train_m, _ = materials
+    s = CropSampler(train_m, ("colour", "data", "normal"), 2, 32, 6, seed=5)
+    lr1, hr1, k1 = s.batch(7)
+    lr2, hr2, k2 = s.batch(7)
+    assert torch.equal(lr1, lr2) and torch.equal(hr1, hr2) and k1 == k2
+    assert set(k1) == {"colour", "data", "normal"}
+    assert lr1.shape == (6, 3, 16, 16) and hr1.shape == (6, 3, 32, 32)
+    assert not torch.equal(s.batch(8)[1], hr1)
+    normals = hr1[[i for i, k in enumerate(k1) if k == "normal"]] * 2 - 1
+    assert (normals[:, 2] > 0).all()
+
+
+class _Stop(Exception):
+    pass
+
+
+@pytest.fixture
+def one_thread():
+    """One torch thread: the same operations in the same order on every run."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def test_tiny_network_learns_and_resumes_exactly(materials, tmp_path, one_thread):
+    train_m, val_m = materials
+    cfg = TrainConfig(
+        kinds=("colour",),
+        steps=60,
+        batch_size=4,
+        patch=32,
+        val_patch=64,
+        lr=2e-3,
+        widths=TINY,
+        init="random",
+        val_every=30,
+        ckpt_every=30,
+    )
+    weights, hist = train(cfg, train_m, val_m, tmp_path / "a", name="tiny", resume=False)
+    assert hist.loss[-1] < 0.6 * hist.loss[0], hist.loss
+    assert weights.is_file() and hist.best_step in (30, 60)
+
+    def stop_at_30(step, total, info):
+        if step == 30:
+            raise _Stop
+
+    with pytest.raises(_Stop):
+        train(cfg, train_m, val_m, tmp_path / "b", name="tiny", progress=stop_at_30)
+    _, hist_b = train(cfg, train_m, val_m, tmp_path / "b", name="tiny")
+    a = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
+    b = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
+    for key in ("net", "ema"):
+        for name, t in a[key].items():
+            assert torch.equal(t, b[key][name]), (key, name)
+    assert hist_b.loss == hist.loss and hist_b.val_psnr == hist.val_psnr
+    other = TrainConfig(**{**cfg.__dict__, "lr": 1e-3})
+    with pytest.raises(InvalidOptions, match="other settings"):
+        train(other, train_m, val_m, tmp_path / "b", name="tiny")
+
+
+def test_weights_file_round_trip_and_texture_prior(tmp_path):
+    cfg = TrainConfig(kinds=("colour",), widths=TINY, init="random")
+    nets = {}
+    for kind in ("colour", "normal"):
+        torch.manual_seed(len(nets))
+        nets[kind] = UpConv7(TINY)
+        cfg.kinds = (kind,)
+        save_network(nets[kind], tmp_path / f"t-{kind}.safetensors", cfg, {"step": "1"})
+    back = load_network(tmp_path / "t-colour.safetensors")
+    assert back.widths == TINY
+    x = torch.rand(1, 3, 20, 20)
+    assert torch.equal(back(x), nets["colour"].eval()(x))
+    prior = TexturePrior(tmp_path)
+    assert prior.for_kind("normal") is not prior and prior.for_kind("colour") is prior
+    assert prior.for_kind("data").name == "waifu2x-photo"  # no data weights: the fallback
+    with torch.no_grad():
+        a = prior.for_kind("colour")._forward(x, 2)
+        b = prior.for_kind("normal")._forward(x, 2)
+    assert a.shape == (1, 3, 40, 40) and not torch.equal(a, b)
+    up = prior.upscale(x, 4)
+    assert up.shape == (1, 3, 80, 80) and torch.isfinite(up).all()
+    check_name(f"texture:{tmp_path}")
+    with pytest.raises(PriorUnavailable):
+        TexturePrior(tmp_path / "missing")
+    (tmp_path / "junk.safetensors").write_bytes(b"not a file")
+    with pytest.raises(PriorUnavailable):
+        TexturePrior(tmp_path)
+
+
+def test_shipped_prior_loads_and_upscales_each_kind(capfd):
+    """pbr-upconv7 ships its normal network (the kind it wins on, MODEL_CARD.md); colour and
+    data maps and the renders go through waifu2x-photo. The default prior."""
+    from pbrsr_core.options import DEFAULT_PRIOR
+
+    prior = load_prior("pbr-upconv7")
+    assert DEFAULT_PRIOR == "pbr-upconv7" and prior.scales == (2, 4, 8)
+    assert set(prior.nets) == {"normal"}
+    assert prior.for_kind("colour").name == prior.for_kind("data").name == "waifu2x-photo"
+    x = torch.rand(1, 3, 24, 24)
+    for kind in ("colour", "data", "normal"):
+        for s in (2, 4):
+            y = prior.for_kind(kind).upscale(x, s)
+            assert y.shape == (1, 3, 24 * s, 24 * s) and torch.isfinite(y).all()
+    code, err = run_cli(["priors", "install", "pbr-upconv7"], capfd)
+    assert code == 0, err
+
+
+def test_cli_trains_reports_and_the_result_is_a_prior(tmp_path, capfd):
+    folder = make_texture_folder(tmp_path / "tex", n=10, size=256)
+    out = tmp_path / "out"
+    code, err = run_cli(
+        [
+            "priors",
+            "train",
+            "-o",
+            str(out),
+            "--textures",
+            str(folder),
+            "--kinds",
+            "colour,normal",
+            "--steps",
+            "4",
+            "--batch",
+            "2",
+            "--patch",
+            "32",
+            "--widths",
+            "4,8",
+            "-q",
+        ],
+        capfd,
+    )
+    assert code == 0, err
+    files = sorted(p.name for p in out.glob("*/*.safetensors"))
+    assert files == ["pbr-upconv7-colour.safetensors", "pbr-upconv7-normal.safetensors"]
+    report = json.loads((out / "report.json").read_text())
+    assert set(report) == {"colour", "normal"}
+    assert set(report["normal"]["4"]) == {"bicubic", "waifu2x-photo", "out"}
+    assert "angle" in report["normal"]["4"]["out"]
+    card = (out / "MODEL_CARD.md").read_text()
+    assert "CC0" in card and "priors train" in card and (out / "report.png").is_file()
+    prior = TexturePrior(out)  # the training output folder is a prior as it is written
+    assert set(prior.nets) == {"colour", "normal"}
+    assert prior.for_kind("normal").upscale(torch.rand(1, 3, 16, 16), 4).shape[-1] == 64
+    check_name(f"texture:{out}")
+    cmp = tmp_path / "cmp"
+    args = ["priors", "report", str(out), "-o", str(cmp), "--textures", str(folder)]
+    code, err = run_cli([*args, "--scales", "4"], capfd)
+    assert code == 0, err
+    again = json.loads((cmp / "report.json").read_text())
+    assert set(again["colour"]) == {"crops", "materials", "4"}
+    assert again["colour"]["4"]["out"] == report["colour"]["4"]["out"] | {
+        "seconds": again["colour"]["4"]["out"]["seconds"]
+    }
+    code, err = run_cli([*args, "--scales", "3"], capfd)
+    assert code == InvalidOptions.exit_code and "among 2, 4, 8" in err
+    code, err = run_cli(["priors", "report", str(tmp_path), "-o", str(cmp)], capfd)
+    assert code == InvalidOptions.exit_code and "no trained networks" in err
+
+
+@pytest.mark.parametrize(
+    ("extra", "says"),
+    [
+        (["--kinds", "colour,gloss"], "gloss"),
+        (["--patch", "33"], "multiple"),
+        (["--widths", "4,x"], "widths"),
+    ],
+)
+def test_cli_refuses_bad_training_input(tmp_path, capfd, extra, says):
+    folder = make_texture_folder(tmp_path / "tex", n=10, size=64)
+    out = tmp_path / "o"
+    code, err = run_cli(
+        ["priors", "train", "-o", str(out), "--textures", str(folder), "-q", *extra], capfd
+    )
+    assert code == InvalidOptions.exit_code and says in err, err
+    assert not out.exists()
+
+
+def test_cli_refuses_a_missing_texture_folder(tmp_path, capfd):
+    out = tmp_path / "o"
+    code, err = run_cli(
+        ["priors", "train", "-o", str(out), "--textures", str(tmp_path / "no")], capfd
+    )
+    assert code == InvalidOptions.exit_code and "not found" in err, err
+    assert not out.exists()
+
+
+def test_stride_four_network_runs_x4_in_one_pass_and_mixes_with_x2(tmp_path):
+    from pbrsr_core.prior.texture import passes
+
+    assert passes({2}, 8) == [2, 2, 2] and passes({2, 4}, 8) == [4, 2] and passes({4}, 2) is None
+    net4 = UpConv7(TINY, stride=4)
+    assert net4(torch.rand(1, 3, 10, 12)).shape == (1, 3, 40, 48)
+    cfg = TrainConfig(kinds=("colour",), widths=TINY, init="random", stride=4, scale=4)
+    save_network(net4, tmp_path / "c4.safetensors", cfg, {})
+    only4 = TexturePrior(tmp_path)
+    assert only4.scales == (4,)
+    save_network(UpConv7(TINY), tmp_path / "c2.safetensors", TrainConfig(widths=TINY), {})
+    both = TexturePrior(tmp_path)
+    assert both.scales == (2, 4, 8)
+    x = torch.rand(1, 3, 8, 8)
+    with torch.no_grad():
+        expect = both.nets["colour"][2](both.nets["colour"][4](x).clamp(0, 1)).clamp(0, 1)
+        assert torch.equal(both._forward(x, 8), expect)
+    with pytest.raises(InvalidOptions, match="stride 4"):
+        TrainConfig(stride=4, scale=2).check()
+
+
+def test_start_weights_of_another_stride_give_the_convolutions(tmp_path):
+    x2 = UpConv7(TINY)
+    save_network(x2, tmp_path / "x2.safetensors", TrainConfig(widths=TINY), {})
+    cfg = TrainConfig(widths=TINY, stride=4, scale=4, init=str(tmp_path / "x2.safetensors"))
+    net = build_network(cfg)
+    for a, b in zip(net.mods[:-1], x2.mods[:-1], strict=True):
+        assert torch.equal(a.weight, b.weight) and torch.equal(a.bias, b.bias)
+    assert net.mods[-1].weight.shape != x2.mods[-1].weight.shape
+    with pytest.raises(InvalidOptions, match="widths"):
+        build_network(TrainConfig(widths=(4, 4), init=str(tmp_path / "x2.safetensors")))
+
+
+def test_start_weights_resolve_per_kind(tmp_path):
+    from pbrsr_core.prior.train.weights import resolve_start
+
+    for kind, stride in (("colour", 2), ("colour", 4), ("normal", 2)):
+        cfg = TrainConfig(kinds=(kind,), widths=TINY, stride=stride, scale=4)
+        save_network(
+            UpConv7(TINY, stride=stride), tmp_path / f"{kind}{stride}.safetensors", cfg, {}
+        )
+    src = f"texture:{tmp_path}"
+    assert resolve_start(src, "colour", 4).endswith("colour4.safetensors")
+    assert resolve_start(src, "colour", 2).endswith("colour2.safetensors")
+    assert resolve_start(src, "normal", 4).endswith("normal2.safetensors")  # the other stride
+    assert resolve_start("waifu2x-photo", "data", 2) == "waifu2x-photo"
+    with pytest.raises(PriorUnavailable, match="no weights for data"):
+        resolve_start(src, "data", 2)
+    with pytest.raises(PriorUnavailable, match="cannot start from"):
+        resolve_start("rrdn-thick", "colour", 2)
+
+
+def test_report_leaves_out_the_scales_a_set_cannot_run(tmp_path):
+    """A set of x4 networks only has no x2 (nor x8) entry; its x4 is scored."""
+    from pbrsr_core.prior.train.report import write_report
+
+    folder = make_texture_folder(tmp_path / "tex", n=10, size=256)
+    manifest = read_manifest(folder)
+    held = load_materials(folder, split_materials(manifest)[1], manifest)
+
+    cfg = TrainConfig(kinds=("colour",), widths=TINY, init="random", stride=4, scale=4)
+    (tmp_path / "s4" / "c").mkdir(parents=True)
+    save_network(UpConv7(TINY, stride=4), tmp_path / "s4" / "c" / "c.safetensors", cfg, {})
+    md = write_report(tmp_path / "rep", held, (2, 4), folders=[tmp_path / "s4"])
+    report = json.loads((tmp_path / "rep" / "report.json").read_text())
+    assert "s4" not in report["colour"]["2"] and "s4" in report["colour"]["4"]
+    assert set(report["colour"]["2"]) == {"bicubic", "waifu2x-photo"}
+    row = next(line for line in md.read_text().splitlines() if line.startswith("| s4 "))
+    assert row.split("|")[2].strip() == "-"
+    assert "stride x4" in (tmp_path / "rep" / "MODEL_CARD.md").read_text()
+
+
+def test_set_without_colour_network_runs_renders_through_the_fallback(tmp_path):
+    """A set of a normal network only: normal maps go through it; colour maps and images of
+    no stated kind (the optimiser's renders) through waifu2x-photo."""
+    cfg = TrainConfig(kinds=("normal",), widths=TINY, init="random")
+    save_network(UpConv7(TINY), tmp_path / "n.safetensors", cfg, {})
+    prior = TexturePrior(tmp_path)
+    photo = load_prior("waifu2x-photo")
+    assert prior.for_kind("colour") is prior.for_kind("data")
+    assert prior.for_kind("colour").name == photo.name and prior.scales == photo.scales
+    x = torch.rand(1, 3, 12, 12)
+    assert torch.allclose(prior.upscale(x, 2), photo.upscale(x, 2), atol=1e-6)
+    own = prior.for_kind("normal").upscale(x, 2)
+    assert own.shape == (1, 3, 24, 24) and not torch.allclose(own, photo.upscale(x, 2))
+    assert prior.num_parameters() == photo.num_parameters()

@@ -1,0 +1,276 @@
+"""The upscale pipeline end to end on small procedural assets: bundle layout, report, the
+output asset's validity and sizes, and baseline methods against their definitions."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from pbrsr_core.asset import (
+    load_asset,
+    make_demo_asset,
+    make_quad_asset,
+    make_test_asset,
+    read_image,
+    validate_gltf,
+)
+from pbrsr_core.errors import InvalidOptions, LimitExceeded, StorageError, UnprocessableAsset
+from pbrsr_core.limits import Limits
+from pbrsr_core.options import UpscaleOptions
+from pbrsr_core.pipeline import upscale_asset
+from pbrsr_core.prior.base import Prior
+from pbrsr_core.prior.direct import bicubic_map, project_map, upscale_map
+
+
+class Nearest(Prior):
+    """A back-projecting "network" (nearest upsampling, x2 and x4) that records the input
+    side and the factor of every call."""
+
+    name = "nearest"
+    scales = (2, 4)
+
+    def __init__(self):
+        super().__init__()
+        self.calls: list[tuple[int, int]] = []
+
+    def _forward(self, x, scale):
+        self.calls.append((x.shape[-1], scale))
+        return F.interpolate(x, scale_factor=scale, mode="nearest")
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory) -> Path:
+    return make_demo_asset(tmp_path_factory.mktemp("demo") / "demo.glb", size=32)
+
+
+def test_bicubic_bundle(demo: Path, tmp_path: Path):
+    events = []
+    report = upscale_asset(
+        demo, tmp_path / "out", UpscaleOptions(method="bicubic", scale=2), progress=events.append
+    )
+    out = tmp_path / "out"
+    assert (out / "demo.glb").is_file() and (out / "report.json").is_file()
+    assert (out / "preview.png").is_file()
+    for name in report["previews"].values():
+        assert (out / name).is_file()
+    assert json.loads((out / "report.json").read_text())["input"] == "demo.glb"
+    assert report["threads"] == torch.get_num_threads()  # what the run used
+    assert {e.stage for e in events} >= {"load", "export", "done"}
+    src, res = load_asset(demo), load_asset(out / "demo.glb")
+    for img in src.images:
+        if not img.roles:
+            continue
+        hr = res.images[img.index]
+        assert (hr.width, hr.height) == (2 * img.width, 2 * img.height)
+        assert hr.bit_depth >= img.bit_depth
+        map_file = (
+            out / report["images"][[i["index"] for i in report["images"]].index(img.index)]["file"]
+        )
+        # maps/ holds the same image as the asset (the same encoded PNG where formats agree)
+        assert np.array_equal(read_image(map_file.read_bytes(), map_file.name)[0], hr.pixels)
+        kind = "normal" if "normal" in img.roles else "data"
+        if kind == "data":  # bicubic maps round-trip through 8-bit PNG exactly as computed
+            ref = bicubic_map(img.pixels, kind, 2)
+            assert np.abs(hr.pixels - ref).max() <= 1.0 / 255 + 1e-6
+    assert validate_gltf(out / "demo.glb")["numErrors"] == 0
+    # nothing but the bundle is left beside it (the staging folder was renamed into place)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_gltf_keeps_form_and_direct_with_bicubic_prior(tmp_path: Path):
+    src = make_test_asset(tmp_path / "in" / "a.gltf", size=16, kind="gltf")
+    rb = upscale_asset(src, tmp_path / "b", UpscaleOptions(method="bicubic", scale=2))
+    rd = upscale_asset(
+        src, tmp_path / "d", UpscaleOptions(method="direct", prior="bicubic", scale=2)
+    )
+    assert (tmp_path / "d" / "a.gltf").is_file()
+    assert validate_gltf(tmp_path / "d" / "a.gltf")["numErrors"] == 0
+    b, d = load_asset(tmp_path / "b" / "a.gltf"), load_asset(tmp_path / "d" / "a.gltf")
+    for ib, idd in zip(b.images, d.images, strict=True):  # same prior: same maps
+        assert ib.pixels.shape == idd.pixels.shape
+        assert np.abs(ib.pixels - idd.pixels).max() <= 2.0 / 255
+    assert [i["hr_size"] for i in rb["images"]] == [i["hr_size"] for i in rd["images"]]
+
+
+@pytest.mark.parametrize("preset", ["fast", "balanced", "quality"])
+def test_pbrsr_method_runs_and_reports(demo: Path, tmp_path: Path, preset: str):
+    report = upscale_asset(
+        demo, tmp_path / "out", UpscaleOptions(method="pbrsr", preset=preset, prior="bicubic")
+    )
+    assert set(report["timings"]) >= {"load", "init", "project", "dilate", "preview"}
+    assert report["consistency_psnr_db"]
+    stages = {"gbuffers", "pseudo_gt", "optimize"}
+    if preset != "quality":  # PBR-SR's init and export, no optimisation steps
+        assert report["num_views"] == 0 and report["history"] == []
+        assert not stages & set(report["timings"])
+    else:
+        assert report["num_views"] >= 1 and report["history"]
+        assert set(report["timings"]) >= stages
+    res = load_asset(tmp_path / "out" / "demo.glb")
+    for img in res.images:
+        assert np.isfinite(img.pixels).all()
+        assert img.pixels.min() >= 0.0 and img.pixels.max() <= 1.0
+
+
+def test_nothing_to_upscale_leaves_nothing(tmp_path: Path):
+    src = make_quad_asset(tmp_path / "q" / "quad.gltf", size=8)
+    doc = json.loads(src.read_text())
+    for m in doc.get("materials", []):  # keep factors, drop every texture slot
+        for key in ("normalTexture", "occlusionTexture", "emissiveTexture"):
+            m.pop(key, None)
+        for key in ("baseColorTexture", "metallicRoughnessTexture"):
+            m.get("pbrMetallicRoughness", {}).pop(key, None)
+    src.write_text(json.dumps(doc))
+    with pytest.raises(UnprocessableAsset, match="nothing to upscale"):
+        upscale_asset(src, tmp_path / "o1", UpscaleOptions(method="bicubic"))
+    assert not (tmp_path / "o1").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["q"]
+
+
+def test_output_limit_and_non_empty_out(demo: Path, tmp_path: Path):
+    with pytest.raises(LimitExceeded, match="output limit"):
+        upscale_asset(
+            demo,
+            tmp_path / "o",
+            UpscaleOptions(method="bicubic", scale=8),
+            limits=Limits(max_output_dim=128),
+        )
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "x").write_text("keep me")
+    with pytest.raises(StorageError, match="not empty"):
+        upscale_asset(demo, tmp_path / "full", UpscaleOptions(method="bicubic"))
+    assert (tmp_path / "full" / "x").read_text() == "keep me"
+
+
+def _quad_with_prior(tmp_path: Path, monkeypatch, seed: int) -> tuple[Nearest, Path, np.ndarray]:
+    """A quad asset with a 32² albedo, a :class:`Nearest` prior the pipeline loads by the name
+    "n", and the albedo as stored (8-bit rounded)."""
+    import pbrsr_core.pipeline as pipeline
+
+    prior = Nearest()
+    real = pipeline.load_prior
+    monkeypatch.setattr(pipeline, "load_prior", lambda n, d: prior if n == "n" else real(n, d))
+    rng = np.random.default_rng(seed)
+    tex = np.clip(rng.random((32, 32, 3)) * 0.6 + 0.2, 0, 1).astype(np.float32)
+    asset = make_quad_asset(tmp_path / "q.gltf", {"base_color": tex})
+    return prior, asset, load_asset(asset).images[0].pixels
+
+
+def test_project_lr_back_projects_what_the_prior_initialised(tmp_path, monkeypatch):
+    from pbrsr_core.optim import presets
+
+    prior, asset, lr = _quad_with_prior(tmp_path, monkeypatch, seed=4)
+    frozen = presets.FAST.with_(iterations=0, check_prior=(), max_prior_scale=None)
+    init = upscale_map(prior, lr, "base_color", 4)
+    expected = {(): init, ("colour",): project_map(init, lr, 4, "base_color")}
+    assert np.abs(expected[("colour",)] - init).max() > 0.01  # the step does something
+    for kinds, want in expected.items():
+        monkeypatch.setitem(presets.PRESETS, "fast", frozen.with_(project_lr=kinds))
+        out = tmp_path / f"out{len(kinds)}"
+        report = upscale_asset(asset, out, UpscaleOptions(preset="fast", prior="n"))
+        assert "project" in report["timings"]
+        got = load_asset(out / "q.gltf").images[0].pixels
+        assert np.abs(got - want).max() <= 0.6 / 255, kinds
+    # a map bicubic initialised is not projected (bicubic is not an LR-consistent init)
+    monkeypatch.setitem(presets.PRESETS, "fast", frozen.with_(project_lr=("colour",)))
+    upscale_asset(asset, tmp_path / "bic", UpscaleOptions(preset="fast", prior="bicubic"))
+    got = load_asset(tmp_path / "bic" / "q.gltf").images[0].pixels
+    assert np.abs(got - bicubic_map(lr, "base_color", 4)).max() <= 0.6 / 255
+    with pytest.raises(InvalidOptions, match="project_lr"):
+        frozen.with_(project_lr=("albedo",))
+
+
+def test_max_prior_scale_reaches_the_init_and_the_self_check(tmp_path, monkeypatch):
+    """fast's prior runs x2 of the x4 (bicubic the rest, then projected onto its input), in
+    the self-check, the init and the pseudo-GT alike."""
+    from pbrsr_core.optim import presets
+
+    prior, asset, lr = _quad_with_prior(tmp_path, monkeypatch, seed=5)
+    assert presets.FAST.max_prior_scale == 2 and presets.BALANCED.max_prior_scale is None
+    frozen = presets.FAST.with_(iterations=0, project_lr=(), check_prior=())
+    monkeypatch.setitem(presets.PRESETS, "fast", frozen)
+    upscale_asset(asset, tmp_path / "a", UpscaleOptions(preset="fast", prior="n"))
+    assert prior.calls == [(32, 2)]  # the init: x2
+    got = load_asset(tmp_path / "a" / "q.gltf").images[0].pixels
+    want = upscale_map(Nearest(), lr, "base_color", 4, max_prior_scale=2)
+    assert np.abs(got - want).max() <= 0.6 / 255
+    prior.calls.clear()
+    checked = frozen.with_(check_prior=("colour",), iterations=1)
+    monkeypatch.setitem(presets.PRESETS, "fast", checked)
+    report = upscale_asset(asset, tmp_path / "b", UpscaleOptions(preset="fast", prior="n"))
+    assert report["prior_check"][0]["texels"] == 32 * 32
+    assert report["prior_check"][0]["use_prior"]
+    # the check one scale down, the init and the pseudo-GT of the rendered views: x2
+    assert prior.calls[:2] == [(8, 2), (32, 2)]
+    assert len(prior.calls) > 2 and {f for _, f in prior.calls[2:]} == {2}
+    # and the whole scale where the preset does not limit it
+    prior.calls.clear()
+    monkeypatch.setitem(presets.PRESETS, "fast", checked.with_(max_prior_scale=None))
+    upscale_asset(asset, tmp_path / "c", UpscaleOptions(preset="fast", prior="n"))
+    assert {f for _, f in prior.calls} == {4}
+    with pytest.raises(InvalidOptions, match="max_prior_scale"):
+        frozen.with_(max_prior_scale=1)
+
+
+def test_pseudo_gt_prior_makes_the_render_targets(tmp_path, monkeypatch):
+    """pseudo_gt_prior: the init comes from the run's prior, the pseudo-GT from the one named
+    (bicubic: the HR renders of the init maps)."""
+    from pbrsr_core.optim import presets
+
+    prior, asset, _ = _quad_with_prior(tmp_path, monkeypatch, seed=6)
+    one_step = presets.FAST.with_(iterations=1, check_prior=(), max_prior_scale=None)
+    monkeypatch.setitem(presets.PRESETS, "fast", one_step)
+    upscale_asset(asset, tmp_path / "a", UpscaleOptions(preset="fast", prior="n"))
+    assert prior.calls[0] == (32, 4) and len(prior.calls) > 1  # init, then the renders
+    prior.calls.clear()
+    monkeypatch.setitem(presets.PRESETS, "fast", one_step.with_(pseudo_gt_prior="bicubic"))
+    report = upscale_asset(asset, tmp_path / "b", UpscaleOptions(preset="fast", prior="n"))
+    assert prior.calls == [(32, 4)] and report["config"]["pseudo_gt_prior"] == "bicubic"
+    with pytest.raises(InvalidOptions, match="unknown prior"):
+        one_step.with_(pseudo_gt_prior="photo")
+
+
+@pytest.mark.parametrize("method", ["bicubic", "direct", "pbrsr"])
+def test_normal_maps_come_out_at_the_inputs_length(tmp_path: Path, method: str):
+    """A normal map stored at |n| = 0.9 comes back at 0.9 from every method (the optimiser
+    steps on unit normals; its export, projection and island padding keep the length)."""
+    y, x = np.mgrid[0:32, 0:32] / 32 * 2 * np.pi
+    n = np.stack([0.3 * np.sin(x), 0.3 * np.cos(y), np.ones_like(x)], -1)
+    n *= 0.9 / np.linalg.norm(n, axis=-1, keepdims=True)
+    base = np.full((32, 32, 3), 0.6, np.float32)
+    asset = make_quad_asset(
+        tmp_path / "q.gltf", {"base_color": base, "normal": ((n + 1) / 2).astype(np.float32)}
+    )
+    opts = {"bicubic": {"method": "bicubic"}, "direct": {"method": "direct", "prior": "bicubic"}}
+    options = UpscaleOptions(**opts.get(method, {"preset": "fast", "prior": "bicubic"}), scale=2)
+    upscale_asset(asset, tmp_path / "out", options)
+    out = load_asset(tmp_path / "out" / "q.gltf")
+    img = next(i for i in out.images if "normal" in i.roles)
+    length = np.linalg.norm(img.pixels[..., :3] * 2 - 1, axis=-1)
+    assert img.pixels.shape[:2] == (64, 64)
+    assert abs(float(length.mean()) - 0.9) < 0.01 and float(np.abs(length - 0.9).max()) < 0.03
+
+
+def test_prior_stages_report_tiles_with_an_eta(tmp_path, set_runtime):
+    """direct and PBR-SR's init report progress per tile of the prior (the longest stages on
+    big maps), as a fraction of all the maps' pixels with an ETA."""
+    from pbrsr_core.progress import Progress
+
+    set_runtime(prior_tile=16)  # several tiles per 32² map
+    src = make_demo_asset(tmp_path / "demo.glb", size=32)
+    for method, stage in (("direct", "prior"), ("pbrsr", "init")):
+        events: list[Progress] = []
+        options = UpscaleOptions(scale=2, method=method, preset="fast", prior="pbr-upconv7")
+        upscale_asset(src, tmp_path / method, options, progress=events.append)
+        mine = [e for e in events if e.stage == stage]
+        steps = [e.step for e in mine]
+        assert steps == sorted(steps) and steps[0] == 0 and steps[-1] == 1000, steps
+        assert len({e.message.split(":")[0] for e in mine if e.message}) == 3  # three maps
+        assert sum("tile" in e.message for e in mine) > 6
+        assert all(e.total == 1000 for e in mine)
+        assert any(e.eta_s is not None and e.eta_s >= 0 for e in mine)
