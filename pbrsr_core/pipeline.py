@@ -236,12 +236,11 @@ def _deblocked(images, config: PbrsrConfig, timer: StageTimer):
 
 
 def _prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, progress):
-    """How much of the prior's upscale each channel of each image starts from (paper 3.1:
-    the maps the preset names in ``prior_maps``, 1; an ORM image's channels one by one;
-    bicubic the rest, 0), and with ``check_prior`` the weight the self-check measured one
-    scale down (prior/selfcheck.py). Returns ({image: [weight per channel]}, the self-check
-    reports or None when nothing was checked)."""
-    channels = {img.index: [float(c) for c in prior_channels(img, config)] for img in images}
+    """Which channels of each image the prior initialises (paper 3.1: the maps the preset
+    names in ``prior_maps``; an ORM image's channels one by one; bicubic the rest), and with
+    ``check_prior`` only those where the prior beats bicubic one scale down. Returns
+    ({image: [bool per channel]}, the self-check reports or None when nothing was checked)."""
+    channels = {img.index: prior_channels(img, config) for img in images}
     if not (config.check_prior and prior.name != "bicubic" and any(map(any, channels.values()))):
         return channels, None
     checks: list[dict] = []
@@ -273,17 +272,17 @@ def _prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, p
             )
             too_small = {"use_prior": True, "note": f"under {4 * s} texels a side"}
             if c is not None:
-                use = [a * b for a, b in zip(channels[img.index], c["channels"], strict=True)]
-                c = {**c, "channels": use, "use_prior": any(w > 0 for w in use)}
+                use = [a and b for a, b in zip(channels[img.index], c["channels"], strict=True)]
+                c = {**c, "channels": use, "use_prior": any(use)}
                 channels[img.index] = use
             checks.append({"image": img.name, "index": img.index, **(c or too_small)})
     return channels, checks
 
 
 def _init_maps(images, prior, lr_pixels, channels, s, wraps, config, timer, progress):
-    """The optimiser's start: bicubic plus, in each channel, its weight (``channels``) times
-    the prior's difference from bicubic. Returns ({image: HR map, stored encoding}, the same
-    as optimisation parameters, the LR maps as parameters)."""
+    """The optimiser's start: bicubic, with the prior's upscale in the channels it
+    initialises. Returns ({image: HR map, stored encoding}, the same as optimisation
+    parameters, the LR maps as parameters)."""
     init_encoded, init, lr = {}, {}, {}
     with timer("init"):
         tiles = MapProgress(progress, "init", images)
@@ -317,7 +316,7 @@ def _optimise(asset, images, init_encoded, init, lr, lr_pixels, channels, prior,
     scene = make_scene(asset, device)
     # project_lr: only what the (back-projected) prior initialised goes back onto its LR map
     projected = {
-        i: [w > 0 for w in channels[i]]
+        i: channels[i]
         if any(channels[i]) and prior.back_project and kinds[i] in config.project_lr
         else [False] * len(channels[i])
         for i in kinds

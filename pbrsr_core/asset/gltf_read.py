@@ -7,6 +7,7 @@ Everything here raises :class:`InvalidAsset` / :class:`UnsupportedAsset` /
 from __future__ import annotations
 
 import json
+import math
 import struct
 from collections.abc import Mapping
 from pathlib import Path
@@ -357,3 +358,16 @@ def read_accessor_raw(
             raise InvalidAsset(f"{label} has sparse indices out of range")
         data[sidx] = svals
     return data, acc
+
+
+def num_list(v, n: int, what: str) -> list[float]:
+    """``v`` as ``n`` finite floats (a JSON array of numbers), else :class:`InvalidAsset`."""
+    if (
+        not isinstance(v, list)
+        or len(v) != n
+        or not all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v
+        )
+    ):
+        raise InvalidAsset(f"{what} must be {n} finite numbers")
+    return [float(x) for x in v]

@@ -6,19 +6,8 @@ run spends prior calls on the init and the pseudo-GT, each LR map the preset let
 initialise (a centre crop of at most ``CROP`` texels a side) is degraded once more by the
 scale (``degrade.degrade_image``, the declared LR model), upscaled back by the prior and by
 bicubic, and both are compared with the LR map itself: the prior initialises a map only if
-it helps on that map (self-similarity across scales, as in zero-shot SR), and only by as much
-as it helps there: the init is bicubic plus ``w`` times the prior's difference from bicubic,
-``w`` 1 where the prior wins one scale down, else the least-squares weight of that difference
-there, in [0, 1] (0 where the prior loses clearly, a blend where it loses by little). The cost
-is one prior call on at most ``(CROP / s)^2`` pixels per map.
-
-One scale down understates the prior where the two are close (x4, pbr-upconv7, covered texels
-against the ground truth, gain over bicubic, one scale down / at the real scale): the ToyCar's
-roughness -0.54 / +3.38 dB, the procedural bricks' albedo -0.08 / +4.26 and occlusion
--0.03 / +2.18. Bicubic alone there gives 0; the blend (weights 0.38, 0.47, 0.12) gives +2.03,
-+2.34, +0.35. Where the prior wins one scale down, its least-squares weight there can still be
-below 1 and cost at the real scale (the procedural bricks' roughness in ``pbrsr bench
-upscale``: 0.18 dB), so there it takes the prior whole.
+it wins on that map (self-similarity across scales, as in zero-shot SR). The cost is one
+prior call on at most ``(CROP / s)^2`` pixels per map.
 
 The comparison counts only the texels the mesh's UVs cover (when the caller passes them, as
 the pipeline does): the rest of an atlas is never seen, and it can decide the check the wrong
@@ -58,16 +47,15 @@ def prior_self_check(
     covered: np.ndarray | None = None,
     cutout: float | None = None,
 ) -> dict | None:
-    """``{"prior_db", "bicubic_db", "blend_db", "texels", "use_prior", "channels"}`` for one
-    map (H, W, C) as stored, or None when it is not at least ``4 * scale`` texels a side
-    (nothing to check on: the prior is used, as the paper does).
+    """``{"prior_db", "bicubic_db", "texels", "use_prior", "channels"}`` for one map (H, W, C)
+    as stored, or None when it is not at least ``4 * scale`` texels a side (nothing to check
+    on: the prior is used, as the paper does).
 
-    ``kind`` is the map's (prior/direct.py): colour and normal maps are weighed as a whole;
+    ``kind`` is the map's (prior/direct.py): colour and normal maps are decided as a whole;
     the channels of a data map (occlusion, roughness, metallic packed in one image) are
-    unrelated images, so each is weighed on its own: ``channels`` lists, per colour channel,
-    the weight ``w`` in [0, 1] of the prior's difference from bicubic in the init (one entry
-    for colour and normal maps; :func:`merge_channels`), ``blend_db`` scores that blend, and
-    ``use_prior`` is whether any weight is above 0. ``max_prior_scale`` as in
+    unrelated images, so each is decided on its own: ``channels`` lists, per colour channel,
+    whether the prior initialises it (one entry for colour and normal maps), and
+    ``use_prior`` is whether it initialises any. ``max_prior_scale`` as in
     :func:`~.direct.upscale_map`: the check scores the upscaling the init will use.
     ``covered`` (H, W) bool: the texels the mesh's UVs cover; only those are compared (all of
     the crop when it covers fewer than ``4 * scale`` squared of them). ``cutout``: upscale as
@@ -96,49 +84,28 @@ def prior_self_check(
         se = float((diff.astype(np.float64) ** 2).sum())
         return 100.0 if se <= 0 else 10.0 * math.log10(diff.size / se)
 
-    def weight(c: slice) -> float:
-        """1 where the prior wins, else the least-squares weight of its difference from
-        bicubic, clipped to [0, 1]."""
-        if db(up_p, c) > db(up_b, c):
-            return 1.0
-        base = up_b[:h, :w, c][mask].astype(np.float64)
-        d = up_p[:h, :w, c][mask] - base
-        energy = float((d * d).sum())
-        if energy <= 0:
-            return 0.0  # the prior adds nothing here
-        return round(min(1.0, max(0.0, float((d * (ref[..., c][mask] - base)).sum()) / energy)), 3)
-
     whole = slice(0, n_colour)
     p, b = db(up_p, whole), db(up_b, whole)
     if kind == "data":
-        channels = [weight(slice(c, c + 1)) for c in range(n_colour)]
+        channels = [db(up_p, slice(c, c + 1)) > db(up_b, slice(c, c + 1)) for c in range(n_colour)]
     else:
-        channels = [weight(whole)]
-    blend = merge_channels(up_p[:h, :w], up_b[:h, :w], channels)
+        channels = [p > b]
     return {
         "prior_db": round(p, 3),
         "bicubic_db": round(b, 3),
-        "blend_db": round(db(blend, whole), 3),
         "texels": int(mask.sum()),
-        "use_prior": any(w > 0 for w in channels),
+        "use_prior": any(channels),
         "channels": channels,
     }
 
 
-def merge_channels(
-    prior_map: np.ndarray, bicubic: np.ndarray, weights: list[float] | list[bool]
-) -> np.ndarray:
-    """Bicubic's upscaled map plus ``weights`` times the prior's difference from it: one
-    weight for all colour channels, or one per colour channel (1: the prior's map, 0:
-    bicubic's; alpha, past the colour channels, is the same in both)."""
-    n = 3 if bicubic.shape[-1] >= 3 else 1
-    per_channel = [float(weights[0])] * n if len(weights) == 1 else [float(w) for w in weights]
-    if all(w == 1.0 for w in per_channel):
-        return prior_map
-    if all(w == 0.0 for w in per_channel):
-        return bicubic
+def merge_channels(prior_map: np.ndarray, bicubic: np.ndarray, channels: list[bool]) -> np.ndarray:
+    """The prior's upscaled map where ``channels`` says so, bicubic's elsewhere (alpha, past
+    the colour channels, is the same in both)."""
+    if len(channels) == 1:
+        return prior_map if channels[0] else bicubic
     out = bicubic.copy()
-    for c, w in enumerate(per_channel):
-        if w > 0:
-            out[..., c] = bicubic[..., c] + np.float32(w) * (prior_map[..., c] - bicubic[..., c])
+    for c, use in enumerate(channels):
+        if use:
+            out[..., c] = prior_map[..., c]
     return out

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from pbrsr_core.asset import load_asset, make_demo_asset, make_test_asset, save_asset
-from pbrsr_core.asset.gltf import texture_transform_matrix
+from pbrsr_core.asset.gltf_materials import texture_transform_matrix
 from pbrsr_core.asset.gltf_read import buffer_view_bytes
 from pbrsr_core.asset.procedural import TEST_FEATURES, make_quad_asset
 from pbrsr_core.asset.validator import validate_gltf, validator_available
