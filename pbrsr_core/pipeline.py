@@ -33,6 +33,7 @@ from .asset import (
     write_image,
 )
 from .asset.model import MAP_ROLES, Asset
+from .crops import write_map_crops
 from .device import resolve_device
 from .errors import PbrsrError, StorageError, UnprocessableAsset
 from .footprint import check_memory, estimate_peak_bytes
@@ -423,6 +424,7 @@ def upscale_asset(
     snapshots: Snapshots | None = None,
     config: PbrsrConfig | None = None,
     memory_budget: int | None = None,
+    crops_dir: Path | None = None,
 ) -> dict:
     """Upscale every texture of the asset at ``input_path`` into a bundle at ``out_dir``.
 
@@ -431,7 +433,8 @@ def upscale_asset(
     ``config``: PBR-SR numbers to run instead of the options' preset (``pbrsr bench paper``
     runs a sample of the paper preset with it). ``memory_budget``: bytes the run may use; a
     run whose estimate (:mod:`pbrsr_core.footprint`, from the images' declared sizes) is
-    over it is refused before anything is upscaled.
+    over it is refused before anything is upscaled. ``crops_dir``: where to write every
+    map's LR/HR detail crops (:mod:`pbrsr_core.crops`; not part of the bundle).
     Returns the report (also written to ``out_dir/report.json``).
     """
     input_path, out_dir = Path(input_path), Path(out_dir)
@@ -475,6 +478,8 @@ def upscale_asset(
                 t_start,
                 progress,
             )
+        if crops_dir is not None:
+            write_map_crops(asset, hr, crops_dir)
         emit(progress, Progress(stage="done", step=1, total=1))
         return report
     finally:

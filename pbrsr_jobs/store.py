@@ -9,8 +9,11 @@ a request without :func:`check_job_id`):
       jobs/<id>/job.json               JobManifest: owner, display name, kind, options
       jobs/<id>/input/asset.*          the validated input (zip uploads unpacked here)
       jobs/<id>/result.zip             the bundle
-      jobs/<id>/output/preview.png     before/after renders (output/previews/*.png)
+      jobs/<id>/output/                the bundle's files (the asset, maps/, report.json,
+                                       the before/after renders preview.png, previews/*.png)
       jobs/<id>/thumbs/*.png           small per-map thumbnails for the dashboard
+      jobs/<id>/crops/*.png            per-map LR/HR detail crops (pbrsr_core.crops) for
+                                       the dashboard's wipe sliders
 
 * :class:`JobLayout` - this machine's folders under ``PBRSR_STORAGE_DIR``::
 
@@ -203,9 +206,12 @@ class JobFiles:
         jobs/<id>/job.json              JobManifest
         jobs/<id>/input/<asset files>   the validated input (a zip's files unpacked)
         jobs/<id>/result.zip            the bundle
-        jobs/<id>/output/preview.png    the before/after renders the API serves
-        jobs/<id>/output/previews/*.png
+        jobs/<id>/output/<path>         the bundle's files, one object each: the API serves
+                                        the before/after renders (preview.png,
+                                        previews/*.png) and the asset with its buffers and
+                                        maps (for a 3D viewer)
         jobs/<id>/thumbs/*.png          per-map thumbnails for the dashboard
+        jobs/<id>/crops/*.png           per-map LR/HR detail crops
 
     A worker on another machine needs only these (and Redis) to run a job, and an API on
     another machine only these to serve its results.
@@ -229,6 +235,13 @@ class JobFiles:
     def thumb_key(self, job_id: str, name: str) -> str:
         return self.key(job_id, "thumbs", name)
 
+    def crop_key(self, job_id: str, name: str) -> str:
+        return self.key(job_id, "crops", name)
+
+    def output_key(self, job_id: str, path: str) -> str:
+        """The object of the bundle's file ``path`` (relative, POSIX)."""
+        return self.key(job_id, "output", path)
+
     def read_manifest(self, job_id: str) -> JobManifest:
         return JobManifest.model_validate_json(self.store.get_bytes(self.key(job_id, "job.json")))
 
@@ -250,11 +263,12 @@ class JobFiles:
             self.store.get_file(key, dest / key[len(prefix) :])
 
     def publish_result(
-        self, job_id: str, out_dir: Path, thumbs_dir: Path, bundle: Path
+        self, job_id: str, out_dir: Path, thumbs_dir: Path, crops_dir: Path, bundle: Path
     ) -> dict[str, list[str]]:
-        """Store a finished run's previews (from the bundle folder ``out_dir``), thumbnails
-        and bundle, after removing an earlier attempt's; on any error remove what was stored
-        and raise. Returns the preview and thumbnail names the API links to."""
+        """Store a finished run's bundle files (the folder ``out_dir``), thumbnails, detail
+        crops (the PNGs of ``crops_dir``) and bundle, after removing an earlier attempt's; on
+        any error remove what was stored and raise. Returns the preview and thumbnail names
+        the API links to."""
         previews = [PREVIEW_MAIN] if (out_dir / PREVIEW_MAIN).is_file() else []
         previews += _png_names(out_dir / "previews")
         thumbs = _png_names(thumbs_dir)
@@ -262,9 +276,10 @@ class JobFiles:
         try:
             for name in thumbs:
                 self.store.put_file(self.thumb_key(job_id, name), thumbs_dir / name)
-            for name in previews:
-                src = out_dir / (name if name == PREVIEW_MAIN else f"previews/{name}")
-                self.store.put_file(self.preview_key(job_id, name), src)
+            for name in _png_names(crops_dir):
+                self.store.put_file(self.crop_key(job_id, name), crops_dir / name)
+            for rel in _file_paths(out_dir):
+                self.store.put_file(self.output_key(job_id, rel), out_dir / rel)
             self.store.put_file(self.bundle_key(job_id), bundle)
         except BaseException:
             with contextlib.suppress(Exception):
@@ -274,8 +289,8 @@ class JobFiles:
 
     def unpublish_result(self, job_id: str) -> None:
         self.store.delete(self.bundle_key(job_id))
-        self.store.delete_prefix(self.key(job_id, "output") + "/")
-        self.store.delete_prefix(self.key(job_id, "thumbs") + "/")
+        for part in ("output", "thumbs", "crops"):
+            self.store.delete_prefix(self.key(job_id, part) + "/")
 
     def preview_names(self, job_id: str) -> list[str]:
         """A finished job's before/after renders: ``preview.png`` and ``previews/*.png``."""
@@ -294,6 +309,18 @@ class JobFiles:
         rels = [k[len(prefix) :] for k in self.store.list(prefix)]
         return [r for r in rels if "/" not in r and r.lower().endswith(".png")]
 
+    def output_files(self, job_id: str) -> list[str]:
+        """Every file of a finished job's bundle, as relative POSIX paths (sorted)."""
+        prefix = self.key(job_id, "output") + "/"
+        return [k[len(prefix) :] for k in self.store.list(prefix)]
+
+    def model_name(self, job_id: str) -> str | None:
+        """The upscaled asset's file in the bundle (the one ``.glb`` or ``.gltf`` at its top)."""
+        models = [
+            p for p in self.output_files(job_id) if "/" not in p and p.endswith((".glb", ".gltf"))
+        ]
+        return models[0] if len(models) == 1 else None
+
     def remove(self, job_id: str) -> None:
         """Delete every object of a job (none is fine)."""
         self.store.delete_prefix(self.key(job_id) + "/")
@@ -308,6 +335,18 @@ def _png_names(folder: Path) -> list[str]:
         for p in folder.iterdir()
         if p.is_file() and not p.is_symlink() and p.name[:1] != "." and p.suffix.lower() == ".png"
     )
+
+
+def _file_paths(folder: Path) -> list[str]:
+    """Every plain file under ``folder``, as relative POSIX paths (sorted; hidden entries and
+    symlinks left out)."""
+    paths = []
+    for path in folder.rglob("*"):
+        rel = path.relative_to(folder)
+        hidden = any(part.startswith(".") for part in rel.parts)
+        if not hidden and path.is_file() and not path.is_symlink():
+            paths.append(rel.as_posix())
+    return sorted(paths)
 
 
 def _remove(path: Path) -> None:

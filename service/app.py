@@ -18,7 +18,7 @@ from pbrsr_jobs.settings import Settings, get_settings
 from pbrsr_jobs.store import JobFiles
 
 from .problems import install_handlers
-from .routes import batches, events, health, jobs, prometheus, webhooks
+from .routes import batches, events, health, jobs, prometheus, vendor, webhooks
 
 STATIC_DIR = Path(__file__).parent / "static"
 log = logging.getLogger("pbrsr.service")
@@ -84,6 +84,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(webhooks.router)
     app.include_router(health.router)
     app.include_router(prometheus.router)
+    app.include_router(vendor.router)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
 
     @app.get("/", include_in_schema=False)

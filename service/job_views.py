@@ -5,13 +5,23 @@ from __future__ import annotations
 
 from datetime import UTC, datetime
 from typing import Any
+from urllib.parse import quote
 
 from pydantic import TypeAdapter, ValidationError
 
 from pbrsr_jobs.store import JobFiles, JobIndex, JobState, job_state
 from pbrsr_jobs.webhooks import WebhookQueue
 
-from .schemas import BatchDetail, BatchLinks, HistoryPoint, JobDetail, JobLinks, JobSummary
+from .schemas import (
+    BatchDetail,
+    BatchLinks,
+    CropList,
+    HistoryPoint,
+    JobDetail,
+    JobLinks,
+    JobSummary,
+    MapCrop,
+)
 
 DIED_MESSAGE = (
     "the worker running this job stopped unexpectedly (killed or out of memory) on every "
@@ -42,22 +52,55 @@ def state_of(job: Any) -> JobState:
 def links(
     job_id: str, state: JobState, store: JobFiles | None = None, files: dict | None = None
 ) -> JobLinks:
-    """The job's URLs; a finished job's previews and thumbnails by the names its worker
-    recorded in ``files`` (``meta['files']``), else as the store lists them."""
+    """The job's URLs; a finished job's previews, thumbnails and asset file by the names its
+    worker recorded in ``files`` (``meta['files']``), else as the store lists them."""
     base = f"/v1/jobs/{job_id}"
-    result = previews = thumbs = None
+    result = previews = thumbs = crops = model = None
     if state == JobState.FINISHED and (store is not None or files):
-        result = f"{base}/result"
+        result, crops = f"{base}/result", f"{base}/crops"
         if files:
             preview_list, thumb_list = files.get("previews", []), files.get("thumbs", [])
+            model_name = files.get("model")
         else:
             assert store is not None
             preview_list, thumb_list = store.preview_names(job_id), store.thumb_names(job_id)
+            model_name = store.model_name(job_id)
         previews = {n: f"{base}/previews/{n}" for n in preview_list}
         thumbs = {n: f"{base}/thumbs/{n}" for n in thumb_list}
+        model = f"{base}/files/{quote(model_name)}" if isinstance(model_name, str) else None
     return JobLinks(
-        self=base, cancel=base, result=result, previews=previews or {}, thumbs=thumbs or {}
+        self=base,
+        cancel=base,
+        result=result,
+        previews=previews or {},
+        thumbs=thumbs or {},
+        crops=crops,
+        model=model,
     )
+
+
+def crop_list(job_id: str, files: dict | None) -> CropList:
+    """A finished job's detail crops as its worker recorded them in ``files``, with URLs;
+    malformed entries left out."""
+    base = f"/v1/jobs/{job_id}/crops"
+    items = []
+    for entry in (files or {}).get("crops") or []:
+        try:
+            crop = MapCrop.model_validate(entry)
+        except ValidationError:
+            continue
+        crop.lr, crop.hr = f"{base}/{quote(crop.lr)}", f"{base}/{quote(crop.hr)}"
+        items.append(crop)
+    return CropList(items=items)
+
+
+def crop_names(files: dict | None) -> list[str]:
+    """The crop files a finished job's worker recorded in ``files``."""
+    names = []
+    for entry in (files or {}).get("crops") or []:
+        if isinstance(entry, dict):
+            names += [n for n in (entry.get("lr"), entry.get("hr")) if isinstance(n, str)]
+    return names
 
 
 def _common(

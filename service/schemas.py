@@ -23,6 +23,32 @@ class JobLinks(BaseModel):
     thumbs: dict[str, str] = Field(
         default_factory=dict, description="Thumbnails of the HR maps by name, once finished."
     )
+    crops: str | None = Field(
+        None, description="Per-map LR/HR detail crops (a CropList), once finished."
+    )
+    model: str | None = Field(
+        None,
+        description="The upscaled asset file (.glb, or .gltf whose relative URIs resolve "
+        "beside it), once finished: for a 3D viewer.",
+    )
+
+
+class MapCrop(BaseModel):
+    """One map's detail crop: the same region of the input map (LR) and of the result (HR)."""
+
+    map: str = Field(description="The map's file stem in the bundle's maps/.")
+    label: str = Field(description="The material slots using it: base_color, normal, orm...")
+    scale: int
+    lr_region: list[int] = Field(description="[x, y, width, height] in texels of the LR map.")
+    hr_region: list[int] = Field(description="[x, y, width, height] in texels of the HR map.")
+    lr_size: list[int] = Field(description="[width, height] of the LR map.")
+    hr_size: list[int] = Field(description="[width, height] of the HR map.")
+    lr: str = Field(description="URL of the LR crop, a PNG at LR texels (show it `scale` x).")
+    hr: str = Field(description="URL of the HR crop, a PNG.")
+
+
+class CropList(BaseModel):
+    items: list[MapCrop]
 
 
 class JobCreated(BaseModel):

@@ -7,10 +7,13 @@ this module). It reads the job's manifest and copies its input from the object s
 it with a :class:`~worker.progress.JobReporter` as the progress callback, and publishes the
 result:
 
-1. the pipeline writes the bundle's files into a fresh ``jobs/<id>/.tmp-output-*`` folder,
+1. the pipeline writes the bundle's files into a fresh ``jobs/<id>/.tmp-output-*`` folder
+   and every map's LR/HR detail crops (:mod:`pbrsr_core.crops`) into a ``.tmp-crops-*``
+   folder,
 2. thumbnails of every HR map go to a ``.tmp-thumbs-*`` folder,
 3. the zip is written as ``.tmp-bundle-*.zip``,
-4. the thumbnails, the previews and then the zip are stored as the job's objects
+4. the thumbnails, the crops, the bundle's files and then the zip are stored as the job's
+   objects
    (``JobFiles.publish_result``: what an earlier attempt stored goes first, and what this one
    stored goes again if storing fails), and only then ``meta['state']`` becomes
    ``finished``.
@@ -119,7 +122,9 @@ def run_job(job_id: str) -> dict[str, Any]:
         files.fetch_input(job_id, in_tmp)
         input_path = in_tmp / manifest.input
         out_tmp = layout.tmp_dir(job_id, "output")
-        tmp_paths.append(out_tmp)
+        crops_tmp = layout.tmp_dir(job_id, "crops")
+        tmp_paths += [out_tmp, crops_tmp]
+        from pbrsr_core.crops import read_crop_index
         from pbrsr_core.footprint import memory_budget
         from pbrsr_core.pipeline import upscale_asset
 
@@ -133,6 +138,7 @@ def run_job(job_id: str) -> dict[str, Any]:
                 work_dir=layout.work_dir(job_id),
                 # refused, not killed, when it cannot fit
                 memory_budget=memory_budget(ctx.settings.worker_memory_mb),
+                crops_dir=crops_tmp,
             )
             reporter.check_cancel()
             reporter(_bundle_event())
@@ -143,9 +149,14 @@ def run_job(job_id: str) -> dict[str, Any]:
             tmp_paths.append(bundle_tmp)
             write_bundle_zip(out_tmp, bundle_tmp)
         # published only after the watchdog is disarmed: a cancel cannot cut this short
-        names = files.publish_result(job_id, out_tmp, thumbs_tmp, bundle_tmp)
+        names = files.publish_result(job_id, out_tmp, thumbs_tmp, crops_tmp, bundle_tmp)
         summary = _summary(report)
-        job.meta["files"] = names  # the names the API links to: a status read lists nothing
+        # the names the API links to: a status read lists nothing
+        job.meta["files"] = {
+            **names,
+            "crops": read_crop_index(crops_tmp),
+            "model": report["input"],
+        }
         reporter.finish(JobState.FINISHED, summary=summary)
         log.info("job %s: finished", job_id)
         return {"state": JobState.FINISHED.value, **summary}

@@ -59,7 +59,7 @@ BASIS_QUALITY = 90
 """Basis Universal encoder quality (1-100)."""
 BASIS_EFFORT = 3
 """Basis Universal encoder effort (0-10). Effort 1 is faster but costs up to 2.6 dB on small
-detailed maps (tests/test_texture_formats.py's UASTC base colour)."""
+detailed maps (tests/core/asset/test_texture_formats.py's UASTC base colour)."""
 
 
 @dataclass(frozen=True)

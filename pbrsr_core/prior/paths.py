@@ -16,8 +16,6 @@ from pathlib import Path
 
 from .. import runtime
 
-_REPO_ROOT = Path(__file__).resolve().parents[2]
-
 
 def cache_dir() -> Path:
     """Directory for converted prior weights (not created here)."""
@@ -26,7 +24,4 @@ def cache_dir() -> Path:
 
 def npm_dir() -> Path:
     """The ``node_modules`` directory that holds the npm packages."""
-    root = runtime.current().npm_dir
-    if root is not None:
-        return Path(root).expanduser()
-    return _REPO_ROOT / "tools" / "npm" / "node_modules"
+    return runtime.npm_dir()

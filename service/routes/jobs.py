@@ -32,9 +32,9 @@ from ..deps import (
 )
 from ..idempotency import IdempotencyKeyHeader, check_key, create_once
 from ..intake import create_job
-from ..job_views import detail_view, links, state_of, summary_view
+from ..job_views import crop_list, crop_names, detail_view, links, state_of, summary_view
 from ..problems import PROBLEM_RESPONSES, Problem, ProblemError
-from ..schemas import DownloadLink, JobCreated, JobDetail, JobPage
+from ..schemas import CropList, DownloadLink, JobCreated, JobDetail, JobPage
 from ..uploads import receive_upload
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=PROBLEM_RESPONSES)
@@ -392,3 +392,92 @@ def get_thumb(
     fetch_job(job_id, owner, redis, index)
     _named(name, files.thumb_names(job_id))
     return _download(files, files.thumb_key(job_id, name), "image/png", None, link)
+
+
+def _finished_files(job: Job) -> dict:
+    """A job's ``meta['files']`` (recorded by its worker when it finished), or 409."""
+    state = state_of(job)
+    if state != JobState.FINISHED:
+        raise ProblemError(
+            409, "not-finished", f"the job is {state.value}; its files exist once it finished"
+        )
+    return (job.meta or {}).get("files") or {}
+
+
+@router.get(
+    "/{job_id}/crops",
+    response_model=CropList,
+    responses={**_NOT_FOUND, 409: {"model": Problem, "description": "Not finished."}},
+    summary="Detail crops of every map, before and after",
+)
+def list_crops(job_id: str, redis: RedisDep, owner: OwnerDep, index: IndexDep) -> CropList:
+    """Per map: the same region of the input map (LR) and of the result (HR), chosen where
+    the LR map has the most local variance, with the PNGs' URLs."""
+    job = fetch_job(job_id, owner, redis, index)
+    return crop_list(job_id, _finished_files(job))
+
+
+@router.get(
+    "/{job_id}/crops/{name}",
+    response_class=FileResponse,
+    responses={**_NOT_FOUND, **_DOWNLOAD, 200: {"content": {"image/png": {}}}},
+    summary="One LR or HR detail crop",
+)
+def get_crop(
+    job_id: str,
+    name: str,
+    redis: RedisDep,
+    owner: OwnerDep,
+    settings: SettingsDep,
+    files: FilesDep,
+    index: IndexDep,
+    redirect: RedirectQuery = True,
+) -> Response:
+    link = None if redirect else settings.s3_presign_expiry_s
+    job = fetch_job(job_id, owner, redis, index)
+    _named(name, crop_names((job.meta or {}).get("files")))
+    return _download(files, files.crop_key(job_id, name), "image/png", None, link)
+
+
+_MEDIA_TYPES = {
+    ".glb": "model/gltf-binary",
+    ".gltf": "model/gltf+json",
+    ".bin": "application/octet-stream",
+    ".png": "image/png",
+    ".jpg": "image/jpeg",
+    ".jpeg": "image/jpeg",
+    ".exr": "image/x-exr",
+    ".json": "application/json",
+}
+
+
+@router.get(
+    "/{job_id}/files/{path:path}",
+    response_class=FileResponse,
+    responses={
+        **_NOT_FOUND,
+        **_DOWNLOAD,
+        409: {"model": Problem, "description": "Not finished."},
+    },
+    summary="One file of the finished bundle",
+)
+def get_file(
+    job_id: str,
+    path: str,
+    redis: RedisDep,
+    owner: OwnerDep,
+    settings: SettingsDep,
+    files: FilesDep,
+    index: IndexDep,
+    redirect: RedirectQuery = True,
+) -> Response:
+    """A file of the bundle by its path inside it (``links.model`` is the upscaled asset; a
+    ``.gltf``'s relative URIs resolve to its buffers and images here)."""
+    link = None if redirect else settings.s3_presign_expiry_s
+    job = fetch_job(job_id, owner, redis, index)
+    _finished_files(job)
+    if path not in files.output_files(job_id):  # only paths the store lists: never one to follow
+        raise ProblemError(404, "not-found", f"no file '{path[:64]}' in this job's result")
+    suffix = "." + path.rsplit(".", 1)[-1].lower() if "." in path else ""
+    media = _MEDIA_TYPES.get(suffix, "application/octet-stream")
+    return _download(files, files.output_key(job_id, path), media, None, link)

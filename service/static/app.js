@@ -13,8 +13,10 @@ const state = {
   file: null,
   selected: null,
   detail: null,
-  blobUrls: new Map(), // url -> object URL (images fetched with the API key)
+  blobUrls: new Map(), // url -> object URL (files fetched with the API key)
   shownFiles: "",
+  shownCrops: "",
+  waitingViewer: false,
 };
 
 // ---------------------------------------------------------------------------- API helpers
@@ -48,7 +50,9 @@ async function keyedFile(path) {
   return { url: URL.createObjectURL(await resp.blob()), resp };
 }
 
-async function imageUrl(path) {
+// A URL the page loads a job's file from without sending the API key: the API's own path
+// when there is no key, else a blob: URL of the bytes or a presigned URL of the bucket.
+async function fileUrl(path) {
   if (!state.key) return path;
   if (state.blobUrls.has(path)) return state.blobUrls.get(path);
   const { url, resp } = await keyedFile(path);
@@ -188,8 +192,13 @@ function select(id) {
     state.selected = id;
     state.detail = null;
     state.shownFiles = "";
+    state.shownCrops = "";
     $("preview-pairs").replaceChildren();
     $("thumbs").replaceChildren();
+    $("crops").replaceChildren();
+    $("crops-box").hidden = true;
+    $("model-box").hidden = true;
+    if (window.pbrsrViewer) window.pbrsrViewer.clear($("model-view"));
   }
   for (const row of document.querySelectorAll(".job-row")) row.classList.toggle("selected", row.dataset.id === id);
   $("job-view").hidden = false;
@@ -241,6 +250,8 @@ function renderJob(job) {
   }
   renderCharts(job);
   renderFiles(job);
+  renderModel(job);
+  renderCrops(job);
   renderTimings(job);
 }
 
@@ -280,10 +291,114 @@ async function figure(caption, url) {
   const img = document.createElement("img");
   img.alt = caption;
   img.loading = "lazy";
-  try { img.src = await imageUrl(url); } catch (_) { /* leave it empty */ }
+  try { img.src = await fileUrl(url); } catch (_) { /* leave it empty */ }
   const cap = document.createElement("figcaption");
   cap.textContent = caption;
   fig.append(img, cap);
+  return fig;
+}
+
+// The upscaled asset in the 3D viewer (viewer3d.js, a module that may still be loading, or
+// missing when its npm package is not installed).
+function renderModel(job) {
+  const url = job.links.model;
+  $("model-box").hidden = !url;
+  if (!url) return;
+  const status = $("model-status");
+  if (document.documentElement.dataset.viewer === "unavailable") {
+    status.textContent = "The 3D viewer is not installed on this server (its npm package 'three': run scripts/setup).";
+    return;
+  }
+  if (!window.pbrsrViewer) {
+    status.textContent = "Loading the 3D viewer…";
+    if (!state.waitingViewer) {
+      state.waitingViewer = true;
+      document.addEventListener("pbrsr-viewer-ready", () => {
+        state.waitingViewer = false;
+        if (state.detail) renderModel(state.detail);
+      }, { once: true });
+    }
+    return;
+  }
+  const view = $("model-view");
+  const note = () => {
+    const notes = { loading: "Loading the model…", error: `Cannot show the model: ${view.dataset.error}` };
+    status.textContent = notes[view.dataset.state] || "";
+  };
+  window.pbrsrViewer.show(view, url, fileUrl).then(
+    () => { if (state.selected === job.id) note(); },
+    (err) => { status.textContent = `Cannot show the model: ${err.message || err}`; },
+  );
+  note();
+}
+
+// Per map: the same region of the input map and of the result, one over the other, with a
+// wipe between them (left of the split the input, each texel a square; right the result).
+async function renderCrops(job) {
+  const url = job.links.crops;
+  if (!url || url === state.shownCrops) return;
+  state.shownCrops = url;
+  let list;
+  try {
+    list = await api(url);
+  } catch (_) {
+    state.shownCrops = ""; // read again on the next refresh
+    return;
+  }
+  if (state.selected !== job.id) return;
+  const figures = await Promise.all(list.items.map(wipeFigure));
+  if (state.selected !== job.id) return;
+  $("crops").replaceChildren(...figures);
+  $("crops-box").hidden = figures.length === 0;
+}
+
+async function wipeFigure(crop) {
+  const fig = document.createElement("figure");
+  fig.className = "wipe";
+  fig.dataset.map = crop.map;
+  const box = document.createElement("div");
+  box.className = "wipe-box";
+  const [x, y, w, h] = crop.hr_region;
+  box.style.aspectRatio = `${w} / ${h}`;
+  const hr = document.createElement("img"), lr = document.createElement("img");
+  hr.className = "wipe-hr";
+  lr.className = "wipe-lr";
+  hr.alt = `${crop.label}: result`;
+  lr.alt = `${crop.label}: input`;
+  try { [hr.src, lr.src] = await Promise.all([fileUrl(crop.hr), fileUrl(crop.lr)]); } catch (_) { /* left empty */ }
+  const line = document.createElement("div");
+  line.className = "wipe-line";
+  box.append(hr, lr, line);
+  const range = document.createElement("input");
+  range.type = "range";
+  range.min = "0";
+  range.max = "100";
+  range.step = "any";
+  range.className = "wipe-range";
+  range.setAttribute("aria-label", `${crop.label}: split between the input and the result`);
+  const split = (pct) => {
+    pct = Math.max(0, Math.min(100, pct));
+    range.value = String(pct);
+    box.style.setProperty("--split", `${pct}%`);
+  };
+  range.addEventListener("input", () => split(Number(range.value)));
+  const follow = (e) => {
+    const rect = box.getBoundingClientRect();
+    split((100 * (e.clientX - rect.left)) / rect.width);
+  };
+  box.addEventListener("pointerdown", (e) => { box.setPointerCapture(e.pointerId); follow(e); });
+  box.addEventListener("pointermove", (e) => { if (box.hasPointerCapture(e.pointerId)) follow(e); });
+  split(50);
+  const ends = document.createElement("div");
+  ends.className = "wipe-ends";
+  const [left, right] = [document.createElement("span"), document.createElement("span")];
+  left.textContent = `input ${crop.lr_region[2]}×${crop.lr_region[3]}`;
+  right.textContent = `result ${w}×${h}`;
+  ends.append(left, right);
+  const cap = document.createElement("figcaption");
+  cap.textContent = `${crop.label} · x${crop.scale} · texels ${x},${y} of ${crop.hr_size[0]}×${crop.hr_size[1]}`;
+  cap.title = crop.map;
+  fig.append(cap, box, range, ends);
   return fig;
 }
 

@@ -7,14 +7,17 @@ bucket."""
 from __future__ import annotations
 
 import io
+import json
 import subprocess
 import uuid
 import zipfile
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from PIL import Image
 from pydantic import ValidationError
 from rq import Queue
 
@@ -28,6 +31,7 @@ from tests.service_support import (
     asset_bytes,
     cleanup_redis,
     free_port,
+    gltf_zip_bytes,
     make_settings,
     post_asset,
     redis_client,
@@ -142,31 +146,49 @@ def test_a_result_is_stored_whole_or_not_at_all(store, tmp_path):
 
     files = JobFiles(store)
     job_id = uuid.uuid4().hex
-    out, thumbs = tmp_path / "out", tmp_path / "thumbs"
+    out, thumbs, crops = tmp_path / "out", tmp_path / "thumbs", tmp_path / "crops"
     (out / "previews").mkdir(parents=True)
+    (out / "maps").mkdir()
     thumbs.mkdir()
-    for path in (out / "preview.png", out / "previews" / "after_sky.png", thumbs / "a.png"):
+    crops.mkdir()
+    for path in (
+        out / "preview.png",
+        out / "previews" / "after_sky.png",
+        out / "maps" / "00_albedo.png",
+        thumbs / "a.png",
+        crops / "00_albedo_lr.png",
+    ):
         path.write_bytes(b"\x89PNG " + path.name.encode())
+    (out / "asset.gltf").write_text("{}")
     (out / "previews" / ".partial.png").write_bytes(b"hidden")
+    (crops / "crops.json").write_text("[]")  # the index goes to the job's meta, not the store
     bundle = tmp_path / "bundle.zip"
     bundle.write_bytes(b"PK first")
-    names = files.publish_result(job_id, out, thumbs, bundle)
+    names = files.publish_result(job_id, out, thumbs, crops, bundle)
     assert names == {"previews": ["preview.png", "after_sky.png"], "thumbs": ["a.png"]}
     assert files.preview_names(job_id) == names["previews"]
     assert files.thumb_names(job_id) == ["a.png"]
+    assert files.output_files(job_id) == [
+        "asset.gltf",
+        "maps/00_albedo.png",
+        "preview.png",
+        "previews/after_sky.png",
+    ]
+    assert files.model_name(job_id) == "asset.gltf"
+    assert store.list(f"jobs/{job_id}/crops/") == [f"jobs/{job_id}/crops/00_albedo_lr.png"]
 
     # a second attempt replaces the first: what it no longer makes is gone
     (out / "previews" / "after_sky.png").unlink()
     (thumbs / "a.png").rename(thumbs / "b.png")
     bundle.write_bytes(b"PK second")
-    files.publish_result(job_id, out, thumbs, bundle)
+    files.publish_result(job_id, out, thumbs, crops, bundle)
     assert files.preview_names(job_id) == ["preview.png"]
     assert files.thumb_names(job_id) == ["b.png"]
     assert store.get_bytes(files.bundle_key(job_id)) == b"PK second"
 
     # storing the bundle fails: nothing of the result is left
     with pytest.raises(OSError):
-        files.publish_result(job_id, out, thumbs, tmp_path / "never-written.zip")
+        files.publish_result(job_id, out, thumbs, crops, tmp_path / "never-written.zip")
     assert store.list(f"jobs/{job_id}/") == []
 
 
@@ -419,5 +441,84 @@ def test_a_worker_refused_by_the_store_fails_the_job_clearly(
             assert s3_endpoint not in job["error"] and SECRET not in job["error"]
             assert list((worker.storage_dir / "jobs").iterdir()) == []  # nothing left
             assert client.get(f"/v1/jobs/{job_id}/result").status_code == 409
+    finally:
+        cleanup_redis(api)
+
+
+def test_crops_and_model_files_through_s3(s3_endpoint, bucket, tmp_path, monkeypatch):
+    """A .gltf job run by a worker that shares only the bucket: its detail crops and every
+    file of its bundle (the model and what it refers to) come from presigned URLs."""
+    from urllib.parse import urljoin
+
+    from redis import Redis
+    from rq import SimpleWorker
+
+    from pbrsr_jobs.store import JobFiles, JobIndex, JobLayout
+    from worker import tasks
+
+    api = _s3_settings(tmp_path / "api", s3_endpoint, bucket)
+    worker = api.model_copy(update={"storage_dir": tmp_path / "worker" / "storage"})
+    raw = _raw_client(s3_endpoint)
+    try:
+        with TestClient(create_app(api), raise_server_exceptions=False) as client:
+            upload = gltf_zip_bytes(tmp_path)
+            r = post_asset(client, upload, "scene.zip", {"method": "bicubic", "scale": 2})
+            job_id = r.json()["id"]
+            redis = Redis.from_url(worker.redis_url)
+            context = tasks.WorkerContext(
+                settings=worker,
+                layout=JobLayout(worker.prepare_storage()),
+                files=JobFiles(open_store(worker)),
+                index=JobIndex(redis, worker.key_prefix),
+                device="cpu",
+            )
+            monkeypatch.setattr(tasks, "_CONTEXT", context)
+            SimpleWorker([Queue(worker.queue, connection=redis)], connection=redis).work(burst=True)
+            job = client.get(f"/v1/jobs/{job_id}").json()
+            assert job["status"] == "finished", job
+            assert list((worker.storage_dir / "jobs").iterdir()) == []  # released
+
+            def presigned(url: str) -> httpx.Response:
+                answer = client.get(url, follow_redirects=False)
+                assert answer.status_code == 307, (url, answer.text)
+                assert answer.headers["location"].startswith(f"{s3_endpoint}/{bucket}/farm-a/")
+                got = httpx.get(answer.headers["location"], timeout=30)
+                assert got.status_code == 200, url
+                return got
+
+            crops = client.get(job["links"]["crops"]).json()["items"]
+            assert len(crops) == len(job["links"]["thumbs"]) >= 3
+            for crop in crops:
+                side = crop["lr_region"][2]
+                lr, hr = presigned(crop["lr"]), presigned(crop["hr"])
+                assert lr.headers["content-type"] == hr.headers["content-type"] == "image/png"
+                assert np.asarray(Image.open(io.BytesIO(lr.content))).shape[:2] == (side, side)
+                hr_px = np.asarray(Image.open(io.BytesIO(hr.content)))
+                assert hr_px.shape[:2] == (2 * side, 2 * side)
+            # a keyed fetch asks for the URL as JSON
+            link = client.get(crops[-1]["hr"] + "?redirect=false").json()
+            assert link["expires_in_s"] == 900
+            assert httpx.get(link["url"], timeout=30).content == hr.content
+
+            bundle = zipfile.ZipFile(io.BytesIO(presigned(job["links"]["result"]).content))
+            model_url = job["links"]["model"]
+            assert model_url.endswith(".gltf")
+            model = presigned(model_url)
+            assert model.headers["content-type"] == "model/gltf+json"
+            name = model_url.rsplit("/", 1)[1]
+            assert model.content == bundle.read(name)
+            doc = json.loads(model.content)
+            uris = [x["uri"] for x in doc["buffers"] + doc["images"]]
+            assert len(uris) >= 2
+            for uri in uris:  # resolved beside the model, as a 3D viewer does
+                assert presigned(urljoin(model_url, uri)).content == bundle.read(uri)
+            base = f"/v1/jobs/{job_id}"
+            for bad in ("..%2Fjob.json", "maps", "%2E%2E%2Finput%2Fasset.gltf", "nope.glb"):
+                assert client.get(f"{base}/files/{bad}").status_code == 404, bad
+            assert client.get(f"{base}/crops/job.json").status_code == 404
+
+            prefix = f"farm-a/jobs/{job_id}/"
+            assert client.delete(base).status_code == 204
+            assert list(raw.list_objects(bucket, prefix, recursive=True)) == []
     finally:
         cleanup_redis(api)

@@ -68,6 +68,9 @@ def test_health_ready_and_openapi(client):
         "/v1/jobs/{job_id}",
         "/v1/jobs/{job_id}/result",
         "/v1/jobs/{job_id}/previews/{name}",
+        "/v1/jobs/{job_id}/crops",
+        "/v1/jobs/{job_id}/crops/{name}",
+        "/v1/jobs/{job_id}/files/{path}",
         "/healthz",
         "/readyz",
         "/metrics",
@@ -211,6 +214,9 @@ def test_api_keys_isolate_jobs(tmp_path):
                 ("DELETE", ""),
                 ("GET", "/previews/preview.png"),
                 ("GET", "/thumbs/x.png"),
+                ("GET", "/crops"),
+                ("GET", "/crops/x.png"),
+                ("GET", "/files/asset.glb"),
             ):
                 r = c.request(method, f"/v1/jobs/{job_id}{path}", headers=b)
                 _problem_ok(r, 404, "not-found")
@@ -262,6 +268,65 @@ def test_preview_names_never_become_paths(client, settings, tmp_path):
         assert r.status_code == 404, name
     # listed files are served only once the job has finished
     _problem_ok(client.get(f"/v1/jobs/{job_id}/previews/nope.png"), 404)
+
+
+def test_crops_and_files_wait_for_the_end_and_serve_only_recorded_names(client, settings, tmp_path):
+    job_id = post_asset(client, asset_bytes(tmp_path)).json()["id"]
+    base = f"/v1/jobs/{job_id}"
+    _problem_ok(client.get(f"{base}/crops"), 409, "not-finished")
+    _problem_ok(client.get(f"{base}/files/asset.glb"), 409, "not-finished")
+    job_dir = JobLayout(settings.storage_dir).job_dir(job_id)  # the filesystem store's objects
+    crops, out = job_dir / "crops", job_dir / "output"
+    crops.mkdir(parents=True)
+    out.mkdir(parents=True)
+    for name in ("00_normal_n_lr.png", "00_normal_n_hr.png", "stray.png"):
+        (crops / name).write_bytes(b"\x89PNG fake")
+    (out / "asset.glb").write_bytes(b"glTF fake")
+    (out / ".hidden.glb").write_bytes(b"glTF fake")
+    entry = {
+        "map": "00_normal_n",
+        "label": "normal",
+        "scale": 2,
+        "lr_region": [4, 4, 8, 8],
+        "hr_region": [8, 8, 16, 16],
+        "lr_size": [16, 16],
+        "hr_size": [32, 32],
+        "lr": "00_normal_n_lr.png",
+        "hr": "00_normal_n_hr.png",
+    }
+    job = Job.fetch(job_id, connection=redis_client())
+    job.meta.update(
+        state="finished",
+        files={"previews": [], "thumbs": [], "crops": [entry, {"map": 3}], "model": "asset.glb"},
+    )
+    job.save_meta()
+    job.set_status("finished")
+    links = client.get(base).json()["links"]
+    assert links["crops"] == f"{base}/crops" and links["model"] == f"{base}/files/asset.glb"
+    items = client.get(links["crops"]).json()["items"]  # the malformed entry left out
+    assert items == [{**entry, "lr": f"{base}/crops/00_normal_n_lr.png",
+                      "hr": f"{base}/crops/00_normal_n_hr.png"}]  # fmt: skip
+    assert client.get(items[0]["hr"]).content == b"\x89PNG fake"
+    assert client.get(links["model"]).headers["content-type"] == "model/gltf-binary"
+    for name in ("stray.png", "..%2Fjob.json", "%2E%2E%2Fcrops%2Fstray.png"):
+        _problem_ok(client.get(f"{base}/crops/{name}"), 404)
+    for path in (".hidden.glb", "..%2Fjob.json", "%2E%2E%2Finput", "input%2Fasset.glb"):
+        _problem_ok(client.get(f"{base}/files/{path}"), 404)
+
+
+def test_the_3d_viewer_library_comes_from_the_npm_packages(client, tmp_path):
+    r = client.get("/vendor/three/build/three.module.js")
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/javascript")
+    assert b"./three.core.js" in r.content
+    assert client.get("/vendor/three/examples/jsm/loaders/GLTFLoader.js").status_code == 200
+    wasm = client.get("/vendor/three/examples/jsm/libs/draco/gltf/draco_decoder.wasm")
+    assert wasm.headers["content-type"] == "application/wasm" and wasm.content[:4] == b"\0asm"
+    for path in ("package.json", "..%2F..%2Fpackage.json", "src/Three.js"):
+        _problem_ok(client.get(f"/vendor/three/{path}"), 404)
+    bare = make_settings(tmp_path, npm_dir=tmp_path / "no-node-modules")
+    with TestClient(create_app(bare), raise_server_exceptions=False) as c:
+        body = _problem_ok(c.get("/vendor/three/build/three.module.js"), 404)
+        assert "scripts/setup" in body["detail"]
 
 
 def test_cors_off_by_default_and_on_when_configured(client, tmp_path):

@@ -70,7 +70,7 @@ def _wait_end(base: str, job_id: str, timeout: float) -> dict:
 
 def _assert_no_partial_bundle(job_dir: Path) -> None:
     names = sorted(p.name for p in job_dir.iterdir())
-    assert "result.zip" not in names and "output" not in names and "thumbs" not in names, names
+    assert not {"result.zip", "output", "thumbs", "crops"} & set(names), names
     assert [n for n in names if n.startswith(".tmp")] == [], names
     files = sorted(p.relative_to(job_dir).as_posix() for p in job_dir.rglob("*") if p.is_file())
     assert files == ["input/asset.glb", "job.json"], files  # nothing half-written anywhere

@@ -8,9 +8,12 @@ import io
 import json
 import time
 import zipfile
+from urllib.parse import urljoin
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from PIL import Image
 
 from pbrsr_jobs.store import JobLayout
 from service.app import create_app
@@ -18,6 +21,7 @@ from tests.bundles import assert_one_bundle
 from tests.service_support import (
     asset_bytes,
     cleanup_redis,
+    gltf_zip_bytes,
     make_settings,
     post_asset,
     wait_for,
@@ -93,11 +97,49 @@ def test_job_runs_to_finished_with_a_complete_bundle(env):
         assert img.status_code == 200 and img.content[:4] == b"\x89PNG"
     assert len(job["links"]["thumbs"]) == len(maps)
 
+    # per-map detail crops: the same region of the LR and the HR map
+    crops = client.get(job["links"]["crops"]).json()["items"]
+    assert sorted(f"maps/{c['map']}.png" for c in crops) == sorted(maps)
+    for crop in crops:
+        x, y, w, h = crop["lr_region"]
+        assert crop["scale"] == 2 and crop["hr_region"] == [2 * x, 2 * y, 2 * w, 2 * h]
+        lr, hr = client.get(crop["lr"]), client.get(crop["hr"])
+        assert lr.headers["content-type"] == hr.headers["content-type"] == "image/png"
+        lr_px = np.asarray(Image.open(io.BytesIO(lr.content)))
+        hr_px = np.asarray(Image.open(io.BytesIO(hr.content)))
+        assert lr_px.shape[:2] == (h, w) and hr_px.shape[:2] == (2 * h, 2 * w)
+    # the upscaled asset for a 3D viewer, and any file of the bundle by its path
+    model = client.get(job["links"]["model"])
+    assert job["links"]["model"].endswith("/files/asset.glb")
+    assert model.headers["content-type"] == "model/gltf-binary"
+    assert model.content == zf.read("asset.glb")
+    assert client.get(f"/v1/jobs/{job_id}/files/report.json").json() == report
+    for bad in ("..%2Fjob.json", "maps", "maps%2F..%2Freport.json", "%2E%2E%2Finput", "nope.glb"):
+        assert client.get(f"/v1/jobs/{job_id}/files/{bad}").status_code == 404, bad
+
+    # nothing temporary left, one bundle
     assert_one_bundle(settings.storage_dir, job_id)
     metrics = client.get("/metrics").text
     assert 'pbrsr_jobs_completed_total{state="finished"} 1.0' in metrics
     assert "pbrsr_job_duration_seconds_count 1.0" in metrics
     assert "pbrsr_workers 1.0" in metrics
+
+
+def test_a_gltf_result_resolves_its_files_beside_it(env):
+    """A zip upload's result is a .gltf: links.model and the URIs inside it, resolved against
+    its URL as a browser's 3D viewer does, all answer."""
+    settings, client, proc, tmp = env
+    r = post_asset(client, gltf_zip_bytes(tmp), "scene.zip", {"method": "bicubic", "scale": 2})
+    job = _wait_state(client, r.json()["id"], ("finished", "failed", "canceled"), 150)
+    assert job["status"] == "finished", job
+    model_url = job["links"]["model"]
+    assert model_url.endswith(".gltf")
+    doc = client.get(model_url).json()
+    uris = [x["uri"] for x in doc["buffers"] + doc["images"]]
+    assert len(uris) >= 2
+    for uri in uris:
+        r = client.get(urljoin(model_url, uri))
+        assert r.status_code == 200 and r.content, uri
 
 
 def test_running_job_cancels_within_two_seconds(env):
