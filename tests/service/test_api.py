@@ -34,12 +34,6 @@ def settings(tmp_path):
     yield from settings_scope(tmp_path)
 
 
-@pytest.fixture
-def client(settings):
-    with TestClient(create_app(settings), raise_server_exceptions=False) as c:
-        yield c
-
-
 def _problem_ok(resp, status: int, code: str | None = None) -> dict:
     assert resp.status_code == status, resp.text
     assert resp.headers["content-type"].startswith("application/problem+json")

@@ -34,12 +34,6 @@ def settings(tmp_path):
     yield from settings_scope(tmp_path, api_keys=[LONG_KEY_A, LONG_KEY_B])
 
 
-@pytest.fixture
-def client(settings):
-    with TestClient(create_app(settings), raise_server_exceptions=False) as c:
-        yield c
-
-
 def post_batch(client, files, options=OPTIONS, headers=A, **fields):
     """``files``: (name, bytes) pairs, each sent as a ``file`` part."""
     parts = [("file", (name, data, "application/octet-stream")) for name, data in files]

@@ -10,10 +10,8 @@ import threading
 
 import httpx
 import pytest
-from fastapi.testclient import TestClient
 
 from pbrsr_jobs.events import JobEvent, JobEvents
-from service.app import create_app
 from tests.service_support import (
     LONG_KEY_A,
     LONG_KEY_B,
@@ -47,12 +45,6 @@ def parse_sse(text: str) -> list[dict]:
 @pytest.fixture
 def settings(tmp_path):
     yield from settings_scope(tmp_path, api_keys=[LONG_KEY_A, LONG_KEY_B])
-
-
-@pytest.fixture
-def client(settings):
-    with TestClient(create_app(settings), raise_server_exceptions=False) as c:
-        yield c
 
 
 KEY_A = {"X-API-Key": LONG_KEY_A}
