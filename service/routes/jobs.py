@@ -6,7 +6,7 @@ import contextlib
 from functools import partial
 from typing import Annotated, Any
 
-from fastapi import APIRouter, BackgroundTasks, Query, Request, Response
+from fastapi import APIRouter, BackgroundTasks, Depends, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, RedirectResponse
 from pydantic import BaseModel
@@ -16,7 +16,7 @@ from rq.job import Job
 from pbrsr_jobs.events import JobEvents
 from pbrsr_jobs.idempotency import IdempotencyKeys
 from pbrsr_jobs.settings import Settings
-from pbrsr_jobs.store import JobFiles, JobIndex, JobState, check_job_id, sweep_expired
+from pbrsr_jobs.store import JobIndex, JobState, check_job_id, sweep_expired
 from pbrsr_jobs.webhooks import LOG_ENTRIES, WebhookQueue
 
 from ..deletion import delete_job
@@ -290,24 +290,39 @@ RedirectQuery = Annotated[
 ]
 
 
-def _download(
-    files: JobFiles,
-    key: str,
-    media_type: str,
-    filename: str | None,
-    link_expiry_s: int | None,
-) -> Response:
-    """The object ``key``: a 307 to a presigned URL when the store gives one (s3), or that
-    URL as JSON when ``link_expiry_s`` (its validity) is given; else the file itself."""
-    url = files.store.url(key, filename=filename, media_type=media_type)
-    if url is not None and link_expiry_s is not None:
-        return _json(DownloadLink(url=url, expires_in_s=link_expiry_s))
-    if url is not None:
-        return RedirectResponse(url, status_code=307)
-    path = files.store.local_path(key)
-    if path is None:
-        raise ProblemError(404, "not-found", "this file is gone (the job may have expired)")
-    return FileResponse(path, media_type=media_type, filename=filename)
+class JobDownload:
+    """What a download route needs: the caller's job (``job``; 404 as :func:`fetch_job`) and
+    :meth:`send`, the answer for one of its stored objects."""
+
+    def __init__(
+        self,
+        job_id: str,
+        redis: RedisDep,
+        owner: OwnerDep,
+        settings: SettingsDep,
+        files: FilesDep,
+        index: IndexDep,
+        redirect: RedirectQuery = True,
+    ) -> None:
+        self.files = files
+        self.link_expiry_s = None if redirect else settings.s3_presign_expiry_s
+        self.job = fetch_job(job_id, owner, redis, index)
+
+    def send(self, key: str, media_type: str, filename: str | None = None) -> Response:
+        """The object ``key``: a 307 to a presigned URL when the store gives one (s3), or that
+        URL as JSON with ``redirect=false``; else the file itself."""
+        url = self.files.store.url(key, filename=filename, media_type=media_type)
+        if url is not None and self.link_expiry_s is not None:
+            return _json(DownloadLink(url=url, expires_in_s=self.link_expiry_s))
+        if url is not None:
+            return RedirectResponse(url, status_code=307)
+        path = self.files.store.local_path(key)
+        if path is None:
+            raise ProblemError(404, "not-found", "this file is gone (the job may have expired)")
+        return FileResponse(path, media_type=media_type, filename=filename)
+
+
+DownloadDep = Annotated[JobDownload, Depends()]
 
 
 @router.get(
@@ -321,18 +336,9 @@ def _download(
     },
     summary="Download the bundle",
 )
-def get_result(
-    job_id: str,
-    redis: RedisDep,
-    owner: OwnerDep,
-    settings: SettingsDep,
-    files: FilesDep,
-    index: IndexDep,
-    redirect: RedirectQuery = True,
-) -> Response:
+def get_result(job_id: str, download: DownloadDep) -> Response:
     """A zip: the upscaled asset in the input's form, every HR map, report.json, previews."""
-    link = None if redirect else settings.s3_presign_expiry_s
-    job = fetch_job(job_id, owner, redis, index)
+    job, files = download.job, download.files
     state = state_of(job)
     key = files.bundle_key(job_id)
     if state != JobState.FINISHED or not files.store.exists(key):
@@ -341,7 +347,7 @@ def get_result(
         )
     name = (job.meta or {}).get("name", "asset").rsplit(".", 1)[0] or "asset"
     scale = ((job.meta or {}).get("options") or {}).get("scale", "")
-    return _download(files, key, "application/zip", f"{name}-pbrsr-x{scale}.zip", link)
+    return download.send(key, "application/zip", f"{name}-pbrsr-x{scale}.zip")
 
 
 def _named(name: str, names: list[str]) -> None:
@@ -355,21 +361,10 @@ def _named(name: str, names: list[str]) -> None:
     responses={**_NOT_FOUND, **_DOWNLOAD, 200: {"content": {"image/png": {}}}},
     summary="A before/after render",
 )
-def get_preview(
-    job_id: str,
-    name: str,
-    redis: RedisDep,
-    owner: OwnerDep,
-    settings: SettingsDep,
-    files: FilesDep,
-    index: IndexDep,
-    redirect: RedirectQuery = True,
-) -> Response:
+def get_preview(job_id: str, name: str, download: DownloadDep) -> Response:
     """``preview.png`` (side by side) or ``before_<env>.png`` / ``after_<env>.png``."""
-    link = None if redirect else settings.s3_presign_expiry_s
-    fetch_job(job_id, owner, redis, index)
-    _named(name, files.preview_names(job_id))
-    return _download(files, files.preview_key(job_id, name), "image/png", None, link)
+    _named(name, download.files.preview_names(job_id))
+    return download.send(download.files.preview_key(job_id, name), "image/png")
 
 
 @router.get(
@@ -378,20 +373,9 @@ def get_preview(
     responses={**_NOT_FOUND, **_DOWNLOAD, 200: {"content": {"image/png": {}}}},
     summary="A thumbnail of one HR map",
 )
-def get_thumb(
-    job_id: str,
-    name: str,
-    redis: RedisDep,
-    owner: OwnerDep,
-    settings: SettingsDep,
-    files: FilesDep,
-    index: IndexDep,
-    redirect: RedirectQuery = True,
-) -> Response:
-    link = None if redirect else settings.s3_presign_expiry_s
-    fetch_job(job_id, owner, redis, index)
-    _named(name, files.thumb_names(job_id))
-    return _download(files, files.thumb_key(job_id, name), "image/png", None, link)
+def get_thumb(job_id: str, name: str, download: DownloadDep) -> Response:
+    _named(name, download.files.thumb_names(job_id))
+    return download.send(download.files.thumb_key(job_id, name), "image/png")
 
 
 def _finished_files(job: Job) -> dict:
@@ -423,20 +407,9 @@ def list_crops(job_id: str, redis: RedisDep, owner: OwnerDep, index: IndexDep) -
     responses={**_NOT_FOUND, **_DOWNLOAD, 200: {"content": {"image/png": {}}}},
     summary="One LR or HR detail crop",
 )
-def get_crop(
-    job_id: str,
-    name: str,
-    redis: RedisDep,
-    owner: OwnerDep,
-    settings: SettingsDep,
-    files: FilesDep,
-    index: IndexDep,
-    redirect: RedirectQuery = True,
-) -> Response:
-    link = None if redirect else settings.s3_presign_expiry_s
-    job = fetch_job(job_id, owner, redis, index)
-    _named(name, crop_names((job.meta or {}).get("files")))
-    return _download(files, files.crop_key(job_id, name), "image/png", None, link)
+def get_crop(job_id: str, name: str, download: DownloadDep) -> Response:
+    _named(name, crop_names((download.job.meta or {}).get("files")))
+    return download.send(download.files.crop_key(job_id, name), "image/png")
 
 
 _MEDIA_TYPES = {
@@ -461,23 +434,13 @@ _MEDIA_TYPES = {
     },
     summary="One file of the finished bundle",
 )
-def get_file(
-    job_id: str,
-    path: str,
-    redis: RedisDep,
-    owner: OwnerDep,
-    settings: SettingsDep,
-    files: FilesDep,
-    index: IndexDep,
-    redirect: RedirectQuery = True,
-) -> Response:
+def get_file(job_id: str, path: str, download: DownloadDep) -> Response:
     """A file of the bundle by its path inside it (``links.model`` is the upscaled asset; a
     ``.gltf``'s relative URIs resolve to its buffers and images here)."""
-    link = None if redirect else settings.s3_presign_expiry_s
-    job = fetch_job(job_id, owner, redis, index)
-    _finished_files(job)
+    files = download.files
+    _finished_files(download.job)
     if path not in files.output_files(job_id):  # only paths the store lists: never one to follow
         raise ProblemError(404, "not-found", f"no file '{path[:64]}' in this job's result")
     suffix = "." + path.rsplit(".", 1)[-1].lower() if "." in path else ""
     media = _MEDIA_TYPES.get(suffix, "application/octet-stream")
-    return _download(files, files.output_key(job_id, path), media, None, link)
+    return download.send(files.output_key(job_id, path), media)
