@@ -404,35 +404,41 @@ def test_a_batch_through_s3_and_its_deletion(s3_endpoint, bucket, tmp_path):
         cleanup_redis(api)
 
 
-def test_a_worker_refused_by_the_store_fails_the_job_clearly(
-    s3_endpoint, bucket, tmp_path, monkeypatch
-):
+def _in_process_worker(settings: Settings, monkeypatch):
+    """An RQ SimpleWorker on ``settings``' queue that runs jobs in this process with the
+    worker context of ``settings`` (its storage folder and store, on the CPU)."""
     from redis import Redis
     from rq import SimpleWorker
 
     from pbrsr_jobs.store import JobFiles, JobIndex, JobLayout
     from worker import tasks
 
+    redis = Redis.from_url(settings.redis_url)
+    context = tasks.WorkerContext(
+        settings=settings,
+        layout=JobLayout(settings.prepare_storage()),
+        files=JobFiles(open_store(settings)),
+        index=JobIndex(redis, settings.key_prefix),
+        device="cpu",
+    )
+    monkeypatch.setattr(tasks, "_CONTEXT", context)
+    return SimpleWorker([Queue(settings.queue, connection=redis)], connection=redis)
+
+
+def test_a_worker_refused_by_the_store_fails_the_job_clearly(
+    s3_endpoint, bucket, tmp_path, monkeypatch
+):
     api = _s3_settings(tmp_path / "api", s3_endpoint, bucket)
     worker = api.model_copy(update={"storage_dir": tmp_path / "worker" / "storage"})
     try:
         with TestClient(create_app(api), raise_server_exceptions=False) as client:
             r = post_asset(client, asset_bytes(tmp_path), options={"method": "bicubic"})
             job_id = r.json()["id"]
-            redis = Redis.from_url(worker.redis_url)
-            context = tasks.WorkerContext(
-                settings=worker,
-                layout=JobLayout(worker.prepare_storage()),
-                files=JobFiles(open_store(worker)),
-                index=JobIndex(redis, worker.key_prefix),
-                device="cpu",
-            )
-            monkeypatch.setattr(tasks, "_CONTEXT", context)
+            rq_worker = _in_process_worker(worker, monkeypatch)
             # the store turns the worker's key down between start-up and the job
             httpx.post(f"{s3_endpoint}/moto-api/reset-auth", content=b"0", timeout=10)
             try:
-                queue = Queue(worker.queue, connection=redis)
-                SimpleWorker([queue], connection=redis).work(burst=True)
+                rq_worker.work(burst=True)
             finally:
                 httpx.post(f"{s3_endpoint}/moto-api/reset-auth", content=b"inf", timeout=10)
             job = client.get(f"/v1/jobs/{job_id}").json()
@@ -450,12 +456,6 @@ def test_crops_and_model_files_through_s3(s3_endpoint, bucket, tmp_path, monkeyp
     file of its bundle (the model and what it refers to) come from presigned URLs."""
     from urllib.parse import urljoin
 
-    from redis import Redis
-    from rq import SimpleWorker
-
-    from pbrsr_jobs.store import JobFiles, JobIndex, JobLayout
-    from worker import tasks
-
     api = _s3_settings(tmp_path / "api", s3_endpoint, bucket)
     worker = api.model_copy(update={"storage_dir": tmp_path / "worker" / "storage"})
     raw = _raw_client(s3_endpoint)
@@ -464,16 +464,7 @@ def test_crops_and_model_files_through_s3(s3_endpoint, bucket, tmp_path, monkeyp
             upload = gltf_zip_bytes(tmp_path)
             r = post_asset(client, upload, "scene.zip", {"method": "bicubic", "scale": 2})
             job_id = r.json()["id"]
-            redis = Redis.from_url(worker.redis_url)
-            context = tasks.WorkerContext(
-                settings=worker,
-                layout=JobLayout(worker.prepare_storage()),
-                files=JobFiles(open_store(worker)),
-                index=JobIndex(redis, worker.key_prefix),
-                device="cpu",
-            )
-            monkeypatch.setattr(tasks, "_CONTEXT", context)
-            SimpleWorker([Queue(worker.queue, connection=redis)], connection=redis).work(burst=True)
+            _in_process_worker(worker, monkeypatch).work(burst=True)
             job = client.get(f"/v1/jobs/{job_id}").json()
             assert job["status"] == "finished", job
             assert list((worker.storage_dir / "jobs").iterdir()) == []  # released
