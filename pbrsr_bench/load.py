@@ -109,7 +109,11 @@ def _popen(args: list[str], env: dict[str, str], log_path: Path) -> subprocess.P
         )
 
 
-def _wait(predicate: Callable[[], Any], timeout: float, what: str, interval: float = 0.1) -> Any:
+def wait_until(
+    predicate: Callable[[], Any], timeout: float, what: str, interval: float = 0.1
+) -> Any:
+    """``predicate()``'s first truthy value, asked every ``interval`` s; LoadBenchError naming
+    ``what`` after ``timeout`` s."""
     deadline = time.monotonic() + timeout
     while True:
         value = predicate()
@@ -171,7 +175,7 @@ class ServiceStack:
             except httpx.HTTPError:
                 return False
 
-        _wait(ready, timeout, "the API to be ready", 0.2)
+        wait_until(ready, timeout, "the API to be ready", 0.2)
         self.base_url = base
         return base
 
@@ -195,7 +199,7 @@ class ServiceStack:
                     raise LoadBenchError(f"worker {i} exited; see {self.log_dir}/worker-{i}.log")
             return self.registered_workers() >= wanted
 
-        _wait(registered, timeout, f"{wanted} workers to register", 0.25)
+        wait_until(registered, timeout, f"{wanted} workers to register", 0.25)
 
     def registered_workers(self) -> int:
         """Workers registered in Redis, as the API's ``/metrics`` counts them."""
@@ -209,7 +213,9 @@ class ServiceStack:
             stop_process(proc)
             self.procs.remove(proc)
         self.workers.clear()
-        _wait(lambda: self.registered_workers() == 0, timeout, "the workers to unregister", 0.25)
+        wait_until(
+            lambda: self.registered_workers() == 0, timeout, "the workers to unregister", 0.25
+        )
 
     def close(self) -> None:
         for proc in reversed(self.procs):
@@ -244,7 +250,7 @@ def _start_private_redis(log_dir: Path) -> tuple[subprocess.Popen, str] | None:
             return False
 
     try:
-        _wait(up, 15, "redis-server to start", 0.05)
+        wait_until(up, 15, "redis-server to start", 0.05)
     except BaseException:
         stop_process(proc)
         raise

@@ -10,13 +10,11 @@ import io
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
-import time
 import uuid
 import zipfile
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -24,6 +22,7 @@ from typing import Any
 import pytest
 from pydantic import SecretStr
 
+from pbrsr_bench.load import free_port, wait_until
 from pbrsr_jobs.settings import Settings
 
 REPO = Path(__file__).resolve().parents[1]
@@ -103,19 +102,6 @@ def settings_scope(tmp_path: Path, **overrides: Any) -> Iterator[Settings]:
     cleanup_redis(s)
 
 
-def wait_for(
-    predicate: Callable[[], Any], timeout: float, interval: float = 0.1, what: str = "condition"
-) -> Any:
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(interval)
-
-
 def asset_bytes(tmp_path: Path, kind: str = "glb", size: int = 32, **kw: Any) -> bytes:
     from pbrsr_core.asset import make_test_asset
 
@@ -152,12 +138,6 @@ def post_asset(
     if options is not None:
         form["options"] = options if isinstance(options, str) else json.dumps(options)
     return client.post("/v1/jobs", files=files, data=form, headers=headers or {})
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @contextmanager
@@ -214,7 +194,7 @@ def api_server(settings: Settings, log_path: Path) -> Iterator[str]:
             except httpx.HTTPError:
                 return False
 
-        wait_for(up, 30, 0.2, "the API to start")
+        wait_until(up, 30, "the API to start", 0.2)
         yield base
     finally:
         stop_process(proc)

@@ -21,6 +21,7 @@ from PIL import Image
 from pydantic import ValidationError
 from rq import Queue
 
+from pbrsr_bench.load import free_port
 from pbrsr_jobs.objstore import FilesystemStore, S3Store, StoreUnavailable, open_store
 from pbrsr_jobs.settings import Settings
 from service.app import create_app
@@ -30,7 +31,6 @@ from tests.service_support import (
     REPO,
     asset_bytes,
     cleanup_redis,
-    free_port,
     gltf_zip_bytes,
     make_settings,
     post_asset,

@@ -22,13 +22,13 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from pbrsr_bench.load import wait_until
 from tests.service_support import (
     REPO,
     api_server,
     asset_bytes,
     cleanup_redis,
     make_settings,
-    wait_for,
     worker_process,
 )
 
@@ -190,7 +190,7 @@ def test_dashboard_detail_crops_wipe_and_3d_view(tmp_path):
             files = {"file": ("sphere.glb", data, "model/gltf-binary")}
             job_id = api.post("/v1/jobs", files=files, data={"options": options}).json()["id"]
             with worker_process(settings, tmp_path / "worker.log", extra=["--burst"]) as proc:
-                wait_for(lambda: proc.poll() is not None, 120, 0.2, "the burst worker to end")
+                wait_until(lambda: proc.poll() is not None, 120, "the burst worker to end", 0.2)
             job = api.get(f"/v1/jobs/{job_id}").json()
             assert job["status"] == "finished", job
             crops = api.get(job["links"]["crops"]).json()["items"]
@@ -303,7 +303,7 @@ def test_dashboard_3d_view_draws_draco_and_meshopt_results(tmp_path):
                 r = api.post("/v1/jobs", files=files, data={"options": '{"method": "bicubic"}'})
                 ids[kind] = r.json()["id"]
             with worker_process(settings, tmp_path / "worker.log", extra=["--burst"]) as proc:
-                wait_for(lambda: proc.poll() is not None, 120, 0.2, "the burst worker to end")
+                wait_until(lambda: proc.poll() is not None, 120, "the burst worker to end", 0.2)
             for job_id in ids.values():
                 assert api.get(f"/v1/jobs/{job_id}").json()["status"] == "finished"
 
@@ -338,7 +338,8 @@ def test_dashboard_with_a_key_and_s3_storage_never_sends_the_key_to_the_bucket(t
     from moto.server import ThreadedMotoServer
     from playwright.sync_api import sync_playwright
 
-    from tests.service_support import LONG_KEY_A, free_port, post_asset, wait_for
+    from pbrsr_bench.load import free_port, wait_until
+    from tests.service_support import LONG_KEY_A, post_asset
 
     port = free_port()
     s3 = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
@@ -367,11 +368,11 @@ def test_dashboard_with_a_key_and_s3_storage_never_sends_the_key_to_the_bucket(t
             job_id = post_asset(client, data, options={"method": "bicubic", "scale": 2}).json()[
                 "id"
             ]
-            wait_for(
+            wait_until(
                 lambda: client.get(f"/v1/jobs/{job_id}").json()["status"] == "finished",
                 120,
-                0.5,
                 "the job to finish",
+                0.5,
             )
             stored = raw.get_object("dash", f"jobs/{job_id}/result.zip").read()
             browser = pw.chromium.launch(

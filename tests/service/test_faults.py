@@ -28,6 +28,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from pbrsr_bench.load import free_port, wait_until
 from pbrsr_jobs.store import JobLayout
 from tests.service_support import (
     PBRSR,
@@ -35,11 +36,9 @@ from tests.service_support import (
     api_server,
     asset_bytes,
     cleanup_redis,
-    free_port,
     make_settings,
     settings_env,
     stop_process,
-    wait_for,
     worker_process,
 )
 
@@ -60,11 +59,11 @@ def _job(base: str, job_id: str) -> dict:
 
 
 def _wait_end(base: str, job_id: str, timeout: float) -> dict:
-    return wait_for(
+    return wait_until(
         lambda: (j := _job(base, job_id))["status"] in _TERMINAL and j,
         timeout,
-        0.2,
         f"job {job_id} to end",
+        0.2,
     )
 
 
@@ -97,7 +96,7 @@ def _redis_server(port: int, data_dir: Path) -> subprocess.Popen:
         except Exception:  # noqa: BLE001 - still starting
             return False
 
-    wait_for(up, 15, 0.05, "redis-server to start")
+    wait_until(up, 15, "redis-server to start", 0.05)
     return proc
 
 
@@ -115,7 +114,9 @@ def test_redis_outage_mid_job_readyz_503_then_recovery_and_the_job_finishes(tmp_
         ):
             assert httpx.get(f"{base}/readyz", timeout=5).status_code == 200
             job_id = _post(base, asset_bytes(tmp_path)).json()["id"]
-            wait_for(lambda: _job(base, job_id)["status"] == "running", 120, 0.1, "the job to run")
+            wait_until(
+                lambda: _job(base, job_id)["status"] == "running", 120, "the job to run", 0.1
+            )
 
             redis_proc.send_signal(signal.SIGTERM)  # Redis stops mid-job
             redis_proc.wait(timeout=10)
@@ -138,11 +139,11 @@ def test_redis_outage_mid_job_readyz_503_then_recovery_and_the_job_finishes(tmp_
             assert worker.poll() is None, (tmp_path / "worker.log").read_text()[-3000:]
 
             restarted = _redis_server(port, data_dir)  # same port, same data
-            wait_for(
+            wait_until(
                 lambda: httpx.get(f"{base}/readyz", timeout=10).status_code == 200,
                 30,
-                0.2,
                 "/readyz to answer 200 again",
+                0.2,
             )
             job = _wait_end(base, job_id, 180)
             assert job["status"] == "finished", job

@@ -15,6 +15,7 @@ import pytest
 from fastapi.testclient import TestClient
 from PIL import Image
 
+from pbrsr_bench.load import wait_until
 from pbrsr_jobs.store import JobLayout
 from service.app import create_app
 from tests.bundles import assert_one_bundle
@@ -24,7 +25,6 @@ from tests.service_support import (
     gltf_zip_bytes,
     make_settings,
     post_asset,
-    wait_for,
     worker_process,
 )
 
@@ -48,11 +48,11 @@ def _status(client, job_id):
 
 
 def _wait_state(client, job_id, states, timeout):
-    return wait_for(
+    return wait_until(
         lambda: (j := _status(client, job_id))["status"] in states and j,
         timeout,
-        0.2,
         f"job {job_id} to reach {states}",
+        0.2,
     )
 
 
@@ -69,7 +69,7 @@ def test_job_runs_to_finished_with_a_complete_bundle(env):
         assert proc.poll() is None, (tmp / "worker.log").read_text()[-3000:]
         return j["status"] in ("finished", "failed", "canceled") and j
 
-    job = wait_for(done, 150, 0.2, "the job to end")
+    job = wait_until(done, 150, "the job to end", 0.2)
     assert job["status"] == "finished", job
     assert "running" in seen
     assert job["fraction"] == 1.0 and job["attempt"] == 1
@@ -149,7 +149,7 @@ def test_running_job_cancels_within_two_seconds(env):
     job_id = post_asset(client, big, options={"method": "bicubic"}).json()["id"]
     # wait until it is well inside the pipeline
     _wait_state(client, job_id, ("running",), 120)
-    wait_for(lambda: _status(client, job_id)["stage"] in ("export",), 60, 0.1, "export")
+    wait_until(lambda: _status(client, job_id)["stage"] in ("export",), 60, "export", 0.1)
     time.sleep(0.5)
     t0 = time.monotonic()
     r = client.delete(f"/v1/jobs/{job_id}")

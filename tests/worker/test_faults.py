@@ -13,6 +13,7 @@ import pytest
 from fastapi.testclient import TestClient
 from rq.job import Job
 
+from pbrsr_bench.load import wait_until
 from service.app import create_app
 from tests.bundles import assert_one_bundle
 from tests.service_support import (
@@ -21,7 +22,6 @@ from tests.service_support import (
     make_settings,
     post_asset,
     redis_client,
-    wait_for,
     worker_process,
 )
 
@@ -45,7 +45,7 @@ def test_killed_worker_job_is_retried_elsewhere_and_finishes(tmp_path):
                 j = client.get(f"/v1/jobs/{job_id}").json()
                 return j["status"] == "running" and j["stage"] == "export" and j
 
-            wait_for(stage, 240, 0.2, "the job to be mid-run")
+            wait_until(stage, 240, "the job to be mid-run", 0.2)
             meta = Job.fetch(job_id, connection=redis_client()).meta
             victim = meta["worker"]
             os.kill(procs[victim].pid, signal.SIGKILL)
@@ -57,7 +57,7 @@ def test_killed_worker_job_is_retried_elsewhere_and_finishes(tmp_path):
                 j = client.get(f"/v1/jobs/{job_id}").json()
                 return j["status"] in ("finished", "failed", "canceled") and j
 
-            job = wait_for(ended, 300, 0.5, "the job to be retried and end")
+            job = wait_until(ended, 300, "the job to be retried and end", 0.5)
             assert job["status"] == "finished", job
             assert job["attempt"] == 2
             meta = Job.fetch(job_id, connection=redis_client()).meta

@@ -203,7 +203,7 @@ def _private_redis(port: int, tmp_path):
     from redis import Redis
 
     client = Redis(host="127.0.0.1", port=port, socket_connect_timeout=0.5, socket_timeout=1)
-    from tests.service_support import wait_for
+    from pbrsr_bench.load import wait_until
 
     def up():
         try:
@@ -211,14 +211,14 @@ def _private_redis(port: int, tmp_path):
         except Exception:  # noqa: BLE001
             return False
 
-    wait_for(up, 10, 0.05, "redis-server to start")
+    wait_until(up, 10, "redis-server to start", 0.05)
     return proc, client
 
 
 def test_redis_outage_does_not_kill_the_run_and_the_outcome_is_kept(tmp_path):
     import threading
 
-    from tests.service_support import free_port
+    from pbrsr_bench.load import free_port
 
     port = free_port()
     proc, client = _private_redis(port, tmp_path)

@@ -9,12 +9,12 @@ from types import SimpleNamespace
 
 import pytest
 
+from pbrsr_bench.load import wait_until
 from pbrsr_jobs.settings import Settings
 from tests.service_support import (
     cleanup_redis,
     make_settings,
     redis_client,
-    wait_for,
     worker_process,
 )
 from worker import threads as wt
@@ -146,7 +146,7 @@ def test_a_worker_runs_the_threads_it_is_given(tmp_path):
                 raise AssertionError(f"pbrsr worker exited: {log_path.read_text()[-2000:]}")
             return " threads" in log_path.read_text() and "on queues" in log_path.read_text()
 
-        wait_for(started, 120, 0.2, "the worker to start")
+        wait_until(started, 120, "the worker to start", 0.2)
     text = log_path.read_text()
     assert re.search(r"1 threads: PBRSR_WORKER_THREADS; torch 1 \(inter-op 1\), numba 1", text)
     assert re.search(r"worker \S+ on queues .*, 1 threads", text)

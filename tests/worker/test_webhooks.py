@@ -12,6 +12,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 import pytest
 from fastapi.testclient import TestClient
 
+from pbrsr_bench.load import wait_until
 from pbrsr_core.errors import InvalidOptions
 from pbrsr_jobs.events import JobEvents
 from pbrsr_jobs.webhooks import (
@@ -32,7 +33,6 @@ from tests.service_support import (
     post_asset,
     redis_client,
     settings_scope,
-    wait_for,
     worker_process,
 )
 from worker.webhooks import WebhookDispatcher
@@ -136,7 +136,11 @@ def test_a_delivery_is_signed_and_logged(settings, receiver):
     events.publish("job1", "owner-a", "succeeded", {"summary": {"maps": 3}}, hook)
     d = _dispatcher(settings)
     try:
-        wait_for(lambda: WebhookQueue(redis_client(), settings.key_prefix).deliveries("job1"), 20)
+        wait_until(
+            lambda: WebhookQueue(redis_client(), settings.key_prefix).deliveries("job1"),
+            20,
+            "the delivery",
+        )
     finally:
         d.stop()
     assert len(receiver.got) == 1
@@ -162,8 +166,10 @@ def test_failures_are_retried_with_backoff_then_given_up(settings):
     queue = WebhookQueue(redis_client(), settings.key_prefix)
     d = _dispatcher(settings)
     try:
-        wait_for(
-            lambda: len(queue.deliveries("flaky")) == 2 and len(queue.deliveries("dead")) == 3, 30
+        wait_until(
+            lambda: len(queue.deliveries("flaky")) == 2 and len(queue.deliveries("dead")) == 3,
+            30,
+            "2 deliveries to the flaky receiver and 3 to the dead one",
         )
     finally:
         d.stop()
@@ -189,7 +195,7 @@ def test_a_task_a_dead_dispatcher_held_is_taken_over(settings, receiver):
     assert taken and len(taken[0][1]) == 1  # held by a consumer that never answers
     d = _dispatcher(settings, name="alive", claim_after_s=0.5)
     try:
-        wait_for(lambda: queue.deliveries("j"), 20)
+        wait_until(lambda: queue.deliveries("j"), 20, "the delivery")
     finally:
         d.stop()
     assert len(receiver.got) == 1 and queue.deliveries("j")[0]["ok"]
@@ -225,7 +231,7 @@ def test_a_jobs_webhooks_end_to_end(tmp_path, receiver):
                 j = client.get(f"/v1/jobs/{job_id}").json()
                 return len([d for d in j["deliveries"] if d["ok"]]) == 3 and j
 
-            job = wait_for(delivered, 150, 0.2, "three deliveries")
+            job = wait_until(delivered, 150, "three deliveries", 0.2)
             assert job["status"] == "finished"
             assert job["webhook"] == {
                 "url": receiver.url,
