@@ -280,6 +280,7 @@ def cancel_active(
 _DOWNLOAD = {
     307: {"description": "With the s3 storage backend: a presigned URL of the file."},
 }
+_PNG_DOWNLOAD = {**_NOT_FOUND, **_DOWNLOAD, 200: {"content": {"image/png": {}}}}
 RedirectQuery = Annotated[
     bool,
     Query(
@@ -358,7 +359,7 @@ def _named(name: str, names: list[str]) -> None:
 @router.get(
     "/{job_id}/previews/{name}",
     response_class=FileResponse,
-    responses={**_NOT_FOUND, **_DOWNLOAD, 200: {"content": {"image/png": {}}}},
+    responses=_PNG_DOWNLOAD,
     summary="A before/after render",
 )
 def get_preview(job_id: str, name: str, download: DownloadDep) -> Response:
@@ -370,7 +371,7 @@ def get_preview(job_id: str, name: str, download: DownloadDep) -> Response:
 @router.get(
     "/{job_id}/thumbs/{name}",
     response_class=FileResponse,
-    responses={**_NOT_FOUND, **_DOWNLOAD, 200: {"content": {"image/png": {}}}},
+    responses=_PNG_DOWNLOAD,
     summary="A thumbnail of one HR map",
 )
 def get_thumb(job_id: str, name: str, download: DownloadDep) -> Response:
@@ -404,7 +405,7 @@ def list_crops(job_id: str, redis: RedisDep, owner: OwnerDep, index: IndexDep) -
 @router.get(
     "/{job_id}/crops/{name}",
     response_class=FileResponse,
-    responses={**_NOT_FOUND, **_DOWNLOAD, 200: {"content": {"image/png": {}}}},
+    responses=_PNG_DOWNLOAD,
     summary="One LR or HR detail crop",
 )
 def get_crop(job_id: str, name: str, download: DownloadDep) -> Response:
