@@ -9,6 +9,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -198,3 +199,10 @@ def api_server(settings: Settings, log_path: Path) -> Iterator[str]:
         yield base
     finally:
         stop_process(proc)
+
+
+def require_redis_server() -> None:
+    """The benchmarks start a private redis-server (scripts/test makes sure Redis is there):
+    without the binary a test fails, saying so, rather than pass unrun."""
+    if shutil.which("redis-server") is None:
+        pytest.fail("redis-server is not installed (Debian's redis-server package)")

@@ -4,12 +4,12 @@ private Redis; zero errors in every phase and every submitted job finished."""
 from __future__ import annotations
 
 import json
-import shutil
 import time
 
 import pytest
 
 from pbrsr_bench.load import Recorder, big_payload, print_table, run
+from tests.service_support import require_redis_server
 
 pytestmark = pytest.mark.slow
 
@@ -40,8 +40,8 @@ def test_big_payload_is_a_valid_asset_of_the_requested_size(tmp_path):
     assert max(im.width for im in asset.images) >= 700
 
 
-@pytest.mark.skipif(shutil.which("redis-server") is None, reason="redis-server not installed")
 def test_short_load_run_has_no_errors_and_drains_every_job(tmp_path, capsys):
+    require_redis_server()
     t0 = time.monotonic()
     result = run(
         tmp_path / "out",

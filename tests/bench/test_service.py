@@ -5,7 +5,6 @@ each batch; the ratios come from the measured times."""
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import pytest
@@ -14,6 +13,7 @@ from typer.testing import CliRunner
 
 from pbrsr_bench import cli as bench
 from pbrsr_bench.service import print_table, run
+from tests.service_support import require_redis_server
 
 pytestmark = pytest.mark.slow
 
@@ -30,8 +30,8 @@ def test_bench_service_refuses_bad_input_before_starting_anything(tmp_path: Path
     assert not (out / "service.json").exists()
 
 
-@pytest.mark.skipif(shutil.which("redis-server") is None, reason="redis-server not installed")
 def test_a_tiny_service_run_times_the_cli_and_both_batches(tmp_path: Path, capsys):
+    require_redis_server()
     out = tmp_path / "out"
     result = run(
         out,

@@ -47,6 +47,16 @@ CHROMIUM_ARGS = [
     # WebGL without a GPU: SwiftShader, which newer Chromium builds use only when allowed
     "--enable-unsafe-swiftshader",
 ]
+
+
+@pytest.fixture(autouse=True)
+def _needs_chromium() -> None:
+    """These tests run in Debian's Chromium, which scripts/test installs: without it they
+    fail, saying so, rather than pass unrun."""
+    if not CHROMIUM.exists():
+        pytest.fail(f"{CHROMIUM} is missing: ./scripts/test installs Debian's chromium")
+
+
 ARTIFACTS = REPO / "test-artifacts"
 
 DROP_FILE = """([b64, name]) => {
@@ -79,7 +89,6 @@ def dashboard_page(base: str, **options: Any) -> Iterator[tuple[Any, list[str], 
             browser.close()
 
 
-@pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian's chromium is not installed")
 def test_dashboard_upload_progress_finish_download(tmp_path):
     settings = make_settings(tmp_path)
     ARTIFACTS.mkdir(exist_ok=True)
@@ -175,7 +184,6 @@ def _png(data: bytes) -> np.ndarray:
     return np.asarray(Image.open(io.BytesIO(data)).convert("RGB"), dtype=np.int16)
 
 
-@pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian's chromium is not installed")
 def test_dashboard_detail_crops_wipe_and_3d_view(tmp_path):
     settings = make_settings(tmp_path)
     ARTIFACTS.mkdir(exist_ok=True)
@@ -279,7 +287,6 @@ def test_dashboard_detail_crops_wipe_and_3d_view(tmp_path):
         cleanup_redis(settings)
 
 
-@pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian's chromium is not installed")
 def test_dashboard_3d_view_draws_draco_and_meshopt_results(tmp_path):
     """A result keeps its input's compressed geometry: the 3D view decodes it (Draco's
     decoder and meshopt's from the service's node_modules)."""
@@ -328,7 +335,6 @@ def test_dashboard_3d_view_draws_draco_and_meshopt_results(tmp_path):
         cleanup_redis(settings)
 
 
-@pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian's chromium is not installed")
 def test_dashboard_with_a_key_and_s3_storage_never_sends_the_key_to_the_bucket(tmp_path):
     """Images, detail crops, the 3D view's model and the download come from presigned URLs
     the page asks for as JSON: the API key stays with the API (moto's server allows every

@@ -26,7 +26,7 @@ from pbrsr_core.options import UpscaleOptions
 from pbrsr_core.pipeline import upscale_asset
 from pbrsr_core.scene import asset_textures, make_scene, procedural_light, render_views
 
-needs_validator = pytest.mark.skipif(not validator_available(), reason="node/gltf-validator")
+needs_validator = pytest.mark.usefixtures("gltf_validator")
 
 
 @pytest.fixture(scope="module")

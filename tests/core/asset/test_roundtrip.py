@@ -30,7 +30,7 @@ TOL = {
     "image/jpeg": {8: 0.08},
 }
 
-needs_validator = pytest.mark.skipif(not validator_available(), reason="node/gltf-validator")
+needs_validator = pytest.mark.usefixtures("gltf_validator")
 
 
 def _upscaled(px: np.ndarray) -> np.ndarray:

@@ -28,7 +28,7 @@ from pbrsr_core.asset.texture_codecs import (
     ktx2_encoding,
     webp_encoding,
 )
-from pbrsr_core.asset.validator import validate_gltf, validator_available
+from pbrsr_core.asset.validator import validate_gltf
 from pbrsr_core.colour import linear_to_srgb
 from pbrsr_core.errors import InvalidAsset, LimitExceeded, PbrsrError
 from pbrsr_core.limits import Limits
@@ -45,7 +45,7 @@ SIZE = 32
 # what the validator (2.0.0-dev.3.10, the newest) says of extensions it does not implement:
 # it knows EXT_texture_webp only, so KTX2 and AVIF images are "unrecognised" to it
 UNIMPLEMENTED = {"UNSUPPORTED_EXTENSION", "VALUE_NOT_IN_LIST", "IMAGE_UNRECOGNIZED_FORMAT"}
-needs_validator = pytest.mark.skipif(not validator_available(), reason="node/gltf-validator")
+needs_validator = pytest.mark.usefixtures("gltf_validator")
 
 
 def _maps() -> dict[str, np.ndarray]:

@@ -16,9 +16,7 @@ from pbrsr_core.asset.unwrap import unwrap_triangles
 from pbrsr_core.asset.validator import validator_available
 from pbrsr_core.errors import UnprocessableAsset
 
-needs_validator = pytest.mark.skipif(
-    not validator_available(), reason="node + gltf-validator not installed"
-)
+needs_validator = pytest.mark.usefixtures("gltf_validator")
 
 
 def _drop_texcoords(doc: dict) -> None:
