@@ -60,7 +60,7 @@ from .prior.direct import (
     restore_hidden,
     upscale_map,
 )
-from .prior.selfcheck import merge_channels, prior_self_check
+from .prior.selfcheck import chosen, merge_channels, prior_self_check
 from .progress import Progress, ProgressFn, emit
 from .render.light import EnvLight
 from .scene import make_scene, procedural_light
@@ -139,16 +139,26 @@ def _upscale_maps(
         emit(progress, Progress(stage="load_prior", message=options.prior))
         prior = load_prior(options.prior, device)
     if options.method == "direct":
+        from .optim.presets import CHECK_PRIOR_CPU
+
+        # where the prior offers candidates, the self-check picks one per colour and data map
+        offered = [img for img in images if len(prior.candidates(kind_of(img.roles))) > 1]
+        lr_pixels = {img.index: img.pixels for img in offered}
+        found = _self_checks(asset, offered, prior, lr_pixels, s, CHECK_PRIOR_CPU, None, timer,
+                             progress)  # fmt: skip
+        picks = {img.index: chosen(prior, kind_of(img.roles), found.get(img.index))
+                 for img in offered}  # fmt: skip
         out = {}
         with timer("prior"):
             tiles = MapProgress(progress, "prior", images)
             for img in images:
                 kind = kind_of(img.roles)
                 out[img.index] = upscale_map(
-                    prior, img.pixels, kind, s, progress=tiles.on(img), wrap=wraps[img.index],
-                    cutout=cutouts[img.index],
+                    picks.get(img.index, prior), img.pixels, kind, s, progress=tiles.on(img),
+                    wrap=wraps[img.index], cutout=cutouts[img.index],
                 )  # fmt: skip
-        return out, {}
+        names = {img.index: img.name for img in images}
+        return out, {"prior_picks": {names[i]: p.name for i, p in picks.items()}} if picks else {}
 
     from .optim.presets import get_preset
 
@@ -157,12 +167,12 @@ def _upscale_maps(
     for img in images:  # a cutout's hidden colour takes no part (init, losses, projection)
         if (seen_from := cutouts[img.index]) is not None:
             lr_pixels[img.index] = filled_cutout(lr_pixels[img.index], seen_from)
-    channels, checks = _prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer,
-                                               progress)  # fmt: skip
+    channels, checks, picks = _prior_channels_checked(asset, images, prior, lr_pixels, s, config,
+                                                      timer, progress)  # fmt: skip
+    init_encoded, init, lr = _init_maps(images, prior, picks, lr_pixels, channels, s, wraps,
+                                        config, timer, progress)  # fmt: skip
     if checks is not None and not any(any(c) for c in channels.values()):
         prior = load_prior("bicubic", device)  # for the pseudo-GT
-    init_encoded, init, lr = _init_maps(images, prior, lr_pixels, channels, s, wraps, config,
-                                        timer, progress)  # fmt: skip
     out, report = _optimise(
         asset, images, init_encoded, init, lr, lr_pixels, channels, prior, options, config,
         device, timer, progress, work_dir, snapshots, wraps,
@@ -235,54 +245,70 @@ def _deblocked(images, config: PbrsrConfig, timer: StageTimer):
     return lr_pixels, deblocked
 
 
-def _prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, progress):
-    """Which channels of each image the prior initialises (paper 3.1: the maps the preset
-    names in ``prior_maps``; an ORM image's channels one by one; bicubic the rest), and with
-    ``check_prior`` only those where the prior beats bicubic one scale down. Returns
-    ({image: [bool per channel]}, the self-check reports or None when nothing was checked)."""
-    channels = {img.index: prior_channels(img, config) for img in images}
-    if not (config.check_prior and prior.name != "bicubic" and any(map(any, channels.values()))):
-        return channels, None
-    checks: list[dict] = []
+def _self_checks(asset, images, prior, lr_pixels, s, kinds, max_prior_scale, timer, progress):
+    """The self-check (prior/selfcheck.py) of each image of a kind in ``kinds``, over the
+    texels a viewer sees: {image index: report, or None for a map too small to check}."""
+    checks: dict[int, dict | None] = {}
+    todo = [img for img in images if kind_of(img.roles) in kinds]
+    if not todo:
+        return checks
     with timer("prior_check"):
         emit(progress, Progress(stage="prior_check"))
         covered = coverage_masks(asset)  # at the LR size: the texels the check compares
-        for img in images:
-            if not any(channels[img.index]):
-                continue
-            kind = kind_of(img.roles)
-            if kind not in config.check_prior:
-                note = {"use_prior": True, "note": f"{kind} maps are not checked"}
-                checks.append({"image": img.name, "index": img.index, **note})
-                continue
+        for img in todo:
             seen = covered.get(img.index)
             hidden_to = image_cutout(asset, img.index)
             if hidden_to is not None:  # score the texels a viewer can see
                 px = img.pixels
                 visible = px[..., px.shape[2] - 1] > hidden_to
                 seen = visible if seen is None else seen & visible
-            c = prior_self_check(
+            checks[img.index] = prior_self_check(
                 prior,
                 lr_pixels[img.index],
                 s,
-                kind,
-                max_prior_scale=config.max_prior_scale,
+                kind_of(img.roles),
+                max_prior_scale=max_prior_scale,
                 covered=seen,
                 cutout=hidden_to,
             )
-            too_small = {"use_prior": True, "note": f"under {4 * s} texels a side"}
-            if c is not None:
-                use = [a and b for a, b in zip(channels[img.index], c["channels"], strict=True)]
-                c = {**c, "channels": use, "use_prior": any(use)}
-                channels[img.index] = use
-            checks.append({"image": img.name, "index": img.index, **(c or too_small)})
-    return channels, checks
+    return checks
 
 
-def _init_maps(images, prior, lr_pixels, channels, s, wraps, config, timer, progress):
+def _prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, progress):
+    """Which channels of each image the prior initialises (paper 3.1: the maps the preset
+    names in ``prior_maps``; an ORM image's channels one by one; bicubic the rest), and with
+    ``check_prior`` only those where the prior beats bicubic one scale down. Returns
+    ({image: [bool per channel]}, the self-check reports or None when nothing was checked,
+    {image: the prior's candidate the check chose})."""
+    channels = {img.index: prior_channels(img, config) for img in images}
+    if not (config.check_prior and prior.name != "bicubic" and any(map(any, channels.values()))):
+        return channels, None, {}
+    used = [img for img in images if any(channels[img.index])]
+    found = _self_checks(asset, used, prior, lr_pixels, s, set(config.check_prior),
+                         config.max_prior_scale, timer, progress)  # fmt: skip
+    checks: list[dict] = []
+    for img in used:
+        kind = kind_of(img.roles)
+        if img.index not in found:
+            note = {"use_prior": True, "note": f"{kind} maps are not checked"}
+            checks.append({"image": img.name, "index": img.index, **note})
+            continue
+        c = found[img.index]
+        too_small = {"use_prior": True, "note": f"under {4 * s} texels a side"}
+        if c is not None:
+            use = [a and b for a, b in zip(channels[img.index], c["channels"], strict=True)]
+            c = {**c, "channels": use, "use_prior": any(use)}
+            channels[img.index] = use
+        checks.append({"image": img.name, "index": img.index, **(c or too_small)})
+    picks = {img.index: chosen(prior, kind_of(img.roles), found.get(img.index)) for img in used}
+    return channels, checks, picks
+
+
+def _init_maps(images, prior, picks, lr_pixels, channels, s, wraps, config, timer, progress):
     """The optimiser's start: bicubic, with the prior's upscale in the channels it
-    initialises. Returns ({image: HR map, stored encoding}, the same as optimisation
-    parameters, the LR maps as parameters)."""
+    initialises (by the candidate ``picks`` names for the image, else ``prior``). Returns
+    ({image: HR map, stored encoding}, the same as optimisation parameters, the LR maps as
+    parameters)."""
     init_encoded, init, lr = {}, {}, {}
     with timer("init"):
         tiles = MapProgress(progress, "init", images)
@@ -292,8 +318,9 @@ def _init_maps(images, prior, lr_pixels, channels, s, wraps, config, timer, prog
             hr = bicubic_map(px, kind, s, wraps[img.index])  # px: a cutout's already filled
             tiles.on(img)(0, 1)
             if any(channels[img.index]):
-                up = upscale_map(prior, px, kind, s, max_prior_scale=config.max_prior_scale,
-                                 progress=tiles.on(img), wrap=wraps[img.index])  # fmt: skip
+                up = upscale_map(picks.get(img.index, prior), px, kind, s,
+                                 max_prior_scale=config.max_prior_scale, progress=tiles.on(img),
+                                 wrap=wraps[img.index])  # fmt: skip
                 hr = merge_channels(up, hr, channels[img.index])
             init_encoded[img.index] = hr
             init[img.index] = encoded_to_param(torch.from_numpy(hr), kind)

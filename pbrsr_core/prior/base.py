@@ -79,6 +79,12 @@ class Prior(ABC):
         holds a network per kind (:class:`~pbrsr_core.prior.texture.TexturePrior`)."""
         return self
 
+    def candidates(self, kind: str) -> list[Prior]:
+        """The priors that may upscale a map of ``kind``, best guess first: the self-check
+        (prior/selfcheck.py) keeps, per map, the one that reconstructs it best from one scale
+        down. One, :meth:`for_kind`'s, unless a texture set also offers its fallback."""
+        return [self.for_kind(kind)]
+
     # -- the public call ---------------------------------------------------------------
     def check_scale(self, scale: int) -> None:
         """Raise :class:`UnprocessableAsset` if this prior cannot upscale by ``scale``."""

@@ -6,8 +6,10 @@ run spends prior calls on the init and the pseudo-GT, each LR map the preset let
 initialise (a centre crop of at most ``CROP`` texels a side) is degraded once more by the
 scale (``degrade.degrade_image``, the declared LR model), upscaled back by the prior and by
 bicubic, and both are compared with the LR map itself: the prior initialises a map only if
-it wins on that map (self-similarity across scales, as in zero-shot SR). The cost is one
-prior call on at most ``(CROP / s)^2`` pixels per map.
+it wins on that map (self-similarity across scales, as in zero-shot SR). A prior that offers
+several candidates for a map kind (a texture set: its own network and the photo prior it
+falls back on) has each upscale the map, and the one closest to the LR map is kept. The cost
+is one call per candidate on at most ``(CROP / s)^2`` pixels per map.
 
 The comparison counts only the texels the mesh's UVs cover (when the caller passes them, as
 the pipeline does): the rest of an atlas is never seen, and it can decide the check the wrong
@@ -47,14 +49,17 @@ def prior_self_check(
     covered: np.ndarray | None = None,
     cutout: float | None = None,
 ) -> dict | None:
-    """``{"prior_db", "bicubic_db", "texels", "use_prior", "channels"}`` for one map (H, W, C)
-    as stored, or None when it is not at least ``4 * scale`` texels a side (nothing to check
-    on: the prior is used, as the paper does).
+    """``{"prior", "prior_db", "bicubic_db", "texels", "use_prior", "channels"}`` for one map
+    (H, W, C) as stored, or None when it is not at least ``4 * scale`` texels a side (nothing
+    to check on: the prior is used, as the paper does).
 
+    Each of ``prior.candidates(kind)`` upscales the map from one scale down; ``prior`` names
+    the one that does it best (for a data map: the largest summed gain over bicubic of the
+    channels it wins), ``prior_db`` is its PSNR and ``candidates`` every candidate's, by name.
     ``kind`` is the map's (prior/direct.py): colour and normal maps are decided as a whole;
     the channels of a data map (occlusion, roughness, metallic packed in one image) are
     unrelated images, so each is decided on its own: ``channels`` lists, per colour channel,
-    whether the prior initialises it (one entry for colour and normal maps), and
+    whether the chosen prior initialises it (one entry for colour and normal maps), and
     ``use_prior`` is whether it initialises any. ``max_prior_scale`` as in
     :func:`~.direct.upscale_map`: the check scores the upscaling the init will use.
     ``covered`` (H, W) bool: the texels the mesh's UVs cover; only those are compared (all of
@@ -68,10 +73,14 @@ def prior_self_check(
     if covered is not None and covered.shape != a.shape[:2]:
         raise ValueError(f"coverage mask {covered.shape} does not match the map {a.shape[:2]}")
     small = degrade_image(crop, scale, normal_map=kind == "normal")
-    up_p = upscale_map(prior, small, kind, scale, max_prior_scale=max_prior_scale, cutout=cutout)
+    candidates = prior.candidates(kind)
+    ups = [
+        upscale_map(c, small, kind, scale, max_prior_scale=max_prior_scale, cutout=cutout)
+        for c in candidates
+    ]
     up_b = bicubic_map(small, kind, scale, cutout=cutout)
-    h = min(crop.shape[0], up_p.shape[0])
-    w = min(crop.shape[1], up_p.shape[1])
+    h = min(crop.shape[0], up_b.shape[0])
+    w = min(crop.shape[1], up_b.shape[1])
     ref = crop[:h, :w, :n_colour]
     mask = np.ones((h, w), dtype=bool)
     if covered is not None:
@@ -85,18 +94,38 @@ def prior_self_check(
         return 100.0 if se <= 0 else 10.0 * math.log10(diff.size / se)
 
     whole = slice(0, n_colour)
-    p, b = db(up_p, whole), db(up_b, whole)
+    b = db(up_b, whole)
     if kind == "data":
-        channels = [db(up_p, slice(c, c + 1)) > db(up_b, slice(c, c + 1)) for c in range(n_colour)]
+        per = [slice(c, c + 1) for c in range(n_colour)]
+        b_ch = [db(up_b, c) for c in per]
+        wins = [[db(up, c) - bc for c, bc in zip(per, b_ch, strict=True)] for up in ups]
+        gains = [sum(max(0.0, g) for g in ch) for ch in wins]
+        best = max(range(len(ups)), key=lambda i: (gains[i], -i))
+        channels = [g > 0 for g in wins[best]]
     else:
-        channels = [p > b]
+        scores = [db(up, whole) for up in ups]
+        best = max(range(len(ups)), key=lambda i: (scores[i], -i))
+        channels = [scores[best] > b]
+    p = db(ups[best], whole)
     return {
+        "prior": candidates[best].name,
         "prior_db": round(p, 3),
         "bicubic_db": round(b, 3),
+        "candidates": {
+            c.name: round(db(up, whole), 3) for c, up in zip(candidates, ups, strict=True)
+        },
         "texels": int(mask.sum()),
         "use_prior": any(channels),
         "channels": channels,
     }
+
+
+def chosen(prior: Prior, kind: str, check: dict | None) -> Prior:
+    """The candidate of ``prior`` for maps of ``kind`` that ``check`` (a
+    :func:`prior_self_check` report) chose; the first candidate without a report."""
+    candidates = prior.candidates(kind)
+    name = (check or {}).get("prior")
+    return next((c for c in candidates if c.name == name), candidates[0])
 
 
 def merge_channels(prior_map: np.ndarray, bicubic: np.ndarray, channels: list[bool]) -> np.ndarray:

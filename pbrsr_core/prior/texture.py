@@ -142,6 +142,17 @@ class TexturePrior(Prior):
                 self._views[kind] = view
             return view
 
+    def candidates(self, kind: str) -> list[Prior]:
+        """The kind's own network, then the fallback: a network trained on textures need not
+        beat the photo prior on every map, so the self-check keeps whichever reconstructs
+        the map better (prior/selfcheck.py)."""
+        own = self.for_kind(kind)
+        if kind not in self.nets:
+            return [own]
+        from .registry import load_prior
+
+        return [own, load_prior(self.fallback, self.device)]
+
     def num_parameters(self) -> int:
         if self.kind is None:
             return self.for_kind("colour").num_parameters()

@@ -132,7 +132,8 @@ def test_pipeline_reports_the_check_and_uses_bicubic_when_the_prior_loses(tmp_pa
     every_kind = presets.FAST.with_(check_prior=("colour", "data", "normal"))
     monkeypatch.setitem(presets.PRESETS, "fast", every_kind)
     report = upscale_asset(asset, out, UpscaleOptions(preset="fast", prior="blurring"))
-    keys = {"image", "index", "prior_db", "bicubic_db", "texels", "use_prior", "channels"}
+    keys = {"image", "index", "prior", "prior_db", "bicubic_db", "candidates", "texels"}
+    keys |= {"use_prior", "channels"}
     assert all(set(c) == keys and not c["use_prior"] for c in report["prior_check"])
     check = next(c for c in report["prior_check"] if c["image"] == "bricks_albedo")
     assert check["channels"] == [False]
@@ -247,3 +248,84 @@ def test_presets_name_the_maps_and_orm_channels_the_prior_may_initialise():
     orm = img({"occlusion", "metallic_roughness"})
     assert prior_channels(orm, presets.BALANCED) == [True] * 3
     assert prior_channels(img({"emissive"}), presets.FAST) == [True]
+
+
+class Offering(Prior):
+    """A prior that offers two others for every map kind, as a texture set offers its own
+    network and its fallback; called directly, it runs the first."""
+
+    name = "offering"
+    scales = (4,)
+    back_project = False
+
+    def __init__(self, first: Prior, second: Prior):
+        super().__init__()
+        self.first, self.second = first, second
+
+    def candidates(self, kind: str) -> list[Prior]:
+        return [self.first, self.second]
+
+    def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
+        return self.first._forward(x, scale)
+
+
+class NearestSelective(SelectivePrior):
+    """Perfect on the self-check of one LR map, nearest-neighbour upscaling elsewhere."""
+
+    def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
+        if x.shape[1:] == self.small.shape and torch.allclose(x[0], self.small, atol=1e-6):
+            return self.hr[None].clone()
+        return F.interpolate(x, scale_factor=scale, mode="nearest")
+
+
+def test_the_check_keeps_the_candidate_that_reconstructs_the_map_best():
+    tex = _texture()
+    for order in ((BlurringPrior(), OraclePrior(tex)), (OraclePrior(tex), BlurringPrior())):
+        check = prior_self_check(Offering(*order), tex, 4)
+        assert check["prior"] == "oracle" and check["prior_db"] == 100.0 and check["use_prior"]
+        assert set(check["candidates"]) == {"oracle", "blurring"}
+        assert check["candidates"]["blurring"] < check["bicubic_db"]
+    # neither candidate beats bicubic: the better one is named, and the map stays bicubic
+    lost = prior_self_check(Offering(BlurringPrior(), BlurringPrior()), tex, 4)
+    assert not lost["use_prior"] and lost["prior"] == "blurring"
+    # a data map: the candidate whose channels gain most, and only the channels it wins
+    orm = _texture(96, seed=3)
+    check = prior_self_check(Offering(BlurringPrior(), FirstChannelOracle(orm)), orm, 4, "data")
+    assert check["prior"] == "first-channel" and check["channels"] == [True, False, False]
+
+
+def test_direct_and_the_presets_upscale_each_map_with_the_candidate_the_check_chose(
+    tmp_path, monkeypatch
+):
+    import pbrsr_core.pipeline as pipeline
+
+    albedo = _texture(64, seed=4)
+    asset = make_quad_asset(tmp_path / "q.gltf", {"base_color": albedo})
+    lr = np.asarray(load_asset(asset).images[0].pixels, np.float32)
+    sharp = NearestSelective(lr)
+    priors = {
+        "offering": Offering(BlurringPrior(), sharp),
+        "selective": sharp,
+        "blurring": BlurringPrior(),
+    }
+    real = pipeline.load_prior
+    monkeypatch.setattr(pipeline, "load_prior", lambda n, d: priors.get(n) or real(n, d))
+
+    runs = iter(range(100))
+
+    def albedo_out(prior: str, **kw) -> tuple[np.ndarray, dict]:
+        out = tmp_path / f"run{next(runs)}"
+        report = upscale_asset(asset, out, UpscaleOptions(prior=prior, **kw))
+        return load_asset(next(out.glob("*.gltf"))).images[0].pixels, report
+
+    picked, report = albedo_out("offering", method="direct")
+    assert report["prior_picks"] == {"base_color.png": "selective"}
+    assert np.array_equal(picked, albedo_out("selective", method="direct")[0])
+    assert not np.array_equal(picked, albedo_out("blurring", method="direct")[0])
+    # a single-candidate prior is not checked by direct
+    assert "prior_picks" not in albedo_out("selective", method="direct")[1]
+    monkeypatch.setitem(presets.PRESETS, "fast", presets.FAST.with_(max_prior_scale=None))
+    picked, report = albedo_out("offering", preset="fast")
+    (check,) = report["prior_check"]
+    assert check["prior"] == "selective" and check["use_prior"]
+    assert np.array_equal(picked, albedo_out("selective", preset="fast")[0])
