@@ -58,9 +58,8 @@ from .prior.direct import (
     keep_normal_length,
     project_map,
     restore_hidden,
-    upscale_map,
 )
-from .prior.selfcheck import chosen, merge_channels, prior_self_check
+from .prior.selfcheck import chosen, merge_channels, prior_self_check, upscale_channels
 from .progress import Progress, ProgressFn, emit
 from .render.light import EnvLight
 from .scene import make_scene, procedural_light
@@ -146,19 +145,21 @@ def _upscale_maps(
         lr_pixels = {img.index: img.pixels for img in offered}
         found = _self_checks(asset, offered, prior, lr_pixels, s, CHECK_PRIOR_CPU, None, timer,
                              progress)  # fmt: skip
-        picks = {img.index: chosen(prior, kind_of(img.roles), found.get(img.index))
+        picks = {img.index: chosen(prior, kind_of(img.roles), found.get(img.index), 1)
                  for img in offered}  # fmt: skip
         out = {}
         with timer("prior"):
             tiles = MapProgress(progress, "prior", images)
             for img in images:
                 kind = kind_of(img.roles)
-                out[img.index] = upscale_map(
-                    picks.get(img.index, prior), img.pixels, kind, s, progress=tiles.on(img),
+                out[img.index] = upscale_channels(
+                    picks.get(img.index, [prior]), img.pixels, kind, s, progress=tiles.on(img),
                     wrap=wraps[img.index], cutout=cutouts[img.index],
                 )  # fmt: skip
         names = {img.index: img.name for img in images}
-        return out, {"prior_picks": {names[i]: p.name for i, p in picks.items()}} if picks else {}
+        return out, {
+            "prior_picks": {names[i]: [p.name for p in ps] for i, ps in picks.items()}
+        } if picks else {}
 
     from .optim.presets import get_preset
 
@@ -167,10 +168,10 @@ def _upscale_maps(
     for img in images:  # a cutout's hidden colour takes no part (init, losses, projection)
         if (seen_from := cutouts[img.index]) is not None:
             lr_pixels[img.index] = filled_cutout(lr_pixels[img.index], seen_from)
-    channels, checks, picks = _prior_channels_checked(asset, images, prior, lr_pixels, s, config,
-                                                      timer, progress)  # fmt: skip
-    init_encoded, init, lr = _init_maps(images, prior, picks, lr_pixels, channels, s, wraps,
-                                        config, timer, progress)  # fmt: skip
+    channels, checks, sources = _prior_channels_checked(asset, images, prior, lr_pixels, s,
+                                                        config, timer, progress)  # fmt: skip
+    init_encoded, init, lr = _init_maps(images, sources, lr_pixels, s, wraps, config, timer,
+                                        progress)  # fmt: skip
     if checks is not None and not any(any(c) for c in channels.values()):
         prior = load_prior("bicubic", device)  # for the pseudo-GT
     out, report = _optimise(
@@ -279,10 +280,10 @@ def _prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, p
     names in ``prior_maps``; an ORM image's channels one by one; bicubic the rest), and with
     ``check_prior`` only those where the prior beats bicubic one scale down. Returns
     ({image: [bool per channel]}, the self-check reports or None when nothing was checked,
-    {image: the prior's candidate the check chose})."""
+    {image: per channel, the prior's candidate the check chose, or None for bicubic})."""
     channels = {img.index: prior_channels(img, config) for img in images}
     if not (config.check_prior and prior.name != "bicubic" and any(map(any, channels.values()))):
-        return channels, None, {}
+        return channels, None, {i: [prior if c else None for c in ch] for i, ch in channels.items()}
     used = [img for img in images if any(channels[img.index])]
     found = _self_checks(asset, used, prior, lr_pixels, s, set(config.check_prior),
                          config.max_prior_scale, timer, progress)  # fmt: skip
@@ -300,13 +301,23 @@ def _prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, p
             c = {**c, "channels": use, "use_prior": any(use)}
             channels[img.index] = use
         checks.append({"image": img.name, "index": img.index, **(c or too_small)})
-    picks = {img.index: chosen(prior, kind_of(img.roles), found.get(img.index)) for img in used}
-    return channels, checks, picks
+    sources = {
+        img.index: [
+            p if use else None
+            for p, use in zip(
+                chosen(prior, kind_of(img.roles), found.get(img.index), len(channels[img.index])),
+                channels[img.index],
+                strict=True,
+            )
+        ]
+        for img in used
+    }
+    return channels, checks, sources
 
 
-def _init_maps(images, prior, picks, lr_pixels, channels, s, wraps, config, timer, progress):
-    """The optimiser's start: bicubic, with the prior's upscale in the channels it
-    initialises (by the candidate ``picks`` names for the image, else ``prior``). Returns
+def _init_maps(images, sources, lr_pixels, s, wraps, config, timer, progress):
+    """The optimiser's start: bicubic, with a prior's upscale in the channels ``sources``
+    gives one for (per image, per channel: the prior or None). Returns
     ({image: HR map, stored encoding}, the same as optimisation parameters, the LR maps as
     parameters)."""
     init_encoded, init, lr = {}, {}, {}
@@ -317,11 +328,9 @@ def _init_maps(images, prior, picks, lr_pixels, channels, s, wraps, config, time
             px = lr_pixels[img.index]
             hr = bicubic_map(px, kind, s, wraps[img.index])  # px: a cutout's already filled
             tiles.on(img)(0, 1)
-            if any(channels[img.index]):
-                up = upscale_map(picks.get(img.index, prior), px, kind, s,
-                                 max_prior_scale=config.max_prior_scale, progress=tiles.on(img),
-                                 wrap=wraps[img.index])  # fmt: skip
-                hr = merge_channels(up, hr, channels[img.index])
+            hr = upscale_channels(sources.get(img.index, [None]), px, kind, s, hr,
+                                  max_prior_scale=config.max_prior_scale, progress=tiles.on(img),
+                                  wrap=wraps[img.index])  # fmt: skip
             init_encoded[img.index] = hr
             init[img.index] = encoded_to_param(torch.from_numpy(hr), kind)
             lr[img.index] = encoded_to_param(torch.from_numpy(px), kind)

@@ -23,6 +23,7 @@ ToyCar's roughness: +0.34 / -0.04 one scale down, +3.8 dB at the real scale.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -49,19 +50,20 @@ def prior_self_check(
     covered: np.ndarray | None = None,
     cutout: float | None = None,
 ) -> dict | None:
-    """``{"prior", "prior_db", "bicubic_db", "texels", "use_prior", "channels"}`` for one map
+    """``{"priors", "prior_db", "bicubic_db", "candidates", "texels", "use_prior",
+    "channels"}`` for one map
     (H, W, C) as stored, or None when it is not at least ``4 * scale`` texels a side (nothing
     to check on: the prior is used, as the paper does).
 
-    Each of ``prior.candidates(kind)`` upscales the map from one scale down; ``prior`` names
-    the one that does it best (for a data map: the largest summed gain over bicubic of the
-    channels it wins), ``prior_db`` is its PSNR and ``candidates`` every candidate's, by name.
-    ``kind`` is the map's (prior/direct.py): colour and normal maps are decided as a whole;
-    the channels of a data map (occlusion, roughness, metallic packed in one image) are
-    unrelated images, so each is decided on its own: ``channels`` lists, per colour channel,
-    whether the chosen prior initialises it (one entry for colour and normal maps), and
-    ``use_prior`` is whether it initialises any. ``max_prior_scale`` as in
-    :func:`~.direct.upscale_map`: the check scores the upscaling the init will use.
+    Each of ``prior.candidates(kind)`` upscales the map from one scale down; ``candidates``
+    gives each one's PSNR by name, ``prior_db`` the best of them. ``kind`` is the map's
+    (prior/direct.py): colour and normal maps are decided as a whole; the channels of a data
+    map (occlusion, roughness, metallic packed in one image) are unrelated images, so each is
+    decided on its own: per colour channel (one entry for colour and normal maps),
+    ``priors`` names the candidate that reconstructs it best and ``channels`` says whether
+    that one beats bicubic (the prior initialises it); ``use_prior`` is whether any does.
+    ``max_prior_scale`` as in :func:`~.direct.upscale_map`: the check scores the upscaling
+    the init will use.
     ``covered`` (H, W) bool: the texels the mesh's UVs cover; only those are compared (all of
     the crop when it covers fewer than ``4 * scale`` squared of them). ``cutout``: upscale as
     a cutout's colour (:func:`~.direct.with_cutout`), as the init will."""
@@ -95,37 +97,33 @@ def prior_self_check(
 
     whole = slice(0, n_colour)
     b = db(up_b, whole)
-    if kind == "data":
-        per = [slice(c, c + 1) for c in range(n_colour)]
-        b_ch = [db(up_b, c) for c in per]
-        wins = [[db(up, c) - bc for c, bc in zip(per, b_ch, strict=True)] for up in ups]
-        gains = [sum(max(0.0, g) for g in ch) for ch in wins]
-        best = max(range(len(ups)), key=lambda i: (gains[i], -i))
-        channels = [g > 0 for g in wins[best]]
-    else:
-        scores = [db(up, whole) for up in ups]
-        best = max(range(len(ups)), key=lambda i: (scores[i], -i))
-        channels = [scores[best] > b]
-    p = db(ups[best], whole)
+    # a data map's channels are decided one by one, a colour or normal map as a whole
+    parts = [slice(c, c + 1) for c in range(n_colour)] if kind == "data" else [whole]
+    best, channels = [], []
+    for part in parts:
+        scores = [db(up, part) for up in ups]
+        i = max(range(len(ups)), key=lambda k: (scores[k], -k))  # ties: the earlier one
+        best.append(candidates[i].name)
+        channels.append(scores[i] > db(up_b, part))
+    each = {c.name: round(db(up, whole), 3) for c, up in zip(candidates, ups, strict=True)}
     return {
-        "prior": candidates[best].name,
-        "prior_db": round(p, 3),
+        "priors": best,
+        "prior_db": max(each.values()),
         "bicubic_db": round(b, 3),
-        "candidates": {
-            c.name: round(db(up, whole), 3) for c, up in zip(candidates, ups, strict=True)
-        },
+        "candidates": each,
         "texels": int(mask.sum()),
         "use_prior": any(channels),
         "channels": channels,
     }
 
 
-def chosen(prior: Prior, kind: str, check: dict | None) -> Prior:
-    """The candidate of ``prior`` for maps of ``kind`` that ``check`` (a
-    :func:`prior_self_check` report) chose; the first candidate without a report."""
+def chosen(prior: Prior, kind: str, check: dict | None, n: int) -> list[Prior]:
+    """Per entry of a map's ``channels`` (``n`` of them), the candidate of ``prior`` that
+    ``check`` (a :func:`prior_self_check` report) chose; the first candidate without one."""
     candidates = prior.candidates(kind)
-    name = (check or {}).get("prior")
-    return next((c for c in candidates if c.name == name), candidates[0])
+    names = (check or {}).get("priors") or [candidates[0].name] * n
+    by_name = {c.name: c for c in candidates}
+    return [by_name.get(name, candidates[0]) for name in names]
 
 
 def merge_channels(prior_map: np.ndarray, bicubic: np.ndarray, channels: list[bool]) -> np.ndarray:
@@ -137,4 +135,24 @@ def merge_channels(prior_map: np.ndarray, bicubic: np.ndarray, channels: list[bo
     for c, use in enumerate(channels):
         if use:
             out[..., c] = prior_map[..., c]
+    return out
+
+
+def upscale_channels(
+    sources: Sequence[Prior | None],
+    pixels: np.ndarray,
+    kind: str,
+    scale: int,
+    base: np.ndarray | None = None,
+    **kw,
+) -> np.ndarray:
+    """A map upscaled channel entry by channel entry (as ``channels`` counts them): each
+    entry of ``sources`` names the prior for it (:func:`~.direct.upscale_map` with ``kw``),
+    None keeps ``base``'s (bicubic). Each prior runs once, on the whole map."""
+    out = base
+    for p in dict.fromkeys(q for q in sources if q is not None):
+        up = upscale_map(p, pixels, kind, scale, **kw)
+        out = up if out is None else merge_channels(up, out, [q is p for q in sources])
+    if out is None:
+        raise ValueError("no prior and no base map to upscale with")
     return out

@@ -132,7 +132,7 @@ def test_pipeline_reports_the_check_and_uses_bicubic_when_the_prior_loses(tmp_pa
     every_kind = presets.FAST.with_(check_prior=("colour", "data", "normal"))
     monkeypatch.setitem(presets.PRESETS, "fast", every_kind)
     report = upscale_asset(asset, out, UpscaleOptions(preset="fast", prior="blurring"))
-    keys = {"image", "index", "prior", "prior_db", "bicubic_db", "candidates", "texels"}
+    keys = {"image", "index", "priors", "prior_db", "bicubic_db", "candidates", "texels"}
     keys |= {"use_prior", "channels"}
     assert all(set(c) == keys and not c["use_prior"] for c in report["prior_check"])
     check = next(c for c in report["prior_check"] if c["image"] == "bricks_albedo")
@@ -282,16 +282,16 @@ def test_the_check_keeps_the_candidate_that_reconstructs_the_map_best():
     tex = _texture()
     for order in ((BlurringPrior(), OraclePrior(tex)), (OraclePrior(tex), BlurringPrior())):
         check = prior_self_check(Offering(*order), tex, 4)
-        assert check["prior"] == "oracle" and check["prior_db"] == 100.0 and check["use_prior"]
+        assert check["priors"] == ["oracle"] and check["prior_db"] == 100.0 and check["use_prior"]
         assert set(check["candidates"]) == {"oracle", "blurring"}
         assert check["candidates"]["blurring"] < check["bicubic_db"]
     # neither candidate beats bicubic: the better one is named, and the map stays bicubic
     lost = prior_self_check(Offering(BlurringPrior(), BlurringPrior()), tex, 4)
-    assert not lost["use_prior"] and lost["prior"] == "blurring"
-    # a data map: the candidate whose channels gain most, and only the channels it wins
+    assert not lost["use_prior"] and lost["priors"] == ["blurring"]
+    # a data map: each channel's own best candidate, used where it beats bicubic
     orm = _texture(96, seed=3)
     check = prior_self_check(Offering(BlurringPrior(), FirstChannelOracle(orm)), orm, 4, "data")
-    assert check["prior"] == "first-channel" and check["channels"] == [True, False, False]
+    assert check["priors"][0] == "first-channel" and check["channels"] == [True, False, False]
 
 
 def test_direct_and_the_presets_upscale_each_map_with_the_candidate_the_check_chose(
@@ -319,7 +319,7 @@ def test_direct_and_the_presets_upscale_each_map_with_the_candidate_the_check_ch
         return load_asset(next(out.glob("*.gltf"))).images[0].pixels, report
 
     picked, report = albedo_out("offering", method="direct")
-    assert report["prior_picks"] == {"base_color.png": "selective"}
+    assert report["prior_picks"] == {"base_color.png": ["selective"]}
     assert np.array_equal(picked, albedo_out("selective", method="direct")[0])
     assert not np.array_equal(picked, albedo_out("blurring", method="direct")[0])
     # a single-candidate prior is not checked by direct
@@ -327,5 +327,53 @@ def test_direct_and_the_presets_upscale_each_map_with_the_candidate_the_check_ch
     monkeypatch.setitem(presets.PRESETS, "fast", presets.FAST.with_(max_prior_scale=None))
     picked, report = albedo_out("offering", preset="fast")
     (check,) = report["prior_check"]
-    assert check["prior"] == "selective" and check["use_prior"]
+    assert check["priors"] == ["selective"] and check["use_prior"]
     assert np.array_equal(picked, albedo_out("selective", preset="fast")[0])
+
+
+class ChannelOracle(BlurringPrior):
+    """Perfect on channel ``c`` of the check's crop of one map (it knows the HR crop that
+    check degraded), the blurring prior elsewhere; off the check, channel ``c`` is ``c / 4``
+    everywhere, so its output shows which prior made which channel."""
+
+    def __init__(self, lr_map: np.ndarray, c: int, scale: int = 4):
+        super().__init__()
+        self.name, self.c = f"channel-{c}", c
+        self.small = torch.from_numpy(degrade_image(lr_map[..., :3], scale)).permute(2, 0, 1)
+        self.hr = torch.from_numpy(np.ascontiguousarray(lr_map[..., :3])).permute(2, 0, 1)
+
+    def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
+        out = super()._forward(x, scale)
+        if x.shape[1:] == self.small.shape and torch.allclose(x[0], self.small, atol=1e-6):
+            out[:, self.c] = self.hr[self.c]
+        else:
+            out[:, self.c] = self.c / 4
+        return out
+
+
+def test_each_channel_of_a_packed_map_comes_from_the_candidate_that_won_it(tmp_path, monkeypatch):
+    """Roughness (G) and metallic (B) in one image: the check gives G to one candidate and B
+    to the other, and the init (PBR-SR's and direct's) takes each channel from its own."""
+    import pbrsr_core.pipeline as pipeline
+
+    mr = _texture(64, seed=5)
+    asset = make_quad_asset(tmp_path / "q.gltf", {"metallic_roughness": mr})
+    lr = np.asarray(load_asset(asset).images[0].pixels, np.float32)
+    offering = Offering(ChannelOracle(lr, 1), ChannelOracle(lr, 2))
+    check = prior_self_check(offering, lr, 4, "data")
+    assert check["priors"][1:] == ["channel-1", "channel-2"]
+    assert check["channels"][1:] == [True, True]
+    real = pipeline.load_prior
+    monkeypatch.setattr(pipeline, "load_prior", lambda n, d: offering if n == "o" else real(n, d))
+    monkeypatch.setitem(presets.PRESETS, "fast", presets.FAST.with_(max_prior_scale=None))
+    for method in ("pbrsr", "direct"):
+        out = tmp_path / method
+        report = upscale_asset(asset, out, UpscaleOptions(prior="o", preset="fast", method=method))
+        inner = load_asset(next(out.glob("*.gltf"))).images[0].pixels[8:-8, 8:-8]
+        assert np.allclose(inner[..., 1], 0.25, atol=1 / 255)  # channel-1's off-check output
+        assert np.allclose(inner[..., 2], 0.5, atol=1 / 255)  # channel-2's
+        if method == "pbrsr":
+            (c,) = report["prior_check"]
+            assert c["channels"] == [False, True, True]
+        else:
+            assert report["prior_picks"]["metallic_roughness.png"][1:] == ["channel-1", "channel-2"]
