@@ -23,8 +23,10 @@ from .train.weights import Network, load_network, read_metadata
 
 WEIGHTS_ROOT = Path(__file__).resolve().parent / "weights"
 SHIPPED: dict[str, tuple[str, ...]] = {
-    # UpConv7 x2 normal network fine-tuned from waifu2x-photo
-    "pbr-upconv7": ("pbr-upconv7/pbr-upconv7-normal.safetensors",),
+    # UpConv7 x2 networks fine-tuned from waifu2x-photo, one per kind
+    "pbr-upconv7": tuple(
+        f"pbr-upconv7/pbr-upconv7-{k}.safetensors" for k in ("colour", "data", "normal")
+    ),
 }
 """Shipped set name -> its weights files under :data:`WEIGHTS_ROOT` (one per kind and
 stride; a kind without one uses the fallback)."""

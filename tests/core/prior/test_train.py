@@ -210,14 +210,18 @@ def test_weights_file_round_trip_and_texture_prior(tmp_path):
 
 
 def test_shipped_prior_loads_and_upscales_each_kind(capfd):
-    """pbr-upconv7 ships its normal network (the kind it wins on, MODEL_CARD.md); colour and
-    data maps and the renders go through waifu2x-photo. The default prior."""
+    """pbr-upconv7 ships a network per kind (MODEL_CARD.md); colour and data maps have
+    waifu2x-photo as a second candidate for the self-check. The default prior; the renders go
+    through the colour network."""
     from pbrsr_core.options import DEFAULT_PRIOR
 
     prior = load_prior("pbr-upconv7")
     assert DEFAULT_PRIOR == "pbr-upconv7" and prior.scales == (2, 4, 8)
-    assert set(prior.nets) == {"normal"}
-    assert prior.for_kind("colour").name == prior.for_kind("data").name == "waifu2x-photo"
+    assert set(prior.nets) == {"colour", "data", "normal"} and prior.kind == "colour"
+    for kind in ("colour", "data", "normal"):
+        own, photo = prior.candidates(kind)
+        assert own is prior.for_kind(kind) and photo.name == "waifu2x-photo"
+        assert own.name == ("pbr-upconv7" if kind == "colour" else f"pbr-upconv7[{kind}]")
     x = torch.rand(1, 3, 24, 24)
     for kind in ("colour", "data", "normal"):
         for s in (2, 4):
