@@ -138,15 +138,20 @@ def _upscale_maps(
         emit(progress, Progress(stage="load_prior", message=options.prior))
         prior = load_prior(options.prior, device)
     if options.method == "direct":
-        from .optim.presets import CHECK_PRIOR_CPU
+        from .optim.presets import BALANCED, CHECK_PRIOR_CPU
 
         # where the prior offers candidates, the self-check picks one per colour and data map
         offered = [img for img in images if len(prior.candidates(kind_of(img.roles))) > 1]
         lr_pixels = {img.index: img.pixels for img in offered}
         found = _self_checks(asset, offered, prior, lr_pixels, s, CHECK_PRIOR_CPU, None, timer,
                              progress)  # fmt: skip
-        picks = {img.index: chosen(prior, kind_of(img.roles), found.get(img.index), 1)
-                 for img in offered}  # fmt: skip
+        picks = {
+            img.index: _read_channels_decide(
+                chosen(prior, kind_of(img.roles), found.get(img.index), 1),
+                prior_channels(img, BALANCED),
+            )
+            for img in offered
+        }
         out = {}
         with timer("prior"):
             tiles = MapProgress(progress, "prior", images)
@@ -410,6 +415,16 @@ def _export_map(
     elif kind == "normal":
         hr = keep_normal_length(hr, lr, scale)
     return hr
+
+
+def _read_channels_decide(picks: list, read: list[bool]) -> list:
+    """``picks`` per channel with a channel no material reads (the R of a metallic-roughness
+    image without occlusion) given the prior of the first channel that is read, so that it
+    runs no prior of its own."""
+    if len(picks) != len(read) or not any(read):
+        return picks
+    first = picks[read.index(True)]
+    return [p if r else first for p, r in zip(picks, read, strict=True)]
 
 
 def prior_channels(img, config) -> list[bool]:

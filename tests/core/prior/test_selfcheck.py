@@ -353,13 +353,14 @@ class ChannelOracle(BlurringPrior):
 
 def test_each_channel_of_a_packed_map_comes_from_the_candidate_that_won_it(tmp_path, monkeypatch):
     """Roughness (G) and metallic (B) in one image: the check gives G to one candidate and B
-    to the other, and the init (PBR-SR's and direct's) takes each channel from its own."""
+    to the other, and the init (PBR-SR's and direct's) takes each channel from its own; direct
+    gives R, which no material reads, G's prior rather than run a network for it alone."""
     import pbrsr_core.pipeline as pipeline
 
     mr = _texture(64, seed=5)
     asset = make_quad_asset(tmp_path / "q.gltf", {"metallic_roughness": mr})
     lr = np.asarray(load_asset(asset).images[0].pixels, np.float32)
-    offering = Offering(ChannelOracle(lr, 1), ChannelOracle(lr, 2))
+    offering = Offering(ChannelOracle(lr, 2), ChannelOracle(lr, 1))
     check = prior_self_check(offering, lr, 4, "data")
     assert check["priors"][1:] == ["channel-1", "channel-2"]
     assert check["channels"][1:] == [True, True]
@@ -376,4 +377,9 @@ def test_each_channel_of_a_packed_map_comes_from_the_candidate_that_won_it(tmp_p
             (c,) = report["prior_check"]
             assert c["channels"] == [False, True, True]
         else:
-            assert report["prior_picks"]["metallic_roughness.png"][1:] == ["channel-1", "channel-2"]
+            # R, which no material reads, follows G: channel-1 (the tie on R went to channel-2)
+            assert report["prior_picks"]["metallic_roughness.png"] == [
+                "channel-1",
+                "channel-1",
+                "channel-2",
+            ]
