@@ -148,9 +148,15 @@ def upscale_channels(
 ) -> np.ndarray:
     """A map upscaled channel entry by channel entry (as ``channels`` counts them): each
     entry of ``sources`` names the prior for it (:func:`~.direct.upscale_map` with ``kw``),
-    None keeps ``base``'s (bicubic). Each prior runs once, on the whole map."""
+    None keeps ``base``'s (bicubic). Each prior runs once, on the whole map; a ``progress``
+    callback in ``kw`` sees the runs as one: ``(tiles done, tiles)`` over all of them."""
     out = base
-    for p in dict.fromkeys(q for q in sources if q is not None):
+    priors = list(dict.fromkeys(q for q in sources if q is not None))
+    progress = kw.pop("progress", None)
+    n = len(priors)
+    for k, p in enumerate(priors):
+        if progress is not None:
+            kw["progress"] = lambda done, total, k=k: progress(k * total + done, n * total)
         up = upscale_map(p, pixels, kind, scale, **kw)
         out = up if out is None else merge_channels(up, out, [q is p for q in sources])
     if out is None:
