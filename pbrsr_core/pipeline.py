@@ -146,7 +146,7 @@ def _upscale_maps(
         found = _self_checks(asset, offered, prior, lr_pixels, s, CHECK_PRIOR_CPU, None, timer,
                              progress)  # fmt: skip
         picks = {
-            img.index: _read_channels_decide(
+            img.index: _unread_channels_follow(
                 chosen(prior, kind_of(img.roles), found.get(img.index), 1),
                 prior_channels(img, BALANCED),
             )
@@ -417,7 +417,7 @@ def _export_map(
     return hr
 
 
-def _read_channels_decide(picks: list, read: list[bool]) -> list:
+def _unread_channels_follow(picks: list, read: list[bool]) -> list:
     """``picks`` per channel with a channel no material reads (the R of a metallic-roughness
     image without occlusion) given the prior of the first channel that is read, so that it
     runs no prior of its own."""
