@@ -80,6 +80,34 @@ def prior_cmd(
     )
 
 
+@bench_app.command("check")
+def check_cmd(
+    out: Path = typer.Option(Path("bench-out/check"), "--out", "-o", help="Output directory."),
+    textures: Path | None = typer.Option(
+        None, help="Texture folder with manifest.json ($PBRSR_TEXTURES)."
+    ),
+    prior: str = typer.Option(DEFAULT_PRIOR, help="Prior whose self-check is scored."),
+    scale: int = typer.Option(4, help="Upscaling factor: 2, 4 or 8."),
+    sizes: str = typer.Option("1024,512", help="HR crop sides, comma-separated."),
+) -> None:
+    """The prior's self-check against the real scale on held-out texture materials: the gain
+    over bicubic of the check's choices, of each candidate alone and of the oracle, and the
+    choices that fall below bicubic."""
+    from pbrsr_bench.check import markdown_table, run
+    from pbrsr_core.prior.train.data import default_texture_folder
+
+    _report(
+        run,
+        lambda result: typer.echo(markdown_table(result)),
+        [out / "check.json", out / "check.png"],
+        out_dir=out,
+        textures=textures or default_texture_folder(),
+        prior=prior,
+        scale=scale,
+        sizes=_ints(sizes),
+    )
+
+
 @bench_app.command("fuzz")
 def fuzz_cmd(
     cases: int = typer.Option(3000, "--cases", "-n", help="Number of mutated assets."),

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 
@@ -98,14 +97,6 @@ def install_cmd(
     )
 
 
-def _textures_default() -> Path:
-    """$PBRSR_TEXTURES, else the shared texture set beside the repository."""
-    env = os.environ.get("PBRSR_TEXTURES")
-    if env:
-        return Path(env)
-    return Path(__file__).resolve().parents[3] / "shared" / "textures"
-
-
 def _run_training(
     init: str,
     out: Path,
@@ -131,11 +122,16 @@ def _run_training(
     from tqdm import tqdm
 
     from ..errors import InvalidOptions
-    from ..prior.train.data import load_materials, read_manifest, split_materials
+    from ..prior.train.data import (
+        default_texture_folder,
+        load_materials,
+        read_manifest,
+        split_materials,
+    )
     from ..prior.train.loop import TrainConfig, train
     from ..prior.train.weights import ARCHS, resolve_start, start_shape
 
-    root = textures or _textures_default()
+    root = textures or default_texture_folder()
     if not root.is_dir():
         raise InvalidOptions(f"texture folder {root} not found (pass --textures)")
     manifest = read_manifest(root)
@@ -299,7 +295,12 @@ def report_cmd(
     """Score trained priors side by side with bicubic and waifu2x-photo on the held-out
     materials (x2/x4/x8, per map kind), with their training curves and a model card."""
     from ..errors import InvalidOptions
-    from ..prior.train.data import load_materials, read_manifest, split_materials
+    from ..prior.train.data import (
+        default_texture_folder,
+        load_materials,
+        read_manifest,
+        split_materials,
+    )
     from ..prior.train.report import network_files, write_report
 
     missing = [str(f) for f in folders if not network_files(f)]
@@ -311,7 +312,7 @@ def report_cmd(
         raise InvalidOptions(f"--scales must be integers, not {scales!r}") from exc
     if not set(scale_t) <= {2, 4, 8}:
         raise InvalidOptions(f"--scales must be among 2, 4, 8, not {scales!r}")
-    root = textures or _textures_default()
+    root = textures or default_texture_folder()
     if not root.is_dir():
         raise InvalidOptions(f"texture folder {root} not found (pass --textures)")
     manifest = read_manifest(root)

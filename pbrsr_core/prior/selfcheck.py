@@ -51,9 +51,8 @@ def prior_self_check(
     cutout: float | None = None,
 ) -> dict | None:
     """``{"priors", "prior_db", "bicubic_db", "candidates", "texels", "use_prior",
-    "channels"}`` for one map
-    (H, W, C) as stored, or None when it is not at least ``4 * scale`` texels a side (nothing
-    to check on: the prior is used, as the paper does).
+    "channels", "margins"}`` for one map (H, W, C) as stored, or None when it is not at least
+    ``4 * scale`` texels a side (nothing to check on: the prior is used, as the paper does).
 
     Each of ``prior.candidates(kind)`` upscales the map from one scale down; ``candidates``
     gives each one's PSNR by name, ``prior_db`` the best of them. ``kind`` is the map's
@@ -61,7 +60,8 @@ def prior_self_check(
     map (occlusion, roughness, metallic packed in one image) are unrelated images, so each is
     decided on its own: per colour channel (one entry for colour and normal maps),
     ``priors`` names the candidate that reconstructs it best and ``channels`` says whether
-    that one beats bicubic (the prior initialises it); ``use_prior`` is whether any does.
+    that one beats bicubic (the prior initialises it), ``margins`` by how many dB (negative:
+    bicubic is closer); ``use_prior`` is whether any does.
     ``max_prior_scale`` as in :func:`~.direct.upscale_map`: the check scores the upscaling
     the init will use.
     ``covered`` (H, W) bool: the texels the mesh's UVs cover; only those are compared (all of
@@ -99,12 +99,14 @@ def prior_self_check(
     b = db(up_b, whole)
     # a data map's channels are decided one by one, a colour or normal map as a whole
     parts = [slice(c, c + 1) for c in range(n_colour)] if kind == "data" else [whole]
-    best, channels = [], []
+    best, channels, margins = [], [], []
     for part in parts:
         scores = [db(up, part) for up in ups]
         i = max(range(len(ups)), key=lambda k: (scores[k], -k))  # ties: the earlier one
         best.append(candidates[i].name)
-        channels.append(scores[i] > db(up_b, part))
+        margin = scores[i] - db(up_b, part)
+        margins.append(round(margin, 3))
+        channels.append(margin > 0)
     each = {c.name: round(db(up, whole), 3) for c, up in zip(candidates, ups, strict=True)}
     return {
         "priors": best,
@@ -114,6 +116,7 @@ def prior_self_check(
         "texels": int(mask.sum()),
         "use_prior": any(channels),
         "channels": channels,
+        "margins": margins,
     }
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -55,6 +56,14 @@ class Material:
         if key is None:
             key = next(m for m in SCALAR_MAPS if m in self.maps)
         return self.maps[key].shape[:2]
+
+
+def default_texture_folder() -> Path:
+    """$PBRSR_TEXTURES, else the shared texture set beside the repository."""
+    env = os.environ.get("PBRSR_TEXTURES")
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parents[4] / "shared" / "textures"
 
 
 def read_manifest(root: Path) -> dict[str, dict]:

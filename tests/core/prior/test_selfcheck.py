@@ -80,8 +80,10 @@ def test_blurring_prior_is_rejected_and_a_perfect_one_accepted():
     bad = prior_self_check(BlurringPrior(), tex, 4)
     assert bad is not None and not bad["use_prior"] and bad["prior_db"] < bad["bicubic_db"]
     assert bad["texels"] == 96 * 96
+    assert bad["margins"] == [round(bad["prior_db"] - bad["bicubic_db"], 3)]
     good = prior_self_check(OraclePrior(tex), tex, 4)
     assert good["use_prior"] and good["prior_db"] == 100.0
+    assert good["margins"][0] > 0 and bad["margins"][0] < 0
     assert prior_self_check(BlurringPrior(), tex[:8, :8], 4) is None  # too small to check
 
 
@@ -133,7 +135,7 @@ def test_pipeline_reports_the_check_and_uses_bicubic_when_the_prior_loses(tmp_pa
     monkeypatch.setitem(presets.PRESETS, "fast", every_kind)
     report = upscale_asset(asset, out, UpscaleOptions(preset="fast", prior="blurring"))
     keys = {"image", "index", "priors", "prior_db", "bicubic_db", "candidates", "texels"}
-    keys |= {"use_prior", "channels"}
+    keys |= {"use_prior", "channels", "margins"}
     assert all(set(c) == keys and not c["use_prior"] for c in report["prior_check"])
     check = next(c for c in report["prior_check"] if c["image"] == "bricks_albedo")
     assert check["channels"] == [False]

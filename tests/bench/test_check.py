@@ -1,0 +1,68 @@
+"""`pbrsr bench check` on a procedural texture folder (no shared textures)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from pbrsr_bench.check import markdown_table, run
+from tests.clirun import run_cli
+from tests.core.prior.test_train import make_texture_folder
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    return make_texture_folder(tmp_path_factory.mktemp("textures"), n=10, size=256)
+
+
+def test_check_scores_each_choice_against_the_real_scale(folder, tmp_path: Path):
+    said: list[str] = []
+    result = run(said.append, tmp_path / "out", folder, "waifu2x-photo", 4, (256, 128))
+    rows = result["rows"]
+    assert said and {r["kind"] for r in rows} == {"colour", "data"}
+    assert {r["size"] for r in rows} == {256, 128}
+    for r in rows:
+        assert all(math.isfinite(v) for v in r["gain"].values())
+        assert list(r["gain"]) == ["waifu2x-photo"]
+        # the check uses its pick exactly where the pick beats bicubic one scale down
+        assert (r["choice"] != "bicubic") == (r["margin_db"] > 0)
+        assert r["choice_gain"] == (0.0 if r["choice"] == "bicubic" else r["gain"][r["choice"]])
+        assert r["oracle_gain"] == max(0.0, *r["gain"].values()) >= r["choice_gain"]
+    # a greyscale-packed data crop (roughness, metallic, roughness) is scored per distinct map
+    data = [r for r in rows if r["kind"] == "data" and r["size"] == 256]
+    assert data and all(r["map"].endswith(("[R]", "[G]")) for r in data)
+    for s in result["summary"]:
+        sel = [r for r in rows if r["kind"] == s["kind"] and r["size"] == s["size"]]
+        assert s["maps"] == len(sel)
+        assert s["below"] == sum(r["choice_gain"] < 0 for r in sel)
+        assert s["oracle"] >= s["check"] and s["oracle"] >= s["each"]["waifu2x-photo"]
+    saved = json.loads((tmp_path / "out" / "check.json").read_text())
+    assert saved["summary"] == result["summary"]
+    assert (tmp_path / "out" / "check.png").stat().st_size > 0
+    assert "| colour | 256² |" in markdown_table(result)
+
+
+def test_a_prior_that_is_bicubic_never_wins(folder, tmp_path: Path):
+    result = run(lambda _: None, tmp_path / "out", folder, "bicubic", 2, (128,))
+    for r in result["rows"]:
+        assert r["choice"] == "bicubic" and r["choice_gain"] == 0.0 and r["margin_db"] == 0.0
+        assert r["gain"] == {"bicubic": 0.0} and r["oracle_gain"] == 0.0
+    assert all(s["below"] == 0 and s["check"] == 0.0 for s in result["summary"])
+
+
+def test_cli_refuses_what_it_cannot_score(folder, tmp_path: Path, capfd):
+    code, err = run_cli(
+        ["bench", "check", "-o", str(tmp_path), "--textures", str(tmp_path / "none")], capfd
+    )
+    assert code == 2 and "texture folder" in err
+    code, err = run_cli(
+        ["bench", "check", "-o", str(tmp_path), "--textures", str(folder), "--scale", "3"], capfd
+    )
+    assert code == 2 and "scale must be 2, 4 or 8" in err
+    code, err = run_cli(
+        ["bench", "check", "-o", str(tmp_path), "--textures", str(folder), "--sizes", "32"], capfd
+    )
+    assert code == 2 and "at least 64 px" in err
