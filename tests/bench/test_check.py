@@ -39,6 +39,8 @@ def test_check_scores_each_choice_against_the_real_scale(folder, tmp_path: Path)
         assert s["maps"] == len(sel)
         assert s["below"] == sum(r["choice_gain"] < 0 for r in sel)
         assert s["oracle"] >= s["check"] and s["oracle"] >= s["each"]["waifu2x-photo"]
+        gains = sorted(r["gain"]["waifu2x-photo"] for r in sel)
+        assert min(gains) <= s["each_median"]["waifu2x-photo"] <= max(gains)
     saved = json.loads((tmp_path / "out" / "check.json").read_text())
     assert saved["summary"] == result["summary"]
     assert (tmp_path / "out" / "check.png").stat().st_size > 0
