@@ -17,12 +17,12 @@ scale.
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
 
 from pbrsr_core.degrade import degrade_image
+from pbrsr_core.metrics import psnr
 from pbrsr_core.prior import load_prior
 from pbrsr_core.prior.direct import bicubic_map, upscale_map
 from pbrsr_core.prior.selfcheck import prior_self_check
@@ -41,8 +41,8 @@ MISSED_DB = 0.1
 
 
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
-    se = float(((a.astype(np.float64) - b) ** 2).mean())
-    return 100.0 if se <= 0 else 10.0 * math.log10(1.0 / se)
+    """PSNR capped at 100 dB (the self-check's cap), so that identical maps stay finite."""
+    return min(psnr(a, b), 100.0)
 
 
 def score_map(prior, hr: np.ndarray, kind: str, scale: int, name: str) -> list[dict]:
@@ -55,14 +55,13 @@ def score_map(prior, hr: np.ndarray, kind: str, scale: int, name: str) -> list[d
     bic = bicubic_map(lr, kind, scale)
     shave = scale  # the SR protocol's border
     inner = (slice(shave, -shave), slice(shave, -shave))
+    parts = [0]
     if kind == "data":  # a scalar map packed twice is scored once
         same = [[np.array_equal(hr[..., c], hr[..., d]) for d in range(c)] for c in range(3)]
         parts = [c for c in range(3) if not any(same[c])]
-        slices = [slice(c, c + 1) for c in parts]
-    else:
-        parts, slices = [0], [slice(0, 3)]
     rows = []
-    for entry, sl in zip(parts, slices, strict=True):
+    for entry in parts:
+        sl = slice(entry, entry + 1) if kind == "data" else slice(0, 3)
         ref = hr[inner][..., sl]
         real = {n: _psnr(u[inner][..., sl], ref) for n, u in ups.items()}
         real_bic = _psnr(bic[inner][..., sl], ref)
