@@ -30,6 +30,7 @@ from pbrsr_core.prior.train.data import (
     load_materials,
     read_manifest,
     split_materials,
+    texture_folder,
     validation_crops,
 )
 
@@ -116,7 +117,7 @@ def summarise(rows: list[dict]) -> list[dict]:
 def run(
     log,
     out_dir: Path,
-    textures: Path,
+    textures: Path | None,
     prior: str,
     scale: int = 4,
     sizes: tuple[int, ...] = (1024, 512),
@@ -127,11 +128,10 @@ def run(
         raise ValueError(f"scale must be 2, 4 or 8, not {scale}")
     if not sizes or min(sizes) < 16 * scale:
         raise ValueError(f"crop sizes must be at least {16 * scale} px at x{scale}")
-    if not Path(textures).is_dir():
-        raise ValueError(f"texture folder {textures} not found (pass --textures)")
-    manifest = read_manifest(Path(textures))
+    root = texture_folder(textures)
+    manifest = read_manifest(root)
     held = split_materials(manifest)[1]
-    materials = load_materials(Path(textures), held, manifest)
+    materials = load_materials(root, held, manifest)
     p = load_prior(prior)
     rows: list[dict] = []
     for size in sizes:

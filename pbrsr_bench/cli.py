@@ -9,12 +9,13 @@ from typing import Any, NoReturn
 import typer
 
 from pbrsr_core.cli.extras import require_extra
+from pbrsr_core.errors import InvalidOptions
 from pbrsr_core.options import DEFAULT_PRIOR
 
 bench_app = typer.Typer(help="Benchmarks: print a table, write JSON and plots to bench-out/.")
 
 
-def _bad_input(exc: ValueError) -> NoReturn:
+def _bad_input(exc: Exception) -> NoReturn:
     """A benchmark refused its input (an unknown asset, an impossible size): say why, exit 2."""
     typer.echo(f"error: {exc}", err=True)
     raise typer.Exit(2) from None
@@ -35,7 +36,7 @@ def _report(
     2), print the table with ``show``, name the files written, exit 1 when ``failed``."""
     try:
         result = run(log=_log, **options)
-    except ValueError as exc:
+    except (ValueError, InvalidOptions) as exc:
         _bad_input(exc)
     show(result)
     typer.echo("wrote " + ", ".join(str(p) for p in written))
@@ -94,14 +95,13 @@ def check_cmd(
     over bicubic of the check's choices, of each candidate alone and of the oracle, and the
     choices that fall below bicubic."""
     from pbrsr_bench.check import markdown_table, run
-    from pbrsr_core.prior.train.data import default_texture_folder
 
     _report(
         run,
         lambda result: typer.echo(markdown_table(result)),
         [out / "check.json", out / "check.png"],
         out_dir=out,
-        textures=textures or default_texture_folder(),
+        textures=textures,
         prior=prior,
         scale=scale,
         sizes=_ints(sizes),

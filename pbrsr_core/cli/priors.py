@@ -123,17 +123,15 @@ def _run_training(
 
     from ..errors import InvalidOptions
     from ..prior.train.data import (
-        default_texture_folder,
         load_materials,
         read_manifest,
         split_materials,
+        texture_folder,
     )
     from ..prior.train.loop import TrainConfig, train
     from ..prior.train.weights import ARCHS, resolve_start, start_shape
 
-    root = textures or default_texture_folder()
-    if not root.is_dir():
-        raise InvalidOptions(f"texture folder {root} not found (pass --textures)")
+    root = texture_folder(textures)
     manifest = read_manifest(root)
     train_names, held = split_materials(manifest)
     kind_t = tuple(k.strip() for k in kinds.split(",") if k.strip())
@@ -296,10 +294,10 @@ def report_cmd(
     materials (x2/x4/x8, per map kind), with their training curves and a model card."""
     from ..errors import InvalidOptions
     from ..prior.train.data import (
-        default_texture_folder,
         load_materials,
         read_manifest,
         split_materials,
+        texture_folder,
     )
     from ..prior.train.report import network_files, write_report
 
@@ -312,9 +310,7 @@ def report_cmd(
         raise InvalidOptions(f"--scales must be integers, not {scales!r}") from exc
     if not set(scale_t) <= {2, 4, 8}:
         raise InvalidOptions(f"--scales must be among 2, 4, 8, not {scales!r}")
-    root = textures or default_texture_folder()
-    if not root.is_dir():
-        raise InvalidOptions(f"texture folder {root} not found (pass --textures)")
+    root = texture_folder(textures)
     manifest = read_manifest(root)
     held = split_materials(manifest)[1]
     md = write_report(out, load_materials(root, held, manifest), scale_t, folders=folders)

@@ -58,12 +58,15 @@ class Material:
         return self.maps[key].shape[:2]
 
 
-def default_texture_folder() -> Path:
-    """$PBRSR_TEXTURES, else the shared texture set beside the repository."""
+def texture_folder(given: Path | None = None) -> Path:
+    """The texture set to read: ``given``, else $PBRSR_TEXTURES, else the shared texture set
+    beside the repository; :class:`InvalidOptions` when it is not a folder."""
     env = os.environ.get("PBRSR_TEXTURES")
-    if env:
-        return Path(env)
-    return Path(__file__).resolve().parents[4] / "shared" / "textures"
+    shared = Path(__file__).resolve().parents[4] / "shared" / "textures"
+    root = given or (Path(env) if env else shared)
+    if not root.is_dir():
+        raise InvalidOptions(f"texture folder {root} not found (pass --textures)")
+    return root
 
 
 def read_manifest(root: Path) -> dict[str, dict]:
