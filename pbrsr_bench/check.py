@@ -12,7 +12,8 @@ check's choice, of each candidate used everywhere, and of the oracle (the best o
 candidates and bicubic, known only with the HR crop); how many of the check's choices fall
 below bicubic and by how much at worst; and how many maps the check left to bicubic where a
 candidate gains. The plot puts each map's margin one scale down against its gain at the real
-scale.
+scale. With ``jpeg`` the LR crops are stored as JPEG files of that quality would hold them
+(4:4:4, as ``pbrsr degrade`` writes JPEG maps), as real assets ship their maps.
 """
 
 from __future__ import annotations
@@ -20,7 +21,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import torch
 
+from pbrsr_core.asset.jpeg import compress, standard_quant
 from pbrsr_core.degrade import degrade_image
 from pbrsr_core.metrics import psnr
 from pbrsr_core.prior import load_prior
@@ -46,10 +49,22 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
     return min(psnr(a, b), 100.0)
 
 
-def score_map(prior, hr: np.ndarray, kind: str, scale: int, name: str) -> list[dict]:
+def low_res(hr: np.ndarray, scale: int, jpeg: int | None = None) -> np.ndarray:
+    """The LR map of an HR crop (H, W, 3): the protocol's degradation, then with ``jpeg`` a
+    JPEG file's pixels at that quality (4:4:4)."""
+    lr = degrade_image(hr, scale)
+    if jpeg is None:
+        return lr
+    t = torch.from_numpy(np.ascontiguousarray(lr)).permute(2, 0, 1)[None]
+    return compress(t, standard_quant(jpeg))[0].permute(1, 2, 0).numpy()
+
+
+def score_map(
+    prior, hr: np.ndarray, kind: str, scale: int, name: str, jpeg: int | None = None
+) -> list[dict]:
     """One HR crop (H, W, 3) in [0, 1]: the check's decision and every option's PSNR at the
     real scale, per part (the whole map for colour, each distinct channel for data)."""
-    lr = degrade_image(hr, scale)
+    lr = low_res(hr, scale, jpeg)
     check = prior_self_check(prior, lr, scale, kind)
     candidates = prior.candidates(kind)
     ups = {c.name: upscale_map(c, lr, kind, scale) for c in candidates}
@@ -121,9 +136,11 @@ def run(
     prior: str,
     scale: int = 4,
     sizes: tuple[int, ...] = (1024, 512),
+    jpeg: int | None = None,
 ) -> dict:
     """Score the self-check of ``prior`` at ``scale`` on centre-placed crops of ``sizes`` HR
-    pixels (one per held-out material and kind; a material smaller than a size is skipped)."""
+    pixels (one per held-out material and kind; a material smaller than a size is skipped),
+    the LR crops stored as JPEG of quality ``jpeg`` when given."""
     if scale not in (2, 4, 8):
         raise ValueError(f"scale must be 2, 4 or 8, not {scale}")
     if not sizes or min(sizes) < 16 * scale:
@@ -140,13 +157,14 @@ def run(
             for name, crop in crops:
                 log(f"{kind} {size}: {name}")
                 hr = crop.astype(np.float32) / 255.0
-                rows += score_map(p, hr, kind, scale, name.split("#")[0])
+                rows += score_map(p, hr, kind, scale, name.split("#")[0], jpeg)
     if not rows:
         raise ValueError(f"no held-out material in {textures} has maps of {min(sizes)} px")
     out_dir.mkdir(parents=True, exist_ok=True)
     result = {
         "prior": p.name,
         "scale": scale,
+        "jpeg": jpeg,
         "materials": held,
         "rows": rows,
         "summary": summarise(rows),
@@ -156,7 +174,9 @@ def run(
 
 def markdown_table(result: dict) -> str:
     lines = [
-        f"x{result['scale']}, prior {result['prior']}, held-out materials; mean PSNR gain over "
+        f"x{result['scale']}, prior {result['prior']}, held-out materials"
+        + (f", LR stored as JPEG quality {result['jpeg']}" if result.get("jpeg") else "")
+        + "; mean PSNR gain over "
         "bicubic at the real scale (dB; a near-flat map, scored at 50-60 dB, moves a mean by "
         "dB that no render shows: the medians say what is typical)",
         "",

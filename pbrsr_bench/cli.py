@@ -90,6 +90,12 @@ def check_cmd(
     prior: str = typer.Option(DEFAULT_PRIOR, help="Prior whose self-check is scored."),
     scale: int = typer.Option(4, help="Upscaling factor: 2, 4 or 8."),
     sizes: str = typer.Option("1024,512", help="HR crop sides, comma-separated."),
+    jpeg: int | None = typer.Option(
+        None,
+        min=1,
+        max=100,
+        help="Store the LR crops as JPEG at this quality (4:4:4, as pbrsr degrade writes JPEG).",
+    ),
 ) -> None:
     """The prior's self-check against the real scale on held-out texture materials: the gain
     over bicubic of the check's choices, of each candidate alone and of the oracle, and the
@@ -105,6 +111,7 @@ def check_cmd(
         prior=prior,
         scale=scale,
         sizes=_ints(sizes),
+        jpeg=jpeg,
     )
 
 

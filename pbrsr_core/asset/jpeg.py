@@ -114,6 +114,90 @@ def _dct_matrix() -> torch.Tensor:
     return c * scale  # orthonormal: rows are the basis functions
 
 
+# libjpeg's base tables (JPEG Annex K, natural order), scaled by quality in standard_quant
+_ANNEX_K_LUMA = (
+    16, 11, 10, 16, 24, 40, 51, 61, 12, 12, 14, 19, 26, 58, 60, 55,
+    14, 13, 16, 24, 40, 57, 69, 56, 14, 17, 22, 29, 51, 87, 80, 62,
+    18, 22, 37, 56, 68, 109, 103, 77, 24, 35, 55, 64, 81, 104, 113, 92,
+    49, 64, 78, 87, 103, 121, 120, 101, 72, 92, 95, 98, 112, 100, 103, 99,
+)  # fmt: skip
+_ANNEX_K_CHROMA = (
+    17, 18, 24, 47, 99, 99, 99, 99, 18, 21, 26, 66, 99, 99, 99, 99,
+    24, 26, 56, 99, 99, 99, 99, 99, 47, 66, 99, 99, 99, 99, 99, 99,
+) + (99,) * 32  # fmt: skip
+
+
+def standard_quant(quality: int, subsampled: bool = False) -> JpegQuant:
+    """The tables libjpeg (and so Pillow and OpenImageIO) writes at ``quality`` 1..100
+    (``jpeg_set_quality``: the Annex K tables scaled by 5000/q percent below 50, 200 - 2q
+    from 50); ``subsampled``: chroma stored at half resolution both ways (4:2:0)."""
+    q = min(max(int(quality), 1), 100)
+    s = 5000 // q if q < 50 else 200 - 2 * q
+
+    def scaled(base: tuple[int, ...]) -> np.ndarray:
+        return np.clip((np.array(base) * s + 50) // 100, 1, 255).astype(np.float64).reshape(8, 8)
+
+    luma, chroma = scaled(_ANNEX_K_LUMA), scaled(_ANNEX_K_CHROMA)
+    return JpegQuant((luma, chroma, chroma), (True, not subsampled, not subsampled))
+
+
+def _requantise(img: torch.Tensor, q: torch.Tensor, dy: int = 0, dx: int = 0) -> torch.Tensor:
+    """Components (K, H, W) through JPEG's lossy step on the 8x8 grid shifted by (dy, dx):
+    DCT of each block (edges replicated), coefficients rounded to multiples of the tables
+    ``q`` (K, 1, 1, 8, 8), inverse DCT."""
+    k, h, w = img.shape
+    d = _dct_matrix().to(img.dtype)
+    pad = (dx, (-(w + dx)) % 8, dy, (-(h + dy)) % 8)
+    p = F.pad(img[None], pad, mode="replicate")[0]
+    ph, pw = p.shape[1:]
+    blocks = p.reshape(k, ph // 8, 8, pw // 8, 8).transpose(2, 3)
+    coef = d @ blocks @ d.T
+    back = d.T @ (torch.round(coef / q) * q) @ d
+    return back.transpose(2, 3).reshape(k, ph, pw)[:, dy : dy + h, dx : dx + w]
+
+
+def _to_ycc(rgb: torch.Tensor) -> torch.Tensor:
+    """(H, W, 3) RGB in 0..255 -> level-shifted YCbCr (every component centred on 0)."""
+    y = rgb @ _RGB_TO_YCC.to(rgb.dtype).T
+    y[..., 0] -= 128.0
+    return y
+
+
+def _from_ycc(ycc: torch.Tensor) -> torch.Tensor:
+    y = ycc.clone()
+    y[..., 0] += 128.0
+    return y @ torch.linalg.inv(_RGB_TO_YCC).to(ycc.dtype).T
+
+
+def compress(pixels: torch.Tensor, quant: JpegQuant) -> torch.Tensor:
+    """RGB images (N, 3, H, W) in [0, 1] -> what a baseline JPEG with ``quant``'s tables
+    (three components) decodes to: 8-bit YCbCr samples, chroma averaged over 2x2 where the
+    tables say it is subsampled, each component's 8x8 DCT blocks quantised, samples rounded
+    to 8 bits again, chroma upsampled (the triangle filter of libjpeg's fancy upsampling),
+    RGB in 8-bit steps. Matches libjpeg's own encode and decode to within its integer
+    arithmetic (tests/core/asset/test_jpeg.py)."""
+    if len(quant.tables) != 3 or pixels.shape[1] != 3:
+        raise ValueError("compress takes RGB images and three-component tables")
+    out = []
+    for img in pixels.to(torch.float64):
+        h, w = img.shape[1:]
+        rgb = torch.round(img.clamp(0.0, 1.0) * 255.0).permute(1, 2, 0)
+        ycc = torch.round(_to_ycc(rgb)).permute(2, 0, 1)  # 8-bit samples, level-shifted
+        comps = []
+        for c in range(3):
+            q = torch.from_numpy(quant.tables[c])[None, None, None]
+            if quant.full[c]:
+                comps.append(torch.round(_requantise(ycc[c : c + 1], q)[0]).clamp(-128, 127))
+                continue
+            half = F.avg_pool2d(F.pad(ycc[None, c : c + 1], (0, w % 2, 0, h % 2), "replicate"), 2)
+            small = torch.round(_requantise(half[0], q)).clamp(-128, 127)[None]
+            up = F.interpolate(small, scale_factor=2, mode="bilinear", align_corners=False)
+            comps.append(up[0, 0, :h, :w])
+        back = _from_ycc(torch.stack(comps, -1))
+        out.append(torch.round(back.clamp(0.0, 255.0)).permute(2, 0, 1) / 255.0)
+    return torch.stack(out).to(pixels.dtype)
+
+
 def deblock(pixels: np.ndarray, quant: JpegQuant) -> np.ndarray:
     """(H, W, C) float32 [0, 1] as decoded -> the same with the block artefacts reduced in
     the components stored at full resolution. Channels beyond the file's components
@@ -126,27 +210,21 @@ def deblock(pixels: np.ndarray, quant: JpegQuant) -> np.ndarray:
     sel = [k for k in range(ncomp) if quant.full[k]]
     x = torch.from_numpy(arr[..., :ncomp].astype(np.float64)) * 255.0
     if ncomp == 3:
-        x = x @ _RGB_TO_YCC.T
-    x[..., 0] -= 128.0  # level shift of Y (Cb and Cr are centred by the matrix)
+        x = _to_ycc(x)
+    else:
+        x[..., 0] -= 128.0  # level shift of the grey component
     q = torch.from_numpy(np.stack([quant.tables[k] for k in sel]))[:, None, None]  # (K,1,1,8,8)
-    d = _dct_matrix()
-    img = x.permute(2, 0, 1)[None, sel]  # (1, K, H, W): the full-resolution components
-    acc = torch.zeros_like(img[0])
+    img = x.permute(2, 0, 1)[sel]  # (K, H, W): the full-resolution components
+    acc = torch.zeros_like(img)
     for dy in range(8):
         for dx in range(8):
-            pad = (dx, (-(w + dx)) % 8, dy, (-(h + dy)) % 8)
-            p = F.pad(img, pad, mode="replicate")[0]
-            k, ph, pw = p.shape
-            blocks = p.reshape(k, ph // 8, 8, pw // 8, 8).transpose(2, 3)
-            coef = d @ blocks @ d.T
-            back = d.T @ (torch.round(coef / q) * q) @ d
-            back = back.transpose(2, 3).reshape(k, ph, pw)
-            acc += back[:, dy : dy + h, dx : dx + w]
+            acc += _requantise(img, q, dy, dx)
     y = x.clone()
     y[..., sel] = (acc / 64.0).permute(1, 2, 0)
-    y[..., 0] += 128.0
     if ncomp == 3:
-        y = y @ torch.linalg.inv(_RGB_TO_YCC).T
+        y = _from_ycc(y)
+    else:
+        y[..., 0] += 128.0
     out = arr.copy()
     filled = min(c, 3) if ncomp == 1 else ncomp  # grey was expanded to RGB on reading
     out[..., :filled] = (y / 255.0).clamp(0.0, 1.0).to(torch.float32).numpy()

@@ -114,6 +114,7 @@ def _run_training(
     widths: str | None,
     resume: bool,
     quiet: bool,
+    jpeg: str | None = None,
     arch: str | None = None,
 ) -> None:
     """Train one network per kind (or one for all with ``joint``) from ``init`` (see
@@ -138,6 +139,7 @@ def _run_training(
     groups = [kind_t] if joint else [(k,) for k in kind_t]
     if arch is not None and arch not in ARCHS:
         raise InvalidOptions(f"unknown --arch {arch!r}: use {', '.join(ARCHS)}")
+    qualities = _jpeg_range(jpeg)
     configs = []
     for g in groups:
         start = resolve_start(init, g[0], stride)
@@ -162,6 +164,7 @@ def _run_training(
                 arch=net_arch,
                 widths=width_t,
                 init=start,
+                jpeg=qualities,
             )
         )
     for c in configs:
@@ -214,6 +217,21 @@ def _run_training(
         typer.echo(f"report: {report}")
 
 
+def _jpeg_range(text: str | None) -> tuple[int, int] | None:
+    """``--jpeg LOW-HIGH`` (or one quality) as an inclusive range; None when not given."""
+    if text is None:
+        return None
+    from ..errors import InvalidOptions
+
+    try:
+        parts = [int(p) for p in text.split("-")]
+    except ValueError:
+        parts = []
+    if len(parts) not in (1, 2):
+        raise InvalidOptions(f"--jpeg takes a JPEG quality range LOW-HIGH (as 70-95), not {text!r}")
+    return parts[0], parts[-1]
+
+
 _OUT = typer.Option(..., "--out", "-o", help="Output folder (checkpoints, weights, report).")
 _TEXTURES = typer.Option(None, help="Texture folder with manifest.json ($PBRSR_TEXTURES).")
 _NAME = typer.Option("pbr-upconv7", help="Weights name; per kind: NAME-KIND.")
@@ -224,6 +242,11 @@ _BATCH = typer.Option(8, help="Crops per step.")
 _PATCH = typer.Option(96, help="HR crop side (px).")
 _STRIDE = typer.Option(2, help="Upscaling of one network pass: 2 or 4 (x4 in one pass).")
 _SEED = typer.Option(0, help="Seed of the start weights and the batches.")
+_JPEG = typer.Option(
+    None,
+    help="JPEG stage of the LR model: half the LR crops compressed at a quality drawn from "
+    "LOW-HIGH (as 70-95), 4:4:4 or 4:2:0 at random, as assets ship JPEG maps.",
+)
 _RESUME = typer.Option(True, help="Continue from the folder's checkpoints.")
 _QUIET = typer.Option(False, "--quiet", "-q")
 
@@ -242,6 +265,7 @@ def train_cmd(
     patch: int = _PATCH,
     lr: float = typer.Option(5e-4, help="AdamW learning rate (halved at 40 % and 80 %)."),
     seed: int = _SEED,
+    jpeg: str | None = _JPEG,
     arch: str = typer.Option("upconv7", help="Network: upconv7 or compact."),
     widths: str = typer.Option(
         None, help="Convolution widths (upconv7: 16,32,64,128,128,256; compact: 64 x 17)."
@@ -274,6 +298,7 @@ def finetune_cmd(
     patch: int = _PATCH,
     lr: float = typer.Option(1e-4, help="AdamW learning rate (halved at 40 % and 80 %)."),
     seed: int = _SEED,
+    jpeg: str | None = _JPEG,
     resume: bool = _RESUME,
     quiet: bool = _QUIET,
 ) -> None:

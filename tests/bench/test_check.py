@@ -6,6 +6,7 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pbrsr_bench.check import markdown_table, run
@@ -68,3 +69,25 @@ def test_cli_refuses_what_it_cannot_score(folder, tmp_path: Path, capfd):
         ["bench", "check", "-o", str(tmp_path), "--textures", str(folder), "--sizes", "32"], capfd
     )
     assert code == 2 and "at least 64 px" in err
+
+
+def test_jpeg_lr_crops_are_scored_as_a_jpeg_file_holds_them(folder, tmp_path: Path, capfd):
+    from pbrsr_bench.check import low_res
+    from pbrsr_core.degrade import degrade_image
+
+    hr = np.random.default_rng(0).random((64, 64, 3)).astype(np.float32)
+    clean, jpeg = low_res(hr, 4), low_res(hr, 4, jpeg=60)
+    assert (clean == degrade_image(hr, 4)).all() and jpeg.shape == clean.shape
+    assert not (jpeg == clean).all() and (jpeg * 255 == (jpeg * 255).round()).all()
+    code, err = run_cli(
+        ["bench", "check", "-o", str(tmp_path), "--textures", str(folder), "--prior", "bicubic"]
+        + ["--scale", "2", "--sizes", "128", "--jpeg", "60"],
+        capfd,
+    )
+    assert code == 0, err
+    saved = json.loads((tmp_path / "check.json").read_text())
+    assert saved["jpeg"] == 60 and "JPEG quality 60" in markdown_table(saved)
+    code, err = run_cli(
+        ["bench", "check", "-o", str(tmp_path), "--textures", str(folder), "--jpeg", "0"], capfd
+    )
+    assert code == 2 and "--jpeg" in err

@@ -14,8 +14,10 @@ signals, each trained as a 3-channel image as the direct prior sees it (prior/di
 Each sample is an HR crop, one of the eight flips/rotations of the square applied so that
 a normal map stays a normal map (:func:`dihedral`), then blurred and bicubic-downsampled by
 :func:`pbrsr_core.degrade.degrade_tensor` (normal LR crops are renormalised, as
-``pbrsr degrade`` writes them). Batches are a pure function of ``(seed, step)``, so a run
-resumed from a checkpoint draws exactly the batches it would have drawn.
+``pbrsr degrade`` writes them). With a JPEG stage (``jpeg``: a quality range), half the LR
+crops are then compressed as a JPEG file would store them (:func:`jpeg_lr`), as real assets
+ship their maps. Batches are a pure function of ``(seed, step)``, so a run resumed from a
+checkpoint draws exactly the batches it would have drawn.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ...asset.jpeg import compress, standard_quant
 from ...degrade import degrade_tensor
 from ...errors import InvalidOptions
 
@@ -185,13 +188,24 @@ def degrade_pair(hr: torch.Tensor, scale: int, kind: str) -> torch.Tensor:
     return normalize_encoded(lr) if kind == "normal" else lr
 
 
+def jpeg_lr(lr: torch.Tensor, rng: np.random.Generator, qualities: tuple[int, int]) -> torch.Tensor:
+    """The JPEG stage of the LR model: with probability 1/2, ``lr`` (1, 3, h, w) compressed
+    at a quality drawn uniformly from ``qualities`` (inclusive), chroma at full resolution
+    (4:4:4) or subsampled (4:2:0) with equal odds; else ``lr`` unchanged."""
+    if rng.random() >= 0.5:
+        return lr
+    quality = int(rng.integers(qualities[0], qualities[1] + 1))
+    return compress(lr, standard_quant(quality, subsampled=bool(rng.random() < 0.5)))
+
+
 class CropSampler:
     """Draws training batches from materials of one or more map kinds.
 
     ``batch(step)`` returns ``(lr, hr, kinds)``: lr (B, 3, P/s, P/s), hr (B, 3, P, P) float32
     in [0, 1], and the kind of each sample. Kinds are drawn in turn from ``kinds`` (one kind
     per sample, a joint model sees all three), materials uniformly among those that have the
-    kind, crop positions uniformly, and one of the eight symmetries."""
+    kind, crop positions uniformly, and one of the eight symmetries; ``jpeg`` (a quality
+    range) adds :func:`jpeg_lr` after the degradation."""
 
     def __init__(
         self,
@@ -201,6 +215,7 @@ class CropSampler:
         patch: int,
         batch_size: int,
         seed: int,
+        jpeg: tuple[int, int] | None = None,
     ) -> None:
         for k in kinds:
             if k not in KINDS:
@@ -216,7 +231,7 @@ class CropSampler:
             if small:
                 raise InvalidOptions(f"{k} maps smaller than the {patch} px patch: {small}")
         self.kinds, self.scale, self.patch = kinds, scale, patch
-        self.batch_size, self.seed = batch_size, seed
+        self.batch_size, self.seed, self.jpeg = batch_size, seed, jpeg
 
     def _crop(self, rng: np.random.Generator, kind: str) -> np.ndarray:
         mats = self.by_kind[kind]
@@ -247,7 +262,8 @@ class CropSampler:
             crop = torch.from_numpy(self._crop(rng, kind)).permute(2, 0, 1)[None].float() / 255.0
             hr = dihedral(crop, int(rng.integers(8)), kind).contiguous()
             hrs.append(hr)
-            lrs.append(degrade_pair(hr, self.scale, kind))
+            lr = degrade_pair(hr, self.scale, kind)
+            lrs.append(lr if self.jpeg is None else jpeg_lr(lr, rng, self.jpeg))
         return torch.cat(lrs), torch.cat(hrs), kinds
 
 

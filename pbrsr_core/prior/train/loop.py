@@ -54,6 +54,9 @@ class TrainConfig:
     """Start weights: ``waifu2x-photo`` (UpConv7), ``realesr-animevideov3`` (compact), a
     weights file, or ``random`` (seeded). Start weights of another stride give the
     convolutions; the new head starts at random."""
+    jpeg: tuple[int, int] | None = None
+    """JPEG stage of the LR model: a quality range (inclusive) for half the LR crops
+    (:func:`~pbrsr_core.prior.train.data.jpeg_lr`); None: the protocol's blur + bicubic only."""
     val_every: int = 250
     val_patch: int = 128
     ckpt_every: int = 250
@@ -74,6 +77,8 @@ class TrainConfig:
             raise InvalidOptions("steps and batch size must be at least 1")
         if self.patch % self.scale or self.val_patch % self.scale:
             raise InvalidOptions("patch sizes must be multiples of the scale")
+        if self.jpeg is not None and not 1 <= self.jpeg[0] <= self.jpeg[1] <= 100:
+            raise InvalidOptions(f"JPEG qualities must be LOW-HIGH within 1..100, not {self.jpeg}")
         if not (0.0 <= self.ema < 1.0):
             raise InvalidOptions(f"ema must be in [0, 1), not {self.ema}")
         try:
@@ -238,7 +243,13 @@ def train(
         net.parameters(), lr=config.lr, betas=(0.9, 0.99), weight_decay=config.weight_decay
     )
     sampler = CropSampler(
-        train_materials, config.kinds, config.scale, config.patch, config.batch_size, config.seed
+        train_materials,
+        config.kinds,
+        config.scale,
+        config.patch,
+        config.batch_size,
+        config.seed,
+        config.jpeg,
     )
     validator = Validator(val_materials, config.kinds, config.scale, config.val_patch)
     history, start = History(), 0

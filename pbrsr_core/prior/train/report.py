@@ -172,6 +172,18 @@ def write_report(
     return md
 
 
+def _jpeg_line(nets: list) -> str:
+    """The JPEG stage of the networks trained with one, as a sentence (or nothing)."""
+    with_jpeg = [(f.name, cfg["jpeg"]) for f, _, cfg, _ in nets if cfg.get("jpeg")]
+    if not with_jpeg:
+        return ""
+    parts = [f"{name} at quality {lo}-{hi}" for name, (lo, hi) in with_jpeg]
+    return (
+        " Then a JPEG stage: half the LR crops compressed (4:4:4 or 4:2:0 at random, "
+        "`pbrsr_core/asset/jpeg.py`) for " + ", ".join(parts) + "."
+    )
+
+
 def model_card(folders: list[Path], results: dict, table: str) -> str:
     """The model card of the trained sets: data, licence, degradation, scales, parameters,
     measured numbers and the command that made them."""
@@ -218,7 +230,7 @@ def model_card(folders: list[Path], results: dict, table: str) -> str:
         "## Training",
         "",
         "- Degradation: the evaluation protocol (Gaussian blur sigma = 0.375 s, bicubic down; "
-        "`pbrsr_core/degrade.py`); normal LR crops renormalised.",
+        "`pbrsr_core/degrade.py`); normal LR crops renormalised." + _jpeg_line(nets),
         f"- Crops: {cfg.get('patch')}² HR, batch {cfg.get('batch_size')}, the eight "
         "flips/rotations (normal vectors rotated with the pixels).",
         f"- Loss: L1 on the crop interior. AdamW lr {cfg.get('lr')}, betas (0.9, 0.99), "

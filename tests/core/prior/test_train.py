@@ -17,6 +17,7 @@ from pbrsr_core.prior.registry import check_name, load_prior
 from pbrsr_core.prior.texture import TexturePrior
 from pbrsr_core.prior.train.data import (
     CropSampler,
+    degrade_pair,
     dihedral,
     load_materials,
     read_manifest,
@@ -129,6 +130,31 @@ def test_sampler_batches_are_a_function_of_seed_and_step(materials):
     assert not torch.equal(s.batch(8)[1], hr1)
     normals = hr1[[i for i, k in enumerate(k1) if k == "normal"]] * 2 - 1
     assert (normals[:, 2] > 0).all()
+
+
+def test_jpeg_stage_compresses_half_the_lr_crops_and_stays_deterministic(materials):
+    train_m, _ = materials
+    kinds = ("colour", "data", "normal")
+    clean = CropSampler(train_m, kinds, 2, 32, 8, seed=5)
+    jpeg = CropSampler(train_m, kinds, 2, 32, 8, seed=5, jpeg=(30, 60))
+    _, hr_c, k_c = clean.batch(3)
+    lr_j, hr_j, k_j = jpeg.batch(3)
+    assert k_j == k_c and torch.equal(hr_j[0], hr_c[0])  # the first crop is drawn alike
+    assert torch.equal(jpeg.batch(3)[0], lr_j)  # a function of (seed, step): resume is exact
+    n_jpeg = 0
+    for step in range(4, 16):
+        for lr, hr, kind in zip(*jpeg.batch(step), strict=True):
+            if not torch.equal(lr, degrade_pair(hr[None], 2, kind)[0]):
+                n_jpeg += 1
+                assert torch.equal(lr, torch.round(lr * 255) / 255)  # 8-bit, as decoded
+    assert 24 <= n_jpeg <= 72, n_jpeg  # of 96
+
+
+def test_bad_jpeg_range_is_refused():
+    with pytest.raises(InvalidOptions, match="JPEG qualities"):
+        TrainConfig(jpeg=(90, 70)).check()
+    with pytest.raises(InvalidOptions, match="JPEG qualities"):
+        TrainConfig(jpeg=(0, 70)).check()
 
 
 class _Stop(Exception):
@@ -252,6 +278,8 @@ def test_cli_trains_reports_and_the_result_is_a_prior(tmp_path, capfd):
             "32",
             "--widths",
             "4,8",
+            "--jpeg",
+            "80-95",
             "-q",
         ],
         capfd,
@@ -265,6 +293,7 @@ def test_cli_trains_reports_and_the_result_is_a_prior(tmp_path, capfd):
     assert "angle" in report["normal"]["4"]["out"]
     card = (out / "MODEL_CARD.md").read_text()
     assert "CC0" in card and "priors train" in card and (out / "report.png").is_file()
+    assert "JPEG stage" in card and "quality 80-95" in card
     prior = TexturePrior(out)  # the training output folder is a prior as it is written
     assert set(prior.nets) == {"colour", "normal"}
     assert prior.for_kind("normal").upscale(torch.rand(1, 3, 16, 16), 4).shape[-1] == 64
@@ -290,6 +319,8 @@ def test_cli_trains_reports_and_the_result_is_a_prior(tmp_path, capfd):
         (["--kinds", "colour,gloss"], "gloss"),
         (["--patch", "33"], "multiple"),
         (["--widths", "4,x"], "widths"),
+        (["--jpeg", "high"], "--jpeg"),
+        (["--jpeg", "95-70"], "JPEG qualities"),
     ],
 )
 def test_cli_refuses_bad_training_input(tmp_path, capfd, extra, says):
