@@ -115,6 +115,7 @@ def _run_training(
     resume: bool,
     quiet: bool,
     jpeg: str | None = None,
+    jpeg_share: float = 0.5,
     arch: str | None = None,
 ) -> None:
     """Train one network per kind (or one for all with ``joint``) from ``init`` (see
@@ -165,6 +166,7 @@ def _run_training(
                 widths=width_t,
                 init=start,
                 jpeg=qualities,
+                jpeg_share=jpeg_share,
             )
         )
     for c in configs:
@@ -244,9 +246,10 @@ _STRIDE = typer.Option(2, help="Upscaling of one network pass: 2 or 4 (x4 in one
 _SEED = typer.Option(0, help="Seed of the start weights and the batches.")
 _JPEG = typer.Option(
     None,
-    help="JPEG stage of the LR model: half the LR crops compressed at a quality drawn from "
+    help="JPEG stage of the LR model: LR crops (--jpeg-share of them) compressed at a quality from "
     "LOW-HIGH (as 70-95), 4:4:4 or 4:2:0 at random, as assets ship JPEG maps.",
 )
+_JPEG_SHARE = typer.Option(0.5, help="Share of the LR crops the JPEG stage compresses.")
 _RESUME = typer.Option(True, help="Continue from the folder's checkpoints.")
 _QUIET = typer.Option(False, "--quiet", "-q")
 
@@ -266,6 +269,7 @@ def train_cmd(
     lr: float = typer.Option(5e-4, help="AdamW learning rate (halved at 40 % and 80 %)."),
     seed: int = _SEED,
     jpeg: str | None = _JPEG,
+    jpeg_share: float = _JPEG_SHARE,
     arch: str = typer.Option("upconv7", help="Network: upconv7 or compact."),
     widths: str = typer.Option(
         None, help="Convolution widths (upconv7: 16,32,64,128,128,256; compact: 64 x 17)."
@@ -299,6 +303,7 @@ def finetune_cmd(
     lr: float = typer.Option(1e-4, help="AdamW learning rate (halved at 40 % and 80 %)."),
     seed: int = _SEED,
     jpeg: str | None = _JPEG,
+    jpeg_share: float = _JPEG_SHARE,
     resume: bool = _RESUME,
     quiet: bool = _QUIET,
 ) -> None:

@@ -14,10 +14,11 @@ signals, each trained as a 3-channel image as the direct prior sees it (prior/di
 Each sample is an HR crop, one of the eight flips/rotations of the square applied so that
 a normal map stays a normal map (:func:`dihedral`), then blurred and bicubic-downsampled by
 :func:`pbrsr_core.degrade.degrade_tensor` (normal LR crops are renormalised, as
-``pbrsr degrade`` writes them). With a JPEG stage (``jpeg``: a quality range), half the LR
-crops are then compressed as a JPEG file would store them (:func:`jpeg_lr`), as real assets
-ship their maps. Batches are a pure function of ``(seed, step)``, so a run resumed from a
-checkpoint draws exactly the batches it would have drawn.
+``pbrsr degrade`` writes them). With a JPEG stage (``jpeg``: a quality range), a share of
+the LR crops (half by default) are then compressed as a JPEG file would store them
+(:func:`jpeg_lr`), as real assets ship their maps. Batches are a pure function of
+``(seed, step)``, so a run resumed from a checkpoint draws exactly the batches it would have
+drawn.
 """
 
 from __future__ import annotations
@@ -188,11 +189,13 @@ def degrade_pair(hr: torch.Tensor, scale: int, kind: str) -> torch.Tensor:
     return normalize_encoded(lr) if kind == "normal" else lr
 
 
-def jpeg_lr(lr: torch.Tensor, rng: np.random.Generator, qualities: tuple[int, int]) -> torch.Tensor:
-    """The JPEG stage of the LR model: with probability 1/2, ``lr`` (1, 3, h, w) compressed
-    at a quality drawn uniformly from ``qualities`` (inclusive), chroma at full resolution
-    (4:4:4) or subsampled (4:2:0) with equal odds; else ``lr`` unchanged."""
-    if rng.random() >= 0.5:
+def jpeg_lr(
+    lr: torch.Tensor, rng: np.random.Generator, qualities: tuple[int, int], share: float = 0.5
+) -> torch.Tensor:
+    """The JPEG stage of the LR model: with probability ``share``, ``lr`` (1, 3, h, w)
+    compressed at a quality drawn uniformly from ``qualities`` (inclusive), chroma at full
+    resolution (4:4:4) or subsampled (4:2:0) with equal odds; else ``lr`` unchanged."""
+    if rng.random() >= share:
         return lr
     quality = int(rng.integers(qualities[0], qualities[1] + 1))
     return compress(lr, standard_quant(quality, subsampled=bool(rng.random() < 0.5)))
@@ -205,7 +208,7 @@ class CropSampler:
     in [0, 1], and the kind of each sample. Kinds are drawn in turn from ``kinds`` (one kind
     per sample, a joint model sees all three), materials uniformly among those that have the
     kind, crop positions uniformly, and one of the eight symmetries; ``jpeg`` (a quality
-    range) adds :func:`jpeg_lr` after the degradation."""
+    range) adds :func:`jpeg_lr` after the degradation for ``jpeg_share`` of the crops."""
 
     def __init__(
         self,
@@ -216,6 +219,7 @@ class CropSampler:
         batch_size: int,
         seed: int,
         jpeg: tuple[int, int] | None = None,
+        jpeg_share: float = 0.5,
     ) -> None:
         for k in kinds:
             if k not in KINDS:
@@ -231,7 +235,8 @@ class CropSampler:
             if small:
                 raise InvalidOptions(f"{k} maps smaller than the {patch} px patch: {small}")
         self.kinds, self.scale, self.patch = kinds, scale, patch
-        self.batch_size, self.seed, self.jpeg = batch_size, seed, jpeg
+        self.batch_size, self.seed = batch_size, seed
+        self.jpeg, self.jpeg_share = jpeg, jpeg_share
 
     def _crop(self, rng: np.random.Generator, kind: str) -> np.ndarray:
         mats = self.by_kind[kind]
@@ -263,7 +268,7 @@ class CropSampler:
             hr = dihedral(crop, int(rng.integers(8)), kind).contiguous()
             hrs.append(hr)
             lr = degrade_pair(hr, self.scale, kind)
-            lrs.append(lr if self.jpeg is None else jpeg_lr(lr, rng, self.jpeg))
+            lrs.append(lr if self.jpeg is None else jpeg_lr(lr, rng, self.jpeg, self.jpeg_share))
         return torch.cat(lrs), torch.cat(hrs), kinds
 
 

@@ -55,8 +55,10 @@ class TrainConfig:
     weights file, or ``random`` (seeded). Start weights of another stride give the
     convolutions; the new head starts at random."""
     jpeg: tuple[int, int] | None = None
-    """JPEG stage of the LR model: a quality range (inclusive) for half the LR crops
-    (:func:`~pbrsr_core.prior.train.data.jpeg_lr`); None: the protocol's blur + bicubic only."""
+    """JPEG stage of the LR model: a quality range (inclusive) for ``jpeg_share`` of the LR
+    crops (:func:`~pbrsr_core.prior.train.data.jpeg_lr`); None: the protocol's blur + bicubic
+    only."""
+    jpeg_share: float = 0.5
     val_every: int = 250
     val_patch: int = 128
     ckpt_every: int = 250
@@ -79,6 +81,8 @@ class TrainConfig:
             raise InvalidOptions("patch sizes must be multiples of the scale")
         if self.jpeg is not None and not 1 <= self.jpeg[0] <= self.jpeg[1] <= 100:
             raise InvalidOptions(f"JPEG qualities must be LOW-HIGH within 1..100, not {self.jpeg}")
+        if not 0.0 < self.jpeg_share <= 1.0:
+            raise InvalidOptions(f"the JPEG share must be in (0, 1], not {self.jpeg_share}")
         if not (0.0 <= self.ema < 1.0):
             raise InvalidOptions(f"ema must be in [0, 1), not {self.ema}")
         try:
@@ -250,6 +254,7 @@ def train(
         config.batch_size,
         config.seed,
         config.jpeg,
+        config.jpeg_share,
     )
     validator = Validator(val_materials, config.kinds, config.scale, config.val_patch)
     history, start = History(), 0

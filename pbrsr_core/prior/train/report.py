@@ -174,13 +174,17 @@ def write_report(
 
 def _jpeg_line(nets: list) -> str:
     """The JPEG stage of the networks trained with one, as a sentence (or nothing)."""
-    with_jpeg = [(f.name, cfg["jpeg"]) for f, _, cfg, _ in nets if cfg.get("jpeg")]
-    if not with_jpeg:
+    parts = [
+        f"{f.name}: {cfg.get('jpeg_share', 0.5):.0%} of the LR crops at quality "
+        f"{cfg['jpeg'][0]}-{cfg['jpeg'][1]}"
+        for f, _, cfg, _ in nets
+        if cfg.get("jpeg")
+    ]
+    if not parts:
         return ""
-    parts = [f"{name} at quality {lo}-{hi}" for name, (lo, hi) in with_jpeg]
     return (
-        " Then a JPEG stage: half the LR crops compressed (4:4:4 or 4:2:0 at random, "
-        "`pbrsr_core/asset/jpeg.py`) for " + ", ".join(parts) + "."
+        " Then a JPEG stage, the LR crops compressed as a JPEG file stores them (4:4:4 or 4:2:0 "
+        "at random, `pbrsr_core/asset/jpeg.py`): " + "; ".join(parts) + "."
     )
 
 

@@ -148,6 +148,9 @@ def test_jpeg_stage_compresses_half_the_lr_crops_and_stays_deterministic(materia
                 n_jpeg += 1
                 assert torch.equal(lr, torch.round(lr * 255) / 255)  # 8-bit, as decoded
     assert 24 <= n_jpeg <= 72, n_jpeg  # of 96
+    every = CropSampler(train_m, kinds, 2, 32, 8, seed=5, jpeg=(30, 60), jpeg_share=1.0)
+    for lr, hr, kind in zip(*every.batch(4), strict=True):
+        assert not torch.equal(lr, degrade_pair(hr[None], 2, kind)[0])
 
 
 def test_bad_jpeg_range_is_refused():
@@ -155,6 +158,8 @@ def test_bad_jpeg_range_is_refused():
         TrainConfig(jpeg=(90, 70)).check()
     with pytest.raises(InvalidOptions, match="JPEG qualities"):
         TrainConfig(jpeg=(0, 70)).check()
+    with pytest.raises(InvalidOptions, match="JPEG share"):
+        TrainConfig(jpeg=(70, 90), jpeg_share=0.0).check()
 
 
 class _Stop(Exception):
@@ -293,7 +298,7 @@ def test_cli_trains_reports_and_the_result_is_a_prior(tmp_path, capfd):
     assert "angle" in report["normal"]["4"]["out"]
     card = (out / "MODEL_CARD.md").read_text()
     assert "CC0" in card and "priors train" in card and (out / "report.png").is_file()
-    assert "JPEG stage" in card and "quality 80-95" in card
+    assert "JPEG stage" in card and "50% of the LR crops at quality 80-95" in card
     prior = TexturePrior(out)  # the training output folder is a prior as it is written
     assert set(prior.nets) == {"colour", "normal"}
     assert prior.for_kind("normal").upscale(torch.rand(1, 3, 16, 16), 4).shape[-1] == 64
