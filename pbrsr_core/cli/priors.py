@@ -115,7 +115,7 @@ def _run_training(
     resume: bool,
     quiet: bool,
     jpeg: str | None = None,
-    jpeg_share: float = 0.5,
+    jpeg_share: float | None = None,
     arch: str | None = None,
 ) -> None:
     """Train one network per kind (or one for all with ``joint``) from ``init`` (see
@@ -141,6 +141,8 @@ def _run_training(
     if arch is not None and arch not in ARCHS:
         raise InvalidOptions(f"unknown --arch {arch!r}: use {', '.join(ARCHS)}")
     qualities = _jpeg_range(jpeg)
+    if jpeg_share is not None and qualities is None:
+        raise InvalidOptions("--jpeg-share needs --jpeg LOW-HIGH (the qualities to compress at)")
     configs = []
     for g in groups:
         start = resolve_start(init, g[0], stride)
@@ -166,7 +168,7 @@ def _run_training(
                 widths=width_t,
                 init=start,
                 jpeg=qualities,
-                jpeg_share=jpeg_share,
+                jpeg_share=0.5 if jpeg_share is None else jpeg_share,
             )
         )
     for c in configs:
@@ -249,7 +251,9 @@ _JPEG = typer.Option(
     help="JPEG stage of the LR model: LR crops (--jpeg-share of them) compressed at a quality from "
     "LOW-HIGH (as 70-95), 4:4:4 or 4:2:0 at random, as assets ship JPEG maps.",
 )
-_JPEG_SHARE = typer.Option(0.5, help="Share of the LR crops the JPEG stage compresses.")
+_JPEG_SHARE = typer.Option(
+    None, help="Share of the LR crops the JPEG stage compresses (with --jpeg; default 0.5)."
+)
 _RESUME = typer.Option(True, help="Continue from the folder's checkpoints.")
 _QUIET = typer.Option(False, "--quiet", "-q")
 
@@ -269,7 +273,7 @@ def train_cmd(
     lr: float = typer.Option(5e-4, help="AdamW learning rate (halved at 40 % and 80 %)."),
     seed: int = _SEED,
     jpeg: str | None = _JPEG,
-    jpeg_share: float = _JPEG_SHARE,
+    jpeg_share: float | None = _JPEG_SHARE,
     arch: str = typer.Option("upconv7", help="Network: upconv7 or compact."),
     widths: str = typer.Option(
         None, help="Convolution widths (upconv7: 16,32,64,128,128,256; compact: 64 x 17)."
@@ -303,7 +307,7 @@ def finetune_cmd(
     lr: float = typer.Option(1e-4, help="AdamW learning rate (halved at 40 % and 80 %)."),
     seed: int = _SEED,
     jpeg: str | None = _JPEG,
-    jpeg_share: float = _JPEG_SHARE,
+    jpeg_share: float | None = _JPEG_SHARE,
     resume: bool = _RESUME,
     quiet: bool = _QUIET,
 ) -> None:

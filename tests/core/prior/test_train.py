@@ -326,6 +326,7 @@ def test_cli_trains_reports_and_the_result_is_a_prior(tmp_path, capfd):
         (["--widths", "4,x"], "widths"),
         (["--jpeg", "high"], "--jpeg"),
         (["--jpeg", "95-70"], "JPEG qualities"),
+        (["--jpeg-share", "1"], "--jpeg-share needs --jpeg"),
     ],
 )
 def test_cli_refuses_bad_training_input(tmp_path, capfd, extra, says):
