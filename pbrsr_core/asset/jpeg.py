@@ -114,6 +114,10 @@ def _dct_matrix() -> torch.Tensor:
     return c * scale  # orthonormal: rows are the basis functions
 
 
+_DCT = _dct_matrix()
+_YCC_TO_RGB = torch.linalg.inv(_RGB_TO_YCC)
+
+
 # libjpeg's base tables (JPEG Annex K, natural order), scaled by quality in standard_quant
 _ANNEX_K_LUMA = (
     16, 11, 10, 16, 24, 40, 51, 61, 12, 12, 14, 19, 26, 58, 60, 55,
@@ -146,7 +150,7 @@ def _requantise(img: torch.Tensor, q: torch.Tensor, dy: int = 0, dx: int = 0) ->
     DCT of each block (edges replicated), coefficients rounded to multiples of the tables
     ``q`` (K, 1, 1, 8, 8), inverse DCT."""
     k, h, w = img.shape
-    d = _dct_matrix().to(img.dtype)
+    d = _DCT.to(img.dtype)
     pad = (dx, (-(w + dx)) % 8, dy, (-(h + dy)) % 8)
     p = F.pad(img[None], pad, mode="replicate")[0]
     ph, pw = p.shape[1:]
@@ -166,7 +170,7 @@ def _to_ycc(rgb: torch.Tensor) -> torch.Tensor:
 def _from_ycc(ycc: torch.Tensor) -> torch.Tensor:
     y = ycc.clone()
     y[..., 0] += 128.0
-    return y @ torch.linalg.inv(_RGB_TO_YCC).to(ycc.dtype).T
+    return y @ _YCC_TO_RGB.to(ycc.dtype).T
 
 
 def compress(pixels: torch.Tensor, quant: JpegQuant) -> torch.Tensor:

@@ -190,7 +190,7 @@ def degrade_pair(hr: torch.Tensor, scale: int, kind: str) -> torch.Tensor:
 
 
 def jpeg_lr(
-    lr: torch.Tensor, rng: np.random.Generator, qualities: tuple[int, int], share: float = 0.5
+    lr: torch.Tensor, rng: np.random.Generator, qualities: tuple[int, int], share: float
 ) -> torch.Tensor:
     """The JPEG stage of the LR model: with probability ``share``, ``lr`` (1, 3, h, w)
     compressed at a quality drawn uniformly from ``qualities`` (inclusive), chroma at full
