@@ -168,7 +168,7 @@ def _run_training(
                 widths=width_t,
                 init=start,
                 jpeg=qualities,
-                jpeg_share=0.5 if jpeg_share is None else jpeg_share,
+                jpeg_share=TrainConfig.jpeg_share if jpeg_share is None else jpeg_share,
             )
         )
     for c in configs:
