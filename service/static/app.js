@@ -193,6 +193,9 @@ function select(id) {
     state.detail = null;
     state.shownFiles = "";
     state.shownCrops = "";
+    // nothing of the previous job stays on view until this one's detail arrives
+    delete $("job-view").dataset.status;
+    $("job-name").textContent = "";
     $("preview-pairs").replaceChildren();
     $("thumbs").replaceChildren();
     $("crops").replaceChildren();

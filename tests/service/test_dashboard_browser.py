@@ -116,6 +116,8 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
             page.click("#submit")
             page.wait_for_selector("#job-view:not([hidden])")
             page.wait_for_selector(".job-row[data-status]")
+            # the view's status is set when the job's detail has arrived, with its name
+            page.wait_for_selector("#job-view[data-status]")
             assert page.inner_text("#job-name") == "chair.glb"
 
             # watch the bar until the job ends
