@@ -117,10 +117,14 @@ def _run_training(
     jpeg: str | None = None,
     jpeg_share: float | None = None,
     arch: str | None = None,
+    first: str | None = None,
+    residual: bool | None = None,
 ) -> None:
     """Train one network per kind (or one for all with ``joint``) from ``init`` (see
-    :func:`~pbrsr_core.prior.train.weights.resolve_start`); ``arch`` and ``widths`` None:
-    the start weights' (``random``: UpConv7's, or the compact network's 64 x 17)."""
+    :func:`~pbrsr_core.prior.train.weights.resolve_start`); ``arch``, ``widths`` and
+    ``residual`` None: the start weights' (``random``: UpConv7's, or the compact network's
+    64 x 17). ``first``: a set (or file) whose x2 network for each kind makes the first pass,
+    frozen, while the trained network learns the passes after it."""
     from tqdm import tqdm
 
     from ..errors import InvalidOptions
@@ -146,7 +150,7 @@ def _run_training(
     configs = []
     for g in groups:
         start = resolve_start(init, g[0], stride)
-        net_arch, width_t = start_shape(start, arch or "upconv7")
+        net_arch, width_t, start_residual = start_shape(start, arch or "upconv7")
         if widths is not None:
             try:
                 width_t = tuple(int(w) for w in widths.split(","))
@@ -169,6 +173,8 @@ def _run_training(
                 init=start,
                 jpeg=qualities,
                 jpeg_share=TrainConfig.jpeg_share if jpeg_share is None else jpeg_share,
+                residual=start_residual if residual is None else residual,
+                first=None if first is None else resolve_start(first, g[0], 2),
             )
         )
     for c in configs:
@@ -254,6 +260,13 @@ _JPEG = typer.Option(
 _JPEG_SHARE = typer.Option(
     None, help="Share of the LR crops the JPEG stage compresses (with --jpeg; default 0.5)."
 )
+_FIRST = typer.Option(
+    None,
+    "--first",
+    help="Train the x2 network of the passes after the first, behind this set's (or file's) "
+    "x2 network for each kind, frozen (pbr-upconv7, texture:<folder>, .safetensors; needs "
+    "--scale 4). The output folder holds both: a texture set of its own.",
+)
 _RESUME = typer.Option(True, help="Continue from the folder's checkpoints.")
 _QUIET = typer.Option(False, "--quiet", "-q")
 
@@ -278,6 +291,13 @@ def train_cmd(
     widths: str = typer.Option(
         None, help="Convolution widths (upconv7: 16,32,64,128,128,256; compact: 64 x 17)."
     ),
+    residual: bool = typer.Option(
+        False,
+        "--residual",
+        help="UpConv7: add the network's output to a bicubic resize of its input (it starts "
+        "as bicubic exactly).",
+    ),
+    first: str | None = _FIRST,
     resume: bool = _RESUME,
     quiet: bool = _QUIET,
 ) -> None:
@@ -308,6 +328,7 @@ def finetune_cmd(
     seed: int = _SEED,
     jpeg: str | None = _JPEG,
     jpeg_share: float | None = _JPEG_SHARE,
+    first: str | None = _FIRST,
     resume: bool = _RESUME,
     quiet: bool = _QUIET,
 ) -> None:

@@ -6,6 +6,9 @@ The shipped sets (:data:`SHIPPED`) are files in ``pbrsr_core/prior/weights/<set>
 by the command in its folder's MODEL_CARD.md); ``texture:<folder or file>`` loads any set
 ``pbrsr priors train/finetune`` wrote. :meth:`TexturePrior.for_kind` gives the network for
 one map kind; a kind without weights of its own uses the ``fallback`` prior (waifu2x-photo).
+A kind may also have a ``later`` network (``pbrsr priors train --first``): trained behind its
+first-pass network, it runs every x2 pass after the first (x4: first, later; x8: first,
+later, later).
 The prior itself, called on images of no stated kind (the optimiser's renders), runs the colour
 network, or the fallback where the set has no colour network.
 """
@@ -19,7 +22,7 @@ import torch
 
 from ..errors import PriorUnavailable
 from .base import Prior
-from .train.weights import Network, load_network, read_metadata
+from .train.weights import Network, file_sha256, load_network, read_metadata
 
 WEIGHTS_ROOT = Path(__file__).resolve().parent / "weights"
 SHIPPED: dict[str, tuple[str, ...]] = {
@@ -40,10 +43,14 @@ def shipped_files(name: str) -> list[Path]:
 KINDS = ("colour", "data", "normal")
 
 
-def weight_files(source: Path | list[Path]) -> dict[tuple[str, int], Path]:
-    """(kind, stride) -> weights file of a folder (every ``*.safetensors`` in it, else in its
-    subfolders: the layout ``pbrsr priors train -o`` writes), of one file or of a list of
-    files, from each file's ``kinds`` and ``stride`` metadata."""
+Key = tuple[str, int, str]
+"""(map kind, stride, pass: ``first`` or ``later``) of a weights file."""
+
+
+def weight_files(source: Path | list[Path]) -> dict[Key, Path]:
+    """(kind, stride, pass) -> weights file of a folder (every ``*.safetensors`` in it, else
+    in its subfolders: the layout ``pbrsr priors train -o`` writes), of one file or of a list
+    of files, from each file's ``kinds``, ``stride`` and ``pass`` metadata."""
     if isinstance(source, list):
         files = [Path(f) for f in source]
     else:
@@ -53,19 +60,36 @@ def weight_files(source: Path | list[Path]) -> dict[tuple[str, int], Path]:
             files = sorted(source.glob("*.safetensors")) or sorted(source.glob("*/*.safetensors"))
     if not files or not all(f.is_file() for f in files):
         raise PriorUnavailable(f"no texture prior weights at '{source}'")
-    out: dict[tuple[str, int], Path] = {}
+    out: dict[Key, Path] = {}
     for f in files:
         meta = read_metadata(f)
         stride = int(meta.get("stride", "2")) if meta.get("stride", "2").isdigit() else 0
+        step = meta.get("pass", "first")
+        if step not in ("first", "later") or (step == "later" and stride != 2):
+            raise PriorUnavailable(f"'{f.name}': unknown pass {step!r} of an x{stride} network")
         for kind in meta.get("kinds", "").split(","):
             if kind in KINDS and stride in (2, 4):
-                if (kind, stride) in out:
+                if (kind, stride, step) in out:
                     raise PriorUnavailable(
-                        f"'{source}' has two x{stride} weights files for {kind} maps"
+                        f"'{source}' has two x{stride} {step}-pass weights files for {kind} maps"
                     )
-                out[kind, stride] = f
+                out[kind, stride, step] = f
     if not out:
         raise PriorUnavailable(f"'{source}' holds no weights for colour, data or normal maps")
+    orphans = {k for k, _, p in out if p == "later"} - {k for k, _, p in out if p == "first"}
+    if orphans:
+        raise PriorUnavailable(
+            f"'{source}' has later-pass weights but no first-pass network for "
+            f"{', '.join(sorted(orphans))} maps"
+        )
+    for (kind, _, step), f in out.items():
+        first = out.get((kind, 2, "first"))
+        want = read_metadata(f).get("first_sha256") if step == "later" else None
+        if want and (first is None or file_sha256(first) != want):
+            raise PriorUnavailable(
+                f"'{f.name}' was trained behind another first-pass network than the set's "
+                f"x2 {kind} network"
+            )
     return out
 
 
@@ -80,14 +104,19 @@ def passes(strides: set[int], scale: int) -> list[int] | None:
 
 
 def installed_stats(name: str) -> tuple[int | None, int | None]:
-    """(parameters of the network that runs x4 colour, else of the first, bytes on disk of
-    the set) of the shipped set ``name``; (None, None) where its files are missing."""
+    """(parameters of the networks that run x4 colour, else of the first file's kind's,
+    bytes on disk of the set) of the shipped set ``name``; (None, None) where its files are
+    missing."""
     try:
         files = weight_files(shipped_files(name))
     except PriorUnavailable:
         return None, None
-    first = files.get(("colour", 4)) or next(iter(files.values()))
-    params = sum(p.numel() for p in load_network(first).parameters())
+    kind = "colour" if ("colour", 2, "first") in files or ("colour", 4, "first") in files else None
+    kind = kind or next(iter(files))[0]
+    nets = {(s, p): load_network(f) for (k, s, p), f in files.items() if k == kind}
+    params = _parameters(
+        {s: n for (s, p), n in nets.items() if p == "first"}, nets.get((2, "later"))
+    )
     return params, sum(f.stat().st_size for f in set(files.values()))
 
 
@@ -112,11 +141,16 @@ class TexturePrior(Prior):
         self.files = weight_files(source)
         loaded: dict[Path, Network] = {}
         self.nets: dict[str, dict[int, Network]] = {}
-        for (kind, stride), f in self.files.items():
+        self.later: dict[str, Network] = {}
+        """Per kind, the network of the x2 passes after the first (where the set has one)."""
+        for (kind, stride, step), f in self.files.items():
             if f not in loaded:
                 net = load_network(f).to(self.device)
                 loaded[f] = net.to(memory_format=torch.channels_last)  # type: ignore[call-overload]  # torch's stubs omit memory_format
-            self.nets.setdefault(kind, {})[stride] = loaded[f]
+            if step == "later":
+                self.later[kind] = loaded[f]
+            else:
+                self.nets.setdefault(kind, {})[stride] = loaded[f]
         self.fallback = fallback
         self._views: dict[str, Prior] = {}
         self._lock = threading.Lock()
@@ -158,13 +192,14 @@ class TexturePrior(Prior):
     def num_parameters(self) -> int:
         if self.kind is None:
             return self.for_kind("colour").num_parameters()
-        return _parameters(self.nets[self.kind])
+        return _parameters(self.nets[self.kind], self.later.get(self.kind))
 
     def _run(self, kind: str, x: torch.Tensor, scale: int) -> torch.Tensor:
-        nets = self.nets[kind]
+        nets, later = self.nets[kind], self.later.get(kind)
         with self._lock:
-            for stride in passes(set(nets), scale) or []:
-                x = nets[stride](x).clamp_(0.0, 1.0)
+            for i, stride in enumerate(passes(set(nets), scale) or []):
+                net = later if i and stride == 2 and later is not None else nets[stride]
+                x = net(x).clamp_(0.0, 1.0)
         return x
 
     def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
@@ -175,7 +210,8 @@ class TexturePrior(Prior):
     def describe(self) -> dict:
         info = super().describe()
         info["kinds"] = {
-            k: sorted(f.name for (kind, _), f in self.files.items() if kind == k) or self.fallback
+            k: sorted(f.name for (kind, _, _), f in self.files.items() if kind == k)
+            or self.fallback
             for k in KINDS
         }
         return info
@@ -194,7 +230,7 @@ class _KindView(Prior):
         self.default_overlap = parent.default_overlap
 
     def num_parameters(self) -> int:
-        return _parameters(self.parent.nets[self.kind])
+        return _parameters(self.parent.nets[self.kind], self.parent.later.get(self.kind))
 
     def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
         return self.parent._run(self.kind, x, scale)
@@ -204,7 +240,10 @@ def _scales(nets: dict[int, Network]) -> tuple[int, ...]:
     return tuple(s for s in (2, 4, 8) if passes(set(nets), s))
 
 
-def _parameters(nets: dict[int, Network]) -> int:
-    """Parameters of the network that runs x4 (the one-pass x4 network where there is one)."""
-    net = nets.get(4) or nets[min(nets)]
-    return sum(p.numel() for p in net.parameters())
+def _parameters(nets: dict[int, Network], later: Network | None = None) -> int:
+    """Parameters of the networks that run x4: the one-pass x4 network where there is one,
+    else the x2 network and the later-pass network."""
+    if 4 in nets:
+        return sum(p.numel() for p in nets[4].parameters())
+    used = [nets[min(nets)]] + ([later] if later is not None else [])
+    return sum(p.numel() for net in used for p in net.parameters())

@@ -68,7 +68,9 @@ class UpConv7(nn.Module):
     head is kernel 4, padding 3). The input is padded by replicating its edge (``prepad``
     pixels, what the ncnn runner does) so the output is exactly ``stride`` times the input.
     A stride-4 head makes x4 in one pass at the input's size, where two x2 passes run the
-    second at twice the size (about 4.7x the multiply-adds of UpConv7's widths).
+    second at twice the size (about 4.7x the multiply-adds of UpConv7's widths). A
+    ``residual`` network adds its output to a bicubic resize of its input, so it learns only
+    what bicubic misses (a narrow network trained from scratch needs this to beat bicubic).
 
     Built from an ncnn graph (:meth:`from_ncnn`, the waifu2x weights) or from widths alone
     (a network to train, :mod:`pbrsr_core.prior.train`)."""
@@ -80,6 +82,7 @@ class UpConv7(nn.Module):
         up_kernel: int | None = None,
         up_pad: int | None = None,
         stride: int = 2,
+        residual: bool = False,
     ) -> None:
         super().__init__()
         if not widths or any(w < 1 for w in widths):
@@ -89,6 +92,7 @@ class UpConv7(nn.Module):
         up_kernel = 2 * stride if up_kernel is None else up_kernel
         up_pad = 3 * stride // 2 if up_pad is None else up_pad
         self.widths, self.slope, self.stride = tuple(int(w) for w in widths), float(slope), stride
+        self.residual = bool(residual)
         self.mods = nn.ModuleList()
         channels = 3
         for w in self.widths:
@@ -163,13 +167,19 @@ class UpConv7(nn.Module):
         raise PriorUnavailable(f"the network does not upscale by exactly {self.stride}")
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        base = x
         x = F.pad(x, (self.prepad,) * 4, mode="replicate")
         x = x.contiguous(memory_format=torch.channels_last)
         for mod, slope in zip(self.mods, self.slopes, strict=True):
             x = mod(x)
             if slope is not None:  # in place: a 512² x2 pass 2.9 -> 2.6 s, the same output
                 x = F.leaky_relu_(x, slope) if slope else F.relu_(x)
-        return x.contiguous()
+        x = x.contiguous()
+        if self.residual:
+            x = x + F.interpolate(
+                base, scale_factor=self.stride, mode="bicubic", align_corners=False
+            )
+        return x
 
 
 class Waifu2xPrior(Prior):

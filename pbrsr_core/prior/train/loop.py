@@ -5,13 +5,17 @@ safetensors (:mod:`pbrsr_core.prior.texture` loads them).
 
 The network is an :class:`~pbrsr_core.prior.waifu2x.UpConv7` or a
 :class:`~pbrsr_core.prior.compact.Compact` network, of stride 2 or 4 (x4 training of a stride-2
-network chains two passes with a clamp between them, as inference does)."""
+network chains two passes with a clamp between them, as inference does). A run with ``first``
+trains a later-pass network: the frozen ``first`` network makes the first x2 pass, the trained
+one the second; the run's folder gets a copy of the first network beside the trained one, so
+the folder is a texture set of its own."""
 
 from __future__ import annotations
 
 import json
 import math
 import os
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -19,7 +23,7 @@ from pathlib import Path
 
 import torch
 
-from ...errors import InvalidOptions
+from ...errors import InvalidOptions, PriorUnavailable
 from .. import compact
 from ..backproject import back_project
 from ..waifu2x import UpConv7
@@ -50,6 +54,12 @@ class TrainConfig:
     widths: tuple[int, ...] = (16, 32, 64, 128, 128, 256)
     stride: int = 2
     """Upscaling of one network pass: 2 (``scale`` 4 chains two passes) or 4."""
+    residual: bool = False
+    """UpConv7 only: the network's output is added to a bicubic resize of its input (at
+    random start weights: bicubic exactly)."""
+    first: str | None = None
+    """Weights file of a frozen x2 network that makes the first pass; this run's network
+    (stride 2, ``scale`` 4) learns the pass after it. None: the network makes every pass."""
     init: str = "waifu2x-photo"
     """Start weights: ``waifu2x-photo`` (UpConv7), ``realesr-animevideov3`` (compact), a
     weights file, or ``random`` (seeded). Start weights of another stride give the
@@ -79,6 +89,11 @@ class TrainConfig:
             raise InvalidOptions("steps and batch size must be at least 1")
         if self.patch % self.scale or self.val_patch % self.scale:
             raise InvalidOptions("patch sizes must be multiples of the scale")
+        if self.patch <= 8 * self.scale:
+            raise InvalidOptions(
+                f"the patch must be larger than {8 * self.scale} px at x{self.scale} (the loss "
+                f"leaves out {4 * self.scale} px at each border)"
+            )
         if self.jpeg is not None and not 1 <= self.jpeg[0] <= self.jpeg[1] <= 100:
             raise InvalidOptions(f"JPEG qualities must be LOW-HIGH within 1..100, not {self.jpeg}")
         if not 0.0 < self.jpeg_share <= 1.0:
@@ -86,9 +101,17 @@ class TrainConfig:
         if not (0.0 <= self.ema < 1.0):
             raise InvalidOptions(f"ema must be in [0, 1), not {self.ema}")
         try:
-            weights.new_network(self.arch, self.widths, self.stride)
+            weights.new_network(self.arch, self.widths, self.stride, self.residual)
         except ValueError as exc:
             raise InvalidOptions(str(exc)) from exc
+        if self.first is not None:
+            if self.scale != 4 or self.stride != 2:
+                raise InvalidOptions(
+                    "a network behind a first pass is trained at scale 4 with stride 2, not "
+                    f"scale {self.scale}, stride {self.stride}"
+                )
+            if first_network(self).stride != 2:
+                raise InvalidOptions(f"the first-pass network '{self.first}' is not an x2 network")
 
 
 @dataclass
@@ -123,17 +146,33 @@ def start_network(init: str) -> weights.Network:
     return weights.load_network(Path(init))
 
 
+def first_network(config: TrainConfig) -> weights.Network:
+    """The frozen first-pass network of a later-pass run."""
+    assert config.first is not None
+    try:
+        net = weights.load_network(Path(config.first))
+    except PriorUnavailable as exc:
+        raise InvalidOptions(f"first-pass network: {exc}") from exc
+    return net.eval().requires_grad_(False)
+
+
 def build_network(config: TrainConfig) -> weights.Network:
     """The network at its start weights."""
     torch.manual_seed(config.seed)
-    net = weights.new_network(config.arch, config.widths, config.stride)
+    net = weights.new_network(config.arch, config.widths, config.stride, config.residual)
     if config.init == "random":
         return net
     start = start_network(config.init)
-    if weights.arch_of(start) != config.arch or start.widths != tuple(config.widths):
+    if (
+        weights.arch_of(start) != config.arch
+        or start.widths != tuple(config.widths)
+        or getattr(start, "residual", False) != config.residual
+    ):
         raise InvalidOptions(
-            f"the start weights are {weights.arch_of(start)} of widths {start.widths}, the "
-            f"config asks for {config.arch} of widths {config.widths}"
+            f"the start weights are {weights.arch_of(start)} of widths {start.widths}"
+            f"{' (residual)' if getattr(start, 'residual', False) else ''}, the config asks "
+            f"for {config.arch} of widths {config.widths}"
+            f"{' (residual)' if config.residual else ''}"
         )
     state = start.state_dict()
     if start.stride != config.stride:  # the convolutions only; the head stays as built
@@ -143,9 +182,15 @@ def build_network(config: TrainConfig) -> weights.Network:
     return net
 
 
-def upscale_net(net: weights.Network, lr: torch.Tensor, scale: int) -> torch.Tensor:
-    """Passes of ``net`` up to ``scale``, clamped between passes as inference does."""
+def upscale_net(
+    net: weights.Network, lr: torch.Tensor, scale: int, first: weights.Network | None = None
+) -> torch.Tensor:
+    """Passes of ``net`` up to ``scale`` (after one pass of the frozen ``first`` network where
+    given), clamped between passes as inference does."""
     x, done = lr, 1
+    if first is not None:
+        with torch.no_grad():
+            x, done = first(lr), first.stride
     while done < scale:
         if done > 1:
             x = x.clamp(0.0, 1.0)
@@ -191,11 +236,13 @@ class Validator:
         }
 
     @torch.no_grad()
-    def __call__(self, net: weights.Network) -> dict[str, float]:
+    def __call__(
+        self, net: weights.Network, first: weights.Network | None = None
+    ) -> dict[str, float]:
         out = {}
         for kind, (lr, hr) in self.sets.items():
             ups = [
-                upscale_net(net, lr[i : i + 4], self.scale).clamp(0, 1)
+                upscale_net(net, lr[i : i + 4], self.scale, first).clamp(0, 1)
                 for i in range(0, len(lr), 4)
             ]
             up = back_project(torch.cat(ups), lr, self.scale)
@@ -233,14 +280,23 @@ def train(
 
     ``out_dir`` receives ``checkpoint.pt`` (every ``ckpt_every`` steps and at the end),
     ``history.json`` and ``<name>.safetensors`` (the best EMA weights by mean validation
-    PSNR). A run with ``resume`` picks up its checkpoint and draws the same batches it would
+    PSNR); a run with ``first`` also ``<name>-first.safetensors``, a copy of the first-pass
+    network. A run with ``resume`` picks up its checkpoint and draws the same batches it would
     have drawn without the interruption."""
     config.check()
     out_dir.mkdir(parents=True, exist_ok=True)
     if config.threads:
         torch.set_num_threads(config.threads)
+    first = None
+    meta = {**(metadata or {}), "name": name}
+    if config.first is not None:
+        first = first_network(config)
+        copy = out_dir / f"{name}-first.safetensors"
+        if Path(config.first).resolve() != copy.resolve():
+            shutil.copyfile(config.first, copy)
+        meta["first_sha256"] = weights.file_sha256(copy)
     net = build_network(config).train()
-    ema = weights.new_network(config.arch, config.widths, config.stride)
+    ema = weights.new_network(config.arch, config.widths, config.stride, config.residual)
     ema.load_state_dict(net.state_dict())
     ema.eval().requires_grad_(False)
     opt = torch.optim.AdamW(
@@ -274,15 +330,14 @@ def train(
         start = state["step"]
     if not history.val_bicubic:
         history.val_bicubic = validator.bicubic()
-    shave = 4 * config.scale
-    meta = {**(metadata or {}), "name": name}
+    shave = 4 * config.scale  # TrainConfig.check keeps the patch larger than 2 * shave
     t0 = time.perf_counter() - history.seconds
     run_loss, run_n = 0.0, 0
     for step in range(start, config.steps):
         for group in opt.param_groups:
             group["lr"] = _lr_at(config, step)
         lr_img, hr_img, _ = sampler.batch(step)
-        loss = interior_l1(upscale_net(net, lr_img, config.scale), hr_img, shave)
+        loss = interior_l1(upscale_net(net, lr_img, config.scale, first), hr_img, shave)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -298,7 +353,7 @@ def train(
             history.loss.append(run_loss / run_n)
             run_loss, run_n = 0.0, 0
         if done % config.val_every == 0 or done == config.steps:
-            val = validator(ema)
+            val = validator(ema, first)
             history.val_steps.append(done)
             for k, v in val.items():
                 history.val_psnr.setdefault(k, []).append(v)

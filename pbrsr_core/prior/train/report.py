@@ -202,23 +202,33 @@ def model_card(folders: list[Path], results: dict, table: str) -> str:
             nets.append((f, meta, cfg, params))
     if not nets:
         return "# Model card\n\nNo trained networks found.\n"
-    meta0 = nets[0][1]
+    # the networks trained in these folders (a later-pass run's folder also holds a copy of
+    # its first-pass network, trained elsewhere)
+    own = [n for n in nets if n[1].get("name") == n[0].parent.name] or nets
+    meta0 = own[0][1]
     held = meta0.get("held_out", "").split(",")
     lines = [
         "# Model card: texture priors (UpConv7 trained on PBR maps)",
         "",
         "## Networks",
         "",
-        "| file | kinds | stride | widths | parameters | train scale | steps | init | best step |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| file | kinds | stride | pass | widths | parameters | train scale | steps | init | "
+        "best step |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for f, meta, cfg, params in nets:
+        step = meta.get("pass", "first")
+        if step == "later":
+            step = "later, behind " + Path(cfg.get("first") or "?").name
+        if meta.get("residual") == "1":
+            step += " (residual: bicubic + network)"
         lines.append(
-            f"| {f.name} | {meta.get('kinds')} | x{meta.get('stride', '2')} | "
+            f"| {f.name} | {meta.get('kinds')} | x{meta.get('stride', '2')} | {step} | "
             f"{meta.get('widths')} | {params:,} | "
             f"x{meta.get('scale')} | {cfg.get('steps')} | {cfg.get('init')} | {meta.get('step')} |"
         )
-    cfg = nets[0][2]
+    cfg = own[0][2]
+    later = any(meta.get("pass") == "later" for _, meta, _, _ in nets)
     strides = sorted({int(meta.get("stride", "2")) for _, meta, _, _ in nets})
     lines += [
         "",
@@ -244,7 +254,14 @@ def model_card(folders: list[Path], results: dict, table: str) -> str:
         f"- Scales: networks of stride {', '.join(f'x{v}' for v in strides)} (one pass each); "
         "a scale runs as the fewest passes whose strides multiply to it (x8 with an x4 and an "
         "x2 network: x4 then x2); every output is back-projected onto its input (one step) as "
-        "pbrsr runs every network prior.",
+        "pbrsr runs every network prior."
+        + (
+            " A later-pass network makes every x2 pass after the first (x4: the first-pass "
+            "network, then it; x8: then it again); it was trained at x4 behind its first-pass "
+            "network, frozen."
+            if later
+            else ""
+        ),
         f"- Command: `{meta0.get('command', '?')}`",
         "",
         "## Measured (held-out materials)",

@@ -3,10 +3,13 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+import torch
 
 from ...errors import PriorUnavailable
 from ..compact import START as COMPACT_START
@@ -24,15 +27,25 @@ def arch_of(net: Network) -> str:
     return "compact" if isinstance(net, Compact) else "upconv7"
 
 
-def new_network(arch: str, widths: tuple[int, ...], stride: int) -> Network:
+def new_network(arch: str, widths: tuple[int, ...], stride: int, residual: bool = False) -> Network:
     """A network of ``arch`` at random weights: UpConv7 of ``widths``, or a compact network
-    of ``len(widths) - 1`` body convolutions of ``widths[0]`` features (all equal)."""
+    of ``len(widths) - 1`` body convolutions of ``widths[0]`` features (all equal). A
+    ``residual`` UpConv7 (bicubic plus the network) starts with its last layer at zero, so at
+    step 0 it is bicubic exactly."""
     if arch == "compact":
         if len(set(widths)) != 1:
             raise ValueError(f"a compact network has equal widths, not {widths}")
+        if residual:
+            raise ValueError("a compact network is residual by design; residual is for upconv7")
         return Compact(widths[0], len(widths) - 1, stride)
     if arch == "upconv7":
-        return UpConv7(widths, stride=stride)
+        net = UpConv7(widths, stride=stride, residual=residual)
+        if residual:
+            last = net.layers()[-1]
+            torch.nn.init.zeros_(last.weight)
+            assert last.bias is not None
+            torch.nn.init.zeros_(last.bias)
+        return net
     raise ValueError(f"unknown architecture {arch!r}: use {', '.join(ARCHS)}")
 
 
@@ -43,19 +56,21 @@ def head_prefix(net: Network) -> str:
 
 def save_network(net: Network, path: Path, config: TrainConfig, extra: dict[str, str]) -> None:
     """Write ``net``'s weights (float32) with metadata: ``arch``, its shape (UpConv7:
-    ``widths``, ``slope``; compact: ``feat``, ``convs``), ``stride``, ``kinds``, ``scale``, the
-    training config as JSON and ``extra``."""
+    ``widths``, ``slope``, ``residual``; compact: ``feat``, ``convs``), ``stride``, ``pass``
+    (``first``, or ``later``: a network trained behind another that runs the first x2 pass),
+    ``kinds``, ``scale``, the training config as JSON and ``extra``."""
     from safetensors.torch import save_file
 
     if isinstance(net, Compact):
         shape = {"feat": str(net.feat), "convs": str(net.convs)}
     else:
-        shape = {"slope": str(net.slope)}
+        shape = {"slope": str(net.slope), "residual": "1" if net.residual else "0"}
     meta = {
         "arch": arch_of(net),
         "widths": ",".join(str(w) for w in net.widths),
         **shape,
         "stride": str(net.stride),
+        "pass": "later" if config.first else "first",
         "kinds": ",".join(config.kinds),
         "scale": str(config.scale),
         "config": json.dumps(asdict(config)),
@@ -65,6 +80,10 @@ def save_network(net: Network, path: Path, config: TrainConfig, extra: dict[str,
     tmp = path.with_suffix(".tmp")
     save_file(tensors, str(tmp), metadata=meta)
     tmp.replace(path)
+
+
+def file_sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def read_metadata(path: Path) -> dict[str, str]:
@@ -95,7 +114,12 @@ def load_network(path: Path) -> Network:
             net = Compact(int(meta["feat"]), int(meta["convs"]), stride)
         else:
             widths = tuple(int(w) for w in meta["widths"].split(","))
-            net = UpConv7(widths, slope=float(meta.get("slope", "0.1")), stride=stride)
+            net = UpConv7(
+                widths,
+                slope=float(meta.get("slope", "0.1")),
+                stride=stride,
+                residual=meta.get("residual", "0") == "1",
+            )
         net.load_state_dict(load_file(str(path)))
     except (KeyError, ValueError, RuntimeError) as exc:
         raise PriorUnavailable(
@@ -104,17 +128,17 @@ def load_network(path: Path) -> Network:
     return net.eval()
 
 
-def start_shape(start: str, arch: str) -> tuple[str, tuple[int, ...]]:
-    """(architecture, widths) of the start weights ``start`` (a :func:`resolve_start`
-    result); ``random`` takes ``arch`` at its default widths."""
+def start_shape(start: str, arch: str) -> tuple[str, tuple[int, ...], bool]:
+    """(architecture, widths, residual) of the start weights ``start`` (a
+    :func:`resolve_start` result); ``random`` takes ``arch`` at its default widths."""
     if start == "random":
-        return arch, (Compact().widths if arch == "compact" else UpConv7().widths)
+        return arch, (Compact().widths if arch == "compact" else UpConv7().widths), False
     if start == "waifu2x-photo":
-        return "upconv7", UpConv7().widths
+        return "upconv7", UpConv7().widths, False
     if start == COMPACT_START:
-        return "compact", Compact().widths
+        return "compact", Compact().widths, False
     net = load_network(Path(start))
-    return arch_of(net), net.widths
+    return arch_of(net), net.widths, getattr(net, "residual", False)
 
 
 def resolve_start(source: str, kind: str, stride: int) -> str:
@@ -137,7 +161,7 @@ def resolve_start(source: str, kind: str, stride: int) -> str:
             f"{', '.join(SHIPPED)}, texture:<folder> or a .safetensors file"
         )
     files = weight_files(folder)
-    for key in ((kind, stride), *((kind, s) for s in (2, 4) if s != stride)):
+    for key in ((kind, stride, "first"), *((kind, s, "first") for s in (2, 4) if s != stride)):
         if key in files:
             return str(files[key])
     raise PriorUnavailable(f"{source!r} has no weights for {kind} maps")

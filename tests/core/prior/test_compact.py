@@ -101,7 +101,7 @@ def test_cli_trains_a_compact_set_that_runs_x4_in_one_pass(tmp_path, capfd):
     out = tmp_path / "out"
     args = ["priors", "train", "-o", str(out), "--textures", str(folder), "--kinds", "normal"]
     args += ["--arch", "compact", "--widths", "8,8,8", "--stride", "4", "--scale", "4"]
-    code, err = run_cli([*args, "--steps", "3", "--batch", "2", "--patch", "32", "-q"], capfd)
+    code, err = run_cli([*args, "--steps", "3", "--batch", "2", "--patch", "48", "-q"], capfd)
     assert code == 0, err
     (file,) = out.glob("*/*.safetensors")
     meta = read_metadata(file)
@@ -125,7 +125,7 @@ def test_cli_finetunes_from_the_start_weights(tmp_path, capfd):
     out = tmp_path / "out"
     args = ["priors", "finetune", "--from", compact.START, "-o", str(out)]
     args += ["--textures", str(folder), "--kinds", "colour", "--stride", "4", "--scale", "4"]
-    code, err = run_cli([*args, "--steps", "2", "--batch", "2", "--patch", "32", "-q"], capfd)
+    code, err = run_cli([*args, "--steps", "2", "--batch", "2", "--patch", "48", "-q"], capfd)
     assert code == 0, err
     (file,) = out.glob("*/*.safetensors")
     net = load_network(file)

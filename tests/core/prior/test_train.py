@@ -166,13 +166,24 @@ class _Stop(Exception):
     pass
 
 
-@pytest.fixture
-def one_thread():
-    """One torch thread: the same operations in the same order on every run."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+def assert_resume_is_exact(cfg, materials, done, out, name, hist, stop) -> None:
+    """A run of ``cfg`` into ``out`` stopped after step ``stop`` and resumed ends with the
+    weights and history of the unbroken run in ``done`` (``hist``)."""
+    train_m, val_m = materials
+
+    def stop_there(step, total, info):
+        if step == stop:
+            raise _Stop
+
+    with pytest.raises(_Stop):
+        train(cfg, train_m, val_m, out, name=name, progress=stop_there)
+    _, hist_b = train(cfg, train_m, val_m, out, name=name)
+    a = torch.load(done / "checkpoint.pt", weights_only=False)
+    b = torch.load(out / "checkpoint.pt", weights_only=False)
+    for key in ("net", "ema"):
+        for k, t in a[key].items():
+            assert torch.equal(t, b[key][k]), (key, k)
+    assert hist_b.loss == hist.loss and hist_b.val_psnr == hist.val_psnr
 
 
 def test_tiny_network_learns_and_resumes_exactly(materials, tmp_path, one_thread):
@@ -193,19 +204,7 @@ def test_tiny_network_learns_and_resumes_exactly(materials, tmp_path, one_thread
     assert hist.loss[-1] < 0.6 * hist.loss[0], hist.loss
     assert weights.is_file() and hist.best_step in (30, 60)
 
-    def stop_at_30(step, total, info):
-        if step == 30:
-            raise _Stop
-
-    with pytest.raises(_Stop):
-        train(cfg, train_m, val_m, tmp_path / "b", name="tiny", progress=stop_at_30)
-    _, hist_b = train(cfg, train_m, val_m, tmp_path / "b", name="tiny")
-    a = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
-    b = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
-    for key in ("net", "ema"):
-        for name, t in a[key].items():
-            assert torch.equal(t, b[key][name]), (key, name)
-    assert hist_b.loss == hist.loss and hist_b.val_psnr == hist.val_psnr
+    assert_resume_is_exact(cfg, materials, tmp_path / "a", tmp_path / "b", "tiny", hist, 30)
     other = TrainConfig(**{**cfg.__dict__, "lr": 1e-3})
     with pytest.raises(InvalidOptions, match="other settings"):
         train(other, train_m, val_m, tmp_path / "b", name="tiny")
@@ -323,6 +322,7 @@ def test_cli_trains_reports_and_the_result_is_a_prior(tmp_path, capfd):
     [
         (["--kinds", "colour,gloss"], "gloss"),
         (["--patch", "33"], "multiple"),
+        (["--patch", "16"], "larger than 16 px"),
         (["--widths", "4,x"], "widths"),
         (["--jpeg", "high"], "--jpeg"),
         (["--jpeg", "95-70"], "JPEG qualities"),
