@@ -28,8 +28,8 @@ class UpscaleOptions(BaseModel):
     preset: str = Field("balanced", description="fast, balanced, quality or paper (pbrsr only).")
     prior: str = Field(
         DEFAULT_PRIOR,
-        description="Image SR prior: pbr-upconv7, waifu2x-photo, rrdn-thick, bicubic, "
-        "texture:<weights folder>, spandrel:<weights path>, diffusion:<model dir>.",
+        description="Image SR prior: pbr-upconv7, pbr-upconv7-fast, waifu2x-photo, rrdn-thick, "
+        "bicubic, texture:<weights folder>, spandrel:<weights path>, diffusion:<model dir>.",
     )
     envmap: str | None = Field(
         None,

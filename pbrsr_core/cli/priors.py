@@ -46,7 +46,8 @@ def list_cmd() -> None:
 @priors_app.command("install")
 def install_cmd(
     name: str = typer.Argument(
-        "rrdn-thick", help="The prior to install (rrdn-thick, waifu2x-photo, pbr-upconv7)."
+        "rrdn-thick",
+        help="The prior to install (rrdn-thick, waifu2x-photo, pbr-upconv7, pbr-upconv7-fast).",
     ),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Print nothing when done."),
     force: bool = typer.Option(False, "--force", help="Convert again even if present."),

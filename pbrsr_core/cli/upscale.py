@@ -41,8 +41,8 @@ def register(app: typer.Typer) -> None:
         prior: Annotated[
             str,
             typer.Option(
-                help="pbr-upconv7, waifu2x-photo, rrdn-thick, bicubic, texture:<folder>, "
-                "spandrel:<path>, diffusion:<dir> (pbrsr priors list)"
+                help="pbr-upconv7, pbr-upconv7-fast, waifu2x-photo, rrdn-thick, bicubic, "
+                "texture:<folder>, spandrel:<path>, diffusion:<dir> (pbrsr priors list)"
             ),
         ] = DEFAULT_PRIOR,
         envmap: Annotated[str | None, typer.Option(help=".hdr/.exr environment")] = None,

@@ -30,6 +30,13 @@ SHIPPED: dict[str, tuple[str, ...]] = {
     "pbr-upconv7": tuple(
         f"pbr-upconv7/pbr-upconv7-{k}.safetensors" for k in ("colour", "data", "normal")
     ),
+    # pbr-upconv7's networks for the first pass, then narrow residual networks trained behind
+    # them for the later passes
+    "pbr-upconv7-fast": tuple(
+        f"{s}/{s}-{k}.safetensors"
+        for s in ("pbr-upconv7", "pbr-upconv7-fast")
+        for k in ("colour", "data", "normal")
+    ),
 }
 """Shipped set name -> its weights files under :data:`WEIGHTS_ROOT` (one per kind and
 stride; a kind without one uses the fallback)."""

@@ -261,6 +261,26 @@ def test_shipped_prior_loads_and_upscales_each_kind(capfd):
     assert code == 0, err
 
 
+def test_shipped_fast_prior_runs_narrow_later_passes_behind_pbr_upconv7(capfd):
+    """pbr-upconv7-fast: pbr-upconv7's networks make the first x2 pass, a narrow residual
+    network per kind every later one (MODEL_CARD.md in its folder)."""
+    base, fast = load_prior("pbr-upconv7"), load_prior("pbr-upconv7-fast")
+    assert fast.scales == (2, 4, 8) and set(fast.later) == {"colour", "data", "normal"}
+    x = torch.rand(1, 3, 20, 20)
+    with torch.no_grad():
+        for kind in ("colour", "data", "normal"):
+            first, later = fast.nets[kind][2], fast.later[kind]
+            assert later.residual and sum(p.numel() for p in later.parameters()) < 200_000
+            for a, b in zip(first.parameters(), base.nets[kind][2].parameters(), strict=True):
+                assert torch.equal(a, b)
+            one = first(x).clamp(0, 1)
+            assert torch.equal(fast.for_kind(kind)._forward(x, 2), one)
+            assert torch.equal(fast.for_kind(kind)._forward(x, 4), later(one).clamp(0, 1))
+    assert fast.num_parameters() < 1.3 * base.num_parameters()
+    code, err = run_cli(["priors", "install", "pbr-upconv7-fast"], capfd)
+    assert code == 0, err
+
+
 def test_cli_trains_reports_and_the_result_is_a_prior(tmp_path, capfd):
     folder = make_texture_folder(tmp_path / "tex", n=10, size=256)
     out = tmp_path / "out"
