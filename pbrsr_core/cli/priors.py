@@ -120,12 +120,15 @@ def _run_training(
     arch: str | None = None,
     first: str | None = None,
     residual: bool | None = None,
+    distill: bool = False,
 ) -> None:
     """Train one network per kind (or one for all with ``joint``) from ``init`` (see
     :func:`~pbrsr_core.prior.train.weights.resolve_start`); ``arch``, ``widths`` and
     ``residual`` None: the start weights' (``random``: UpConv7's, or the compact network's
     64 x 17). ``first``: a set (or file) whose x2 network for each kind makes the first pass,
-    frozen, while the trained network learns the passes after it."""
+    frozen, while the trained network learns the passes after it (from a set's later-pass
+    network where ``init`` has one); ``distill``: it learns the first network's own second
+    pass instead of the HR crop."""
     from tqdm import tqdm
 
     from ..errors import InvalidOptions
@@ -150,7 +153,7 @@ def _run_training(
         raise InvalidOptions("--jpeg-share needs --jpeg LOW-HIGH (the qualities to compress at)")
     configs = []
     for g in groups:
-        start = resolve_start(init, g[0], stride)
+        start = resolve_start(init, g[0], stride, later=first is not None)
         net_arch, width_t, start_residual = start_shape(start, arch or "upconv7")
         if widths is not None:
             try:
@@ -176,6 +179,7 @@ def _run_training(
                 jpeg_share=TrainConfig.jpeg_share if jpeg_share is None else jpeg_share,
                 residual=start_residual if residual is None else residual,
                 first=None if first is None else resolve_start(first, g[0], 2),
+                distill=distill,
             )
         )
     for c in configs:
@@ -268,6 +272,12 @@ _FIRST = typer.Option(
     "x2 network for each kind, frozen (pbr-upconv7, texture:<folder>, .safetensors; needs "
     "--scale 4). The output folder holds both: a texture set of its own.",
 )
+_DISTILL = typer.Option(
+    False,
+    "--distill",
+    help="With --first: learn the first network's own second pass (its x4 output) instead of "
+    "the HR crop: a narrow later network learns what the wide one does, at its own cost.",
+)
 _RESUME = typer.Option(True, help="Continue from the folder's checkpoints.")
 _QUIET = typer.Option(False, "--quiet", "-q")
 
@@ -299,6 +309,7 @@ def train_cmd(
         "as bicubic exactly).",
     ),
     first: str | None = _FIRST,
+    distill: bool = _DISTILL,
     resume: bool = _RESUME,
     quiet: bool = _QUIET,
 ) -> None:
@@ -330,6 +341,7 @@ def finetune_cmd(
     jpeg: str | None = _JPEG,
     jpeg_share: float | None = _JPEG_SHARE,
     first: str | None = _FIRST,
+    distill: bool = _DISTILL,
     resume: bool = _RESUME,
     quiet: bool = _QUIET,
 ) -> None:

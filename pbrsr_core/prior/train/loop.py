@@ -60,6 +60,11 @@ class TrainConfig:
     first: str | None = None
     """Weights file of a frozen x2 network that makes the first pass; this run's network
     (stride 2, ``scale`` 4) learns the pass after it. None: the network makes every pass."""
+    distill: bool = False
+    """With ``first``: the target is the ``first`` network's own second pass (its output on
+    its first pass's output, clamped), not the HR crop, so a narrow later network learns to do
+    what the wide one does at x4, edges of drawn textures included, which the HR crops of
+    natural materials seldom show."""
     init: str = "waifu2x-photo"
     """Start weights: ``waifu2x-photo`` (UpConv7), ``realesr-animevideov3`` (compact), a
     weights file, or ``random`` (seeded). Start weights of another stride give the
@@ -112,6 +117,8 @@ class TrainConfig:
                 )
             if first_network(self).stride != 2:
                 raise InvalidOptions(f"the first-pass network '{self.first}' is not an x2 network")
+        elif self.distill:
+            raise InvalidOptions("distilling needs a first-pass network (--first) to learn from")
 
 
 @dataclass
@@ -337,7 +344,13 @@ def train(
         for group in opt.param_groups:
             group["lr"] = _lr_at(config, step)
         lr_img, hr_img, _ = sampler.batch(step)
-        loss = interior_l1(upscale_net(net, lr_img, config.scale, first), hr_img, shave)
+        if first is not None and config.distill:
+            with torch.no_grad():
+                mid = first(lr_img).clamp(0.0, 1.0)
+                hr_img = first(mid).clamp(0.0, 1.0)
+            loss = interior_l1(net(mid), hr_img, shave)
+        else:
+            loss = interior_l1(upscale_net(net, lr_img, config.scale, first), hr_img, shave)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

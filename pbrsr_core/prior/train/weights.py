@@ -141,11 +141,11 @@ def start_shape(start: str, arch: str) -> tuple[str, tuple[int, ...], bool]:
     return arch_of(net), net.widths, getattr(net, "residual", False)
 
 
-def resolve_start(source: str, kind: str, stride: int) -> str:
+def resolve_start(source: str, kind: str, stride: int, later: bool = False) -> str:
     """The start weights of a network for ``kind`` maps: ``random``, ``waifu2x-photo`` and
     ``realesr-animevideov3`` as they are, a ``.safetensors`` file as it is, and a texture prior
     (a shipped set, ``texture:<folder>``) as its file for ``kind`` (of ``stride`` where it
-    has one)."""
+    has one; with ``later``, its later-pass network where it has one)."""
     if source in ("random", "waifu2x-photo", COMPACT_START) or source.endswith(".safetensors"):
         return source
     from ..texture import SHIPPED, shipped_files, weight_files
@@ -161,7 +161,8 @@ def resolve_start(source: str, kind: str, stride: int) -> str:
             f"{', '.join(SHIPPED)}, texture:<folder> or a .safetensors file"
         )
     files = weight_files(folder)
-    for key in ((kind, stride, "first"), *((kind, s, "first") for s in (2, 4) if s != stride)):
+    keys = [(kind, stride, "first"), *((kind, s, "first") for s in (2, 4) if s != stride)]
+    for key in ([(kind, 2, "later")] if later else []) + keys:
         if key in files:
             return str(files[key])
     raise PriorUnavailable(f"{source!r} has no weights for {kind} maps")

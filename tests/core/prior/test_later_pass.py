@@ -106,6 +106,62 @@ def test_later_pass_trains_behind_a_frozen_first_pass_and_resumes_exactly(
     assert_resume_is_exact(cfg, materials, tmp_path / "a", tmp_path / "b", "later", hist, 20)
 
 
+def test_distilled_later_pass_learns_the_first_networks_second_pass(
+    materials, tmp_path, one_thread
+):
+    """--distill: the target is the first network run again on its own output, so the later
+    network moves towards that two-pass output, whatever the HR crop holds."""
+    train_m, val_m = materials
+    first_file = tmp_path / "first.safetensors"
+    first = _first(first_file)
+    cfg = TrainConfig(
+        kinds=("colour",),
+        scale=4,
+        steps=60,
+        batch_size=4,
+        patch=48,
+        val_patch=64,
+        lr=3e-3,
+        widths=TINY,
+        init="random",
+        residual=True,
+        first=str(first_file),
+        distill=True,
+        val_every=60,
+        ckpt_every=60,
+    )
+    nets = {}
+    for distill in (True, False):
+        out = tmp_path / str(distill)
+        train(TrainConfig(**{**cfg.__dict__, "distill": distill}), train_m, val_m, out, name="n")
+        nets[distill] = new_network("upconv7", TINY, 2, residual=True)
+        nets[distill].load_state_dict(torch.load(out / "checkpoint.pt", weights_only=False)["net"])
+    start = new_network("upconv7", TINY, 2, residual=True)  # bicubic exactly
+    x = torch.stack([torch.from_numpy(m.maps["basecolor"][:32, :32]) for m in val_m[:4]])
+    x = x.permute(0, 3, 1, 2).float() / 255
+    with torch.no_grad():
+        mid = first(x).clamp(0, 1)
+        target = first(mid).clamp(0, 1)
+        gap = {k: float((n.eval()(mid) - target).abs().mean()) for k, n in nets.items()}
+        before = float((start(mid) - target).abs().mean())
+    assert gap[True] < 0.7 * before and gap[True] < 0.7 * gap[False], (before, gap)
+    with pytest.raises(InvalidOptions, match="distilling needs a first-pass network"):
+        TrainConfig(widths=TINY, distill=True).check()
+
+
+def test_later_pass_start_weights_resolve_to_a_sets_later_network(tmp_path):
+    from pbrsr_core.prior.train.weights import resolve_start
+
+    first_file = tmp_path / "first.safetensors"
+    _first(first_file)
+    cfg = TrainConfig(kinds=("colour",), scale=4, widths=TINY, init="random", first=str(first_file))
+    meta = {"first_sha256": file_sha256(first_file)}
+    save_network(new_network("upconv7", TINY, 2), tmp_path / "later.safetensors", cfg, meta)
+    src = f"texture:{tmp_path}"
+    assert resolve_start(src, "colour", 2, later=True).endswith("later.safetensors")
+    assert resolve_start(src, "colour", 2).endswith("first.safetensors")
+
+
 def test_sets_with_unmatched_later_networks_are_refused(tmp_path):
     first_file = tmp_path / "set" / "first.safetensors"
     first_file.parent.mkdir()
