@@ -64,7 +64,8 @@ class TrainConfig:
     """With ``first``: the target is the ``first`` network's own second pass (its output on
     its first pass's output, clamped), not the HR crop, so a narrow later network learns to do
     what the wide one does at x4, edges of drawn textures included, which the HR crops of
-    natural materials seldom show."""
+    natural materials seldom show. Validation then scores agreement with that second pass on
+    the held-out crops (the HR crops hardly tell later passes apart)."""
     init: str = "waifu2x-photo"
     """Start weights: ``waifu2x-photo`` (UpConv7), ``realesr-animevideov3`` (compact), a
     weights file, or ``random`` (seeded). Start weights of another stride give the
@@ -219,16 +220,36 @@ def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
 
 class Validator:
     """PSNR of a network (back-projected, as :class:`~pbrsr_core.prior.base.Prior` runs it)
-    on fixed held-out crops, per kind, ``scale`` pixels shaved off each border."""
+    on fixed held-out crops, per kind, ``scale`` pixels shaved off each border.
 
-    def __init__(self, materials: list[Material], kinds, scale: int, patch: int) -> None:
-        self.scale, self.sets = scale, {}
+    With a ``teacher`` (a distilling run's first-pass network) the network is scored as what
+    it learns: its pass on the teacher's first-pass output against the teacher's own second
+    pass; "bicubic" is then a bicubic second pass."""
+
+    def __init__(
+        self,
+        materials: list[Material],
+        kinds,
+        scale: int,
+        patch: int,
+        teacher: weights.Network | None = None,
+    ) -> None:
+        self.scale, self.sets, self.teacher = scale, {}, teacher
         for kind in kinds:
             crops = validation_crops(materials, kind, patch)
             if not crops:
                 continue
             hr = torch.stack([torch.from_numpy(c).permute(2, 0, 1).float() / 255 for _, c in crops])
-            self.sets[kind] = (degrade_pair(hr, scale, kind), hr)
+            lr = degrade_pair(hr, scale, kind)
+            if teacher is not None:
+                with torch.no_grad():
+                    lr = torch.cat(
+                        [teacher(lr[i : i + 4]).clamp(0, 1) for i in range(0, len(lr), 4)]
+                    )
+                    hr = torch.cat(
+                        [teacher(lr[i : i + 4]).clamp(0, 1) for i in range(0, len(lr), 4)]
+                    )
+            self.sets[kind] = (lr, hr)
 
     def _score(self, up: torch.Tensor, hr: torch.Tensor) -> float:
         s = self.scale
@@ -237,8 +258,9 @@ class Validator:
     def bicubic(self) -> dict[str, float]:
         from ..bicubic import bicubic_upscale
 
+        factor = 2 if self.teacher is not None else self.scale
         return {
-            k: self._score(bicubic_upscale(lr, self.scale).clamp(0, 1), hr)
+            k: self._score(bicubic_upscale(lr, factor).clamp(0, 1), hr)
             for k, (lr, hr) in self.sets.items()
         }
 
@@ -248,11 +270,14 @@ class Validator:
     ) -> dict[str, float]:
         out = {}
         for kind, (lr, hr) in self.sets.items():
-            ups = [
-                upscale_net(net, lr[i : i + 4], self.scale, first).clamp(0, 1)
-                for i in range(0, len(lr), 4)
-            ]
-            up = back_project(torch.cat(ups), lr, self.scale)
+            if self.teacher is not None:
+                up = torch.cat([net(lr[i : i + 4]).clamp(0, 1) for i in range(0, len(lr), 4)])
+            else:
+                ups = [
+                    upscale_net(net, lr[i : i + 4], self.scale, first).clamp(0, 1)
+                    for i in range(0, len(lr), 4)
+                ]
+                up = back_project(torch.cat(ups), lr, self.scale)
             out[kind] = self._score(up, hr)
         return out
 
@@ -319,7 +344,8 @@ def train(
         config.jpeg,
         config.jpeg_share,
     )
-    validator = Validator(val_materials, config.kinds, config.scale, config.val_patch)
+    teacher = first if config.distill else None
+    validator = Validator(val_materials, config.kinds, config.scale, config.val_patch, teacher)
     history, start = History(), 0
     ckpt = out_dir / CHECKPOINT
     best_file = out_dir / f"{name}.safetensors"
