@@ -68,8 +68,8 @@ def weight_files(source: Path | list[Path]) -> dict[Key, Path]:
     if not files or not all(f.is_file() for f in files):
         raise PriorUnavailable(f"no texture prior weights at '{source}'")
     out: dict[Key, Path] = {}
-    for f in files:
-        meta = read_metadata(f)
+    metas = {f: read_metadata(f) for f in files}
+    for f, meta in metas.items():
         stride = int(meta.get("stride", "2")) if meta.get("stride", "2").isdigit() else 0
         step = meta.get("pass", "first")
         if step not in ("first", "later") or (step == "later" and stride != 2):
@@ -91,7 +91,7 @@ def weight_files(source: Path | list[Path]) -> dict[Key, Path]:
         )
     for (kind, _, step), f in out.items():
         first = out.get((kind, 2, "first"))
-        want = read_metadata(f).get("first_sha256") if step == "later" else None
+        want = metas[f].get("first_sha256") if step == "later" else None
         if want and (first is None or file_sha256(first) != want):
             raise PriorUnavailable(
                 f"'{f.name}' was trained behind another first-pass network than the set's "
@@ -118,8 +118,7 @@ def installed_stats(name: str) -> tuple[int | None, int | None]:
         files = weight_files(shipped_files(name))
     except PriorUnavailable:
         return None, None
-    kind = "colour" if ("colour", 2, "first") in files or ("colour", 4, "first") in files else None
-    kind = kind or next(iter(files))[0]
+    kind = "colour" if any(k == "colour" for k, _, _ in files) else next(iter(files))[0]
     nets = {(s, p): load_network(f) for (k, s, p), f in files.items() if k == kind}
     params = _parameters(
         {s: n for (s, p), n in nets.items() if p == "first"}, nets.get((2, "later"))

@@ -27,6 +27,7 @@ from torch import nn
 
 from ..errors import PriorUnavailable
 from .base import Prior
+from .bicubic import bicubic_upscale
 from .ncnn import CONV_TYPES, Layer, package_model, read_model
 
 NAME = "waifu2x-photo"
@@ -176,9 +177,7 @@ class UpConv7(nn.Module):
                 x = F.leaky_relu_(x, slope) if slope else F.relu_(x)
         x = x.contiguous()
         if self.residual:
-            x = x + F.interpolate(
-                base, scale_factor=self.stride, mode="bicubic", align_corners=False
-            )
+            x = x.add_(bicubic_upscale(base, self.stride))
         return x
 
 

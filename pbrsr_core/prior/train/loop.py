@@ -171,16 +171,16 @@ def build_network(config: TrainConfig) -> weights.Network:
     if config.init == "random":
         return net
     start = start_network(config.init)
+    residual = getattr(start, "residual", False)  # compact networks have no bicubic branch
     if (
         weights.arch_of(start) != config.arch
         or start.widths != tuple(config.widths)
-        or getattr(start, "residual", False) != config.residual
+        or residual != config.residual
     ):
         raise InvalidOptions(
             f"the start weights are {weights.arch_of(start)} of widths {start.widths}"
-            f"{' (residual)' if getattr(start, 'residual', False) else ''}, the config asks "
-            f"for {config.arch} of widths {config.widths}"
-            f"{' (residual)' if config.residual else ''}"
+            f"{' (residual)' if residual else ''}, the config asks for {config.arch} of widths "
+            f"{config.widths}{' (residual)' if config.residual else ''}"
         )
     state = start.state_dict()
     if start.stride != config.stride:  # the convolutions only; the head stays as built
@@ -218,13 +218,18 @@ def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     return 10.0 * math.log10(1.0 / max(mse, 1e-12))
 
 
+def _in_fours(fn: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor) -> torch.Tensor:
+    """``fn`` over ``x`` four images at a time (bounded memory), concatenated."""
+    return torch.cat([fn(x[i : i + 4]) for i in range(0, len(x), 4)])
+
+
 class Validator:
     """PSNR of a network (back-projected, as :class:`~pbrsr_core.prior.base.Prior` runs it)
     on fixed held-out crops, per kind, ``scale`` pixels shaved off each border.
 
-    With a ``teacher`` (a distilling run's first-pass network) the network is scored as what
-    it learns: its pass on the teacher's first-pass output against the teacher's own second
-    pass; "bicubic" is then a bicubic second pass."""
+    With ``first`` (a later-pass run's frozen network) the network runs behind one pass of it.
+    With ``distill`` too, the network is scored as what it learns: its pass on ``first``'s
+    output against ``first``'s own second pass; "bicubic" is then a bicubic second pass."""
 
     def __init__(
         self,
@@ -232,23 +237,21 @@ class Validator:
         kinds,
         scale: int,
         patch: int,
-        teacher: weights.Network | None = None,
+        first: weights.Network | None = None,
+        distill: bool = False,
     ) -> None:
-        self.scale, self.sets, self.teacher = scale, {}, teacher
+        self.scale, self.sets, self.first = scale, {}, first
+        self.teacher = teacher = first if distill else None
         for kind in kinds:
             crops = validation_crops(materials, kind, patch)
             if not crops:
                 continue
             hr = torch.stack([torch.from_numpy(c).permute(2, 0, 1).float() / 255 for _, c in crops])
             lr = degrade_pair(hr, scale, kind)
-            if teacher is not None:
+            if teacher is not None:  # its first pass, and its second pass on that
                 with torch.no_grad():
-                    lr = torch.cat(
-                        [teacher(lr[i : i + 4]).clamp(0, 1) for i in range(0, len(lr), 4)]
-                    )
-                    hr = torch.cat(
-                        [teacher(lr[i : i + 4]).clamp(0, 1) for i in range(0, len(lr), 4)]
-                    )
+                    lr = _in_fours(lambda t: teacher(t).clamp(0, 1), lr)
+                    hr = _in_fours(lambda t: teacher(t).clamp(0, 1), lr)
             self.sets[kind] = (lr, hr)
 
     def _score(self, up: torch.Tensor, hr: torch.Tensor) -> float:
@@ -265,19 +268,16 @@ class Validator:
         }
 
     @torch.no_grad()
-    def __call__(
-        self, net: weights.Network, first: weights.Network | None = None
-    ) -> dict[str, float]:
+    def __call__(self, net: weights.Network) -> dict[str, float]:
         out = {}
         for kind, (lr, hr) in self.sets.items():
             if self.teacher is not None:
-                up = torch.cat([net(lr[i : i + 4]).clamp(0, 1) for i in range(0, len(lr), 4)])
+                up = _in_fours(lambda t: net(t).clamp(0, 1), lr)
             else:
-                ups = [
-                    upscale_net(net, lr[i : i + 4], self.scale, first).clamp(0, 1)
-                    for i in range(0, len(lr), 4)
-                ]
-                up = back_project(torch.cat(ups), lr, self.scale)
+                up = _in_fours(
+                    lambda t: upscale_net(net, t, self.scale, self.first).clamp(0, 1), lr
+                )
+                up = back_project(up, lr, self.scale)
             out[kind] = self._score(up, hr)
         return out
 
@@ -344,8 +344,9 @@ def train(
         config.jpeg,
         config.jpeg_share,
     )
-    teacher = first if config.distill else None
-    validator = Validator(val_materials, config.kinds, config.scale, config.val_patch, teacher)
+    validator = Validator(
+        val_materials, config.kinds, config.scale, config.val_patch, first, config.distill
+    )
     history, start = History(), 0
     ckpt = out_dir / CHECKPOINT
     best_file = out_dir / f"{name}.safetensors"
@@ -392,7 +393,7 @@ def train(
             history.loss.append(run_loss / run_n)
             run_loss, run_n = 0.0, 0
         if done % config.val_every == 0 or done == config.steps:
-            val = validator(ema, first)
+            val = validator(ema)
             history.val_steps.append(done)
             for k, v in val.items():
                 history.val_psnr.setdefault(k, []).append(v)

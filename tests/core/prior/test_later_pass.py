@@ -41,6 +41,12 @@ def _first(path, kind="colour", seed=0):
     return net.eval()
 
 
+def _later_config(first_file, **changes) -> TrainConfig:
+    """A tiny residual colour network behind ``first_file``, at x4 on 48² crops."""
+    base = dict(kinds=("colour",), scale=4, batch_size=4, patch=48, val_patch=64, widths=TINY)
+    return TrainConfig(init="random", residual=True, first=str(first_file), **base, **changes)
+
+
 def test_residual_network_starts_as_bicubic_and_round_trips(tmp_path):
     x = torch.rand(2, 3, 13, 17, dtype=torch.float64)
     net = new_network("upconv7", TINY, 2, residual=True).double()
@@ -67,21 +73,7 @@ def test_later_pass_trains_behind_a_frozen_first_pass_and_resumes_exactly(
     first_file = tmp_path / "first.safetensors"
     first = _first(first_file)
     before = first_file.read_bytes()
-    cfg = TrainConfig(
-        kinds=("colour",),
-        scale=4,
-        steps=40,
-        batch_size=4,
-        patch=48,
-        val_patch=64,
-        lr=2e-3,
-        widths=TINY,
-        init="random",
-        residual=True,
-        first=str(first_file),
-        val_every=20,
-        ckpt_every=20,
-    )
+    cfg = _later_config(first_file, steps=40, lr=2e-3, val_every=20, ckpt_every=20)
     best, hist = train(cfg, train_m, val_m, tmp_path / "a", name="later")
     assert hist.loss[-1] < hist.loss[0], hist.loss
     assert first_file.read_bytes() == before  # the first pass is frozen
@@ -114,22 +106,7 @@ def test_distilled_later_pass_learns_the_first_networks_second_pass(
     train_m, val_m = materials
     first_file = tmp_path / "first.safetensors"
     first = _first(first_file)
-    cfg = TrainConfig(
-        kinds=("colour",),
-        scale=4,
-        steps=60,
-        batch_size=4,
-        patch=48,
-        val_patch=64,
-        lr=3e-3,
-        widths=TINY,
-        init="random",
-        residual=True,
-        first=str(first_file),
-        distill=True,
-        val_every=60,
-        ckpt_every=60,
-    )
+    cfg = _later_config(first_file, steps=60, lr=3e-3, val_every=60, ckpt_every=60)
     nets, hists = {}, {}
     for distill in (True, False):
         out = tmp_path / str(distill)
