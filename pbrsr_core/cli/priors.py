@@ -121,6 +121,7 @@ def _run_training(
     first: str | None = None,
     residual: bool | None = None,
     distill: bool = False,
+    graphics: float = 0.0,
 ) -> None:
     """Train one network per kind (or one for all with ``joint``) from ``init`` (see
     :func:`~pbrsr_core.prior.train.weights.resolve_start`); ``arch``, ``widths`` and
@@ -128,7 +129,7 @@ def _run_training(
     64 x 17). ``first``: a set (or file) whose x2 network for each kind makes the first pass,
     frozen, while the trained network learns the passes after it (from a set's later-pass
     network where ``init`` has one); ``distill``: it learns the first network's own second
-    pass instead of the HR crop."""
+    pass instead of the HR crop; ``graphics``: the share of colour crops drawn procedurally."""
     from tqdm import tqdm
 
     from ..errors import InvalidOptions
@@ -151,6 +152,8 @@ def _run_training(
     qualities = _jpeg_range(jpeg)
     if jpeg_share is not None and qualities is None:
         raise InvalidOptions("--jpeg-share needs --jpeg LOW-HIGH (the qualities to compress at)")
+    if graphics and "colour" not in kind_t:
+        raise InvalidOptions("procedural graphics are colour crops: train a colour network")
     configs = []
     for g in groups:
         start = resolve_start(init, g[0], stride, later=first is not None)
@@ -180,6 +183,7 @@ def _run_training(
                 residual=start_residual if residual is None else residual,
                 first=None if first is None else resolve_start(first, g[0], 2),
                 distill=distill,
+                graphics=graphics if "colour" in g else 0.0,
             )
         )
     for c in configs:
@@ -278,6 +282,12 @@ _DISTILL = typer.Option(
     help="With --first: learn the first network's own second pass (its x4 output) instead of "
     "the HR crop: a narrow later network learns what the wide one does, at its own cost.",
 )
+_GRAPHICS = typer.Option(
+    0.0,
+    help="Share of the colour crops drawn procedurally (text, shapes, lines; "
+    "pbrsr_core/prior/train/graphics.py) in place of material crops: drawn labels and decals, "
+    "which the CC0 materials seldom show. For --distill runs, whose target needs no HR crop.",
+)
 _RESUME = typer.Option(True, help="Continue from the folder's checkpoints.")
 _QUIET = typer.Option(False, "--quiet", "-q")
 
@@ -310,6 +320,7 @@ def train_cmd(
     ),
     first: str | None = _FIRST,
     distill: bool = _DISTILL,
+    graphics: float = _GRAPHICS,
     resume: bool = _RESUME,
     quiet: bool = _QUIET,
 ) -> None:
@@ -342,6 +353,7 @@ def finetune_cmd(
     jpeg_share: float | None = _JPEG_SHARE,
     first: str | None = _FIRST,
     distill: bool = _DISTILL,
+    graphics: float = _GRAPHICS,
     resume: bool = _RESUME,
     quiet: bool = _QUIET,
 ) -> None:

@@ -16,7 +16,8 @@ a normal map stays a normal map (:func:`dihedral`), then blurred and bicubic-dow
 :func:`pbrsr_core.degrade.degrade_tensor` (normal LR crops are renormalised, as
 ``pbrsr degrade`` writes them). With a JPEG stage (``jpeg``: a quality range), a share of
 the LR crops (half by default) are then compressed as a JPEG file would store them
-(:func:`jpeg_lr`), as real assets ship their maps. Batches are a pure function of
+(:func:`jpeg_lr`), as real assets ship their maps. A share of the colour crops may be
+procedural drawings instead (``graphics``, :mod:`.graphics`). Batches are a pure function of
 ``(seed, step)``, so a run resumed from a checkpoint draws exactly the batches it would have
 drawn.
 """
@@ -35,6 +36,7 @@ import torch
 from ...asset.jpeg import compress, standard_quant
 from ...degrade import degrade_tensor
 from ...errors import InvalidOptions
+from .graphics import graphics_crop
 
 KINDS = ("colour", "data", "normal")
 SCALAR_MAPS = ("roughness", "metallic", "ao", "height")
@@ -220,6 +222,7 @@ class CropSampler:
         seed: int,
         jpeg: tuple[int, int] | None = None,
         jpeg_share: float = 0.5,
+        graphics: float = 0.0,
     ) -> None:
         for k in kinds:
             if k not in KINDS:
@@ -237,8 +240,11 @@ class CropSampler:
         self.kinds, self.scale, self.patch = kinds, scale, patch
         self.batch_size, self.seed = batch_size, seed
         self.jpeg, self.jpeg_share = jpeg, jpeg_share
+        self.graphics = graphics
 
     def _crop(self, rng: np.random.Generator, kind: str) -> np.ndarray:
+        if kind == "colour" and self.graphics and rng.random() < self.graphics:
+            return graphics_crop(rng, self.patch)
         mats = self.by_kind[kind]
         mat = mats[rng.integers(len(mats))]
         h, w = mat.size(kind)

@@ -75,6 +75,11 @@ class TrainConfig:
     crops (:func:`~pbrsr_core.prior.train.data.jpeg_lr`); None: the protocol's blur + bicubic
     only."""
     jpeg_share: float = 0.5
+    graphics: float = 0.0
+    """Share of the colour crops drawn procedurally (text, shapes, lines:
+    :func:`~pbrsr_core.prior.train.graphics.graphics_crop`) instead of cut from a material;
+    with ``distill`` the target is the first network's second pass, so a drawing needs no HR
+    ground truth beyond itself."""
     val_every: int = 250
     val_patch: int = 128
     ckpt_every: int = 250
@@ -104,6 +109,10 @@ class TrainConfig:
             raise InvalidOptions(f"JPEG qualities must be LOW-HIGH within 1..100, not {self.jpeg}")
         if not 0.0 < self.jpeg_share <= 1.0:
             raise InvalidOptions(f"the JPEG share must be in (0, 1], not {self.jpeg_share}")
+        if not 0.0 <= self.graphics <= 1.0:
+            raise InvalidOptions(f"the graphics share must be in [0, 1], not {self.graphics}")
+        if self.graphics and "colour" not in self.kinds:
+            raise InvalidOptions("procedural graphics are colour crops: train a colour network")
         if not (0.0 <= self.ema < 1.0):
             raise InvalidOptions(f"ema must be in [0, 1), not {self.ema}")
         try:
@@ -343,6 +352,7 @@ def train(
         config.seed,
         config.jpeg,
         config.jpeg_share,
+        config.graphics,
     )
     validator = Validator(
         val_materials, config.kinds, config.scale, config.val_patch, first, config.distill

@@ -188,6 +188,19 @@ def _jpeg_line(nets: list) -> str:
     )
 
 
+def _graphics_line(nets: list) -> str:
+    """The share of procedural colour crops of the networks trained with some (or nothing)."""
+    parts = [f"{f.name}: {cfg['graphics']:.0%}" for f, _, cfg, _ in nets if cfg.get("graphics")]
+    if not parts:
+        return ""
+    return (
+        " Colour crops drawn procedurally (flat-coloured text, shapes and lines, "
+        "`pbrsr_core/prior/train/graphics.py`) in place of material crops: "
+        + "; ".join(parts)
+        + "."
+    )
+
+
 def model_card(folders: list[Path], results: dict, table: str) -> str:
     """The model card of the trained sets: data, licence, degradation, scales, parameters,
     measured numbers and the command that made them."""
@@ -246,7 +259,7 @@ def model_card(folders: list[Path], results: dict, table: str) -> str:
         "- Degradation: the evaluation protocol (Gaussian blur sigma = 0.375 s, bicubic down; "
         "`pbrsr_core/degrade.py`); normal LR crops renormalised." + _jpeg_line(nets),
         f"- Crops: {cfg.get('patch')}² HR, batch {cfg.get('batch_size')}, the eight "
-        "flips/rotations (normal vectors rotated with the pixels).",
+        "flips/rotations (normal vectors rotated with the pixels)." + _graphics_line(nets),
         f"- Loss: L1 on the crop interior. AdamW lr {cfg.get('lr')}, betas (0.9, 0.99), "
         f"weight decay {cfg.get('weight_decay')}, halved at 40 % and 80 % of the steps; EMA "
         f"{cfg.get('ema')}; the best EMA weights by mean validation PSNR are kept. Seed "

@@ -12,6 +12,7 @@ import OpenImageIO as oiio
 import pytest
 import torch
 
+import pbrsr_core.prior.train.data as data_mod
 from pbrsr_core.errors import InvalidOptions, PriorUnavailable
 from pbrsr_core.prior.registry import check_name, load_prior
 from pbrsr_core.prior.texture import TexturePrior
@@ -23,6 +24,7 @@ from pbrsr_core.prior.train.data import (
     read_manifest,
     split_materials,
 )
+from pbrsr_core.prior.train.graphics import graphics_crop
 from pbrsr_core.prior.train.loop import TrainConfig, build_network, train
 from pbrsr_core.prior.train.weights import load_network, save_network
 from pbrsr_core.prior.waifu2x import UpConv7
@@ -151,6 +153,53 @@ def test_jpeg_stage_compresses_half_the_lr_crops_and_stays_deterministic(materia
     every = CropSampler(train_m, kinds, 2, 32, 8, seed=5, jpeg=(30, 60), jpeg_share=1.0)
     for lr, hr, kind in zip(*every.batch(4), strict=True):
         assert not torch.equal(lr, degrade_pair(hr[None], 2, kind)[0])
+
+
+def test_graphics_crops_are_flat_coloured_drawings_drawn_from_the_generator():
+    a = graphics_crop(np.random.default_rng(3), 64)
+    assert a.shape == (64, 64, 3) and a.dtype == np.uint8
+    assert np.array_equal(a, graphics_crop(np.random.default_rng(3), 64))
+    assert not np.array_equal(a, graphics_crop(np.random.default_rng(4), 64))
+    crops = [graphics_crop(np.random.default_rng(s), 64) for s in range(20)]
+    # flat colours with antialiased edges: most texels repeat a neighbour, and edges exist
+    flat = np.mean([np.mean(np.all(c[:, 1:] == c[:, :-1], axis=2)) for c in crops])
+    assert flat > 0.6, flat
+    assert all(len(np.unique(c.reshape(-1, 3), axis=0)) > 1 for c in crops)
+
+
+def test_graphics_share_replaces_colour_crops_only_and_stays_deterministic(materials, monkeypatch):
+    train_m, _ = materials
+    kinds = ("colour", "data", "normal")
+    plain = CropSampler(train_m, kinds, 2, 32, 6, seed=5)
+    every = CropSampler(train_m, kinds, 2, 32, 6, seed=5, graphics=1.0)
+    off = CropSampler(train_m, kinds, 2, 32, 6, seed=5, graphics=0.0)
+    assert torch.equal(off.batch(2)[1], plain.batch(2)[1])  # no share: the batches as before
+    lr, hr, k = every.batch(2)
+    assert torch.equal(every.batch(2)[1], hr)  # a function of (seed, step): resume is exact
+
+    def flat(crop: torch.Tensor) -> float:  # texels repeating their left neighbour
+        texels = (crop * 255).round().byte().permute(1, 2, 0).numpy()
+        return float(np.mean(np.all(texels[:, 1:] == texels[:, :-1], axis=2)))
+
+    # drawings are flat colours; the materials' colour crops are not
+    assert all(
+        flat(h) < 0.2 for h, kind in zip(*plain.batch(2)[1:], strict=True) if kind == "colour"
+    )
+    for i, kind in enumerate(k):
+        assert kind != "colour" or flat(hr[i]) > 0.5
+        assert torch.equal(lr[i], degrade_pair(hr[i][None], 2, kind)[0])
+    drawn_n = []
+    monkeypatch.setattr(
+        data_mod, "graphics_crop", lambda rng, p: drawn_n.append(1) or graphics_crop(rng, p)
+    )
+    half = CropSampler(train_m, ("colour",), 2, 32, 8, seed=5, graphics=0.5)
+    for step in range(8):
+        half.batch(step)
+    assert 16 <= len(drawn_n) <= 48, len(drawn_n)  # of 64
+    with pytest.raises(InvalidOptions, match="graphics share"):
+        TrainConfig(kinds=("colour",), graphics=1.5).check()
+    with pytest.raises(InvalidOptions, match="colour network"):
+        TrainConfig(kinds=("normal",), graphics=0.5).check()
 
 
 def test_bad_jpeg_range_is_refused():
@@ -347,6 +396,8 @@ def test_cli_trains_reports_and_the_result_is_a_prior(tmp_path, capfd):
         (["--jpeg", "high"], "--jpeg"),
         (["--jpeg", "95-70"], "JPEG qualities"),
         (["--jpeg-share", "1"], "--jpeg-share needs --jpeg"),
+        (["--graphics", "2"], "graphics share"),
+        (["--graphics", "0.5", "--kinds", "normal"], "colour network"),
     ],
 )
 def test_cli_refuses_bad_training_input(tmp_path, capfd, extra, says):
