@@ -31,11 +31,10 @@ SHIPPED: dict[str, tuple[str, ...]] = {
         f"pbr-upconv7/pbr-upconv7-{k}.safetensors" for k in ("colour", "data", "normal")
     ),
     # pbr-upconv7's networks for the first pass, then narrow residual networks trained behind
-    # them for the later passes
-    "pbr-upconv7-fast": tuple(
-        f"{s}/{s}-{k}.safetensors"
-        for s in ("pbr-upconv7", "pbr-upconv7-fast")
-        for k in ("colour", "data", "normal")
+    # them for the later passes of colour and normal maps (data maps: pbr-upconv7's own)
+    "pbr-upconv7-fast": (
+        *(f"pbr-upconv7/pbr-upconv7-{k}.safetensors" for k in ("colour", "data", "normal")),
+        *(f"pbr-upconv7-fast/pbr-upconv7-fast-{k}.safetensors" for k in ("colour", "normal")),
     ),
 }
 """Shipped set name -> its weights files under :data:`WEIGHTS_ROOT` (one per kind and

@@ -312,12 +312,16 @@ def test_shipped_prior_loads_and_upscales_each_kind(capfd):
 
 def test_shipped_fast_prior_runs_narrow_later_passes_behind_pbr_upconv7(capfd):
     """pbr-upconv7-fast: pbr-upconv7's networks make the first x2 pass, a narrow residual
-    network per kind every later one (MODEL_CARD.md in its folder)."""
+    network every later one for colour and normal maps; data maps run pbr-upconv7's network in
+    every pass (MODEL_CARD.md in its folder)."""
     base, fast = load_prior("pbr-upconv7"), load_prior("pbr-upconv7-fast")
-    assert fast.scales == (2, 4, 8) and set(fast.later) == {"colour", "data", "normal"}
+    assert fast.scales == (2, 4, 8) and set(fast.later) == {"colour", "normal"}
     x = torch.rand(1, 3, 20, 20)
     with torch.no_grad():
-        for kind in ("colour", "data", "normal"):
+        data = base.nets["data"][2]
+        twice = data(data(x).clamp(0, 1)).clamp(0, 1)
+        assert torch.equal(fast.for_kind("data")._forward(x, 4), twice)
+        for kind in ("colour", "normal"):
             first, later = fast.nets[kind][2], fast.later[kind]
             assert later.residual and sum(p.numel() for p in later.parameters()) < 200_000
             for a, b in zip(first.parameters(), base.nets[kind][2].parameters(), strict=True):
