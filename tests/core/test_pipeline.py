@@ -189,6 +189,7 @@ def test_max_prior_scale_reaches_the_init_and_the_self_check(tmp_path, monkeypat
     """fast's prior runs x2 of the x4 (bicubic the rest, then projected onto its input), in
     the self-check, the init and the pseudo-GT alike."""
     from pbrsr_core.optim import presets
+    from pbrsr_core.prior import selfcheck
 
     prior, asset, lr = _quad_with_prior(tmp_path, monkeypatch, seed=5)
     assert presets.FAST.max_prior_scale == 2 and presets.BALANCED.max_prior_scale is None
@@ -202,8 +203,10 @@ def test_max_prior_scale_reaches_the_init_and_the_self_check(tmp_path, monkeypat
     prior.calls.clear()
     checked = frozen.with_(check_prior=("colour",), iterations=1)
     monkeypatch.setitem(presets.PRESETS, "fast", checked)
+    # check this 32² map at the run's x4 (by default a map this small is checked at x2)
+    monkeypatch.setattr(selfcheck, "MIN_SIDE", 8)
     report = upscale_asset(asset, tmp_path / "b", UpscaleOptions(preset="fast", prior="n"))
-    assert report["prior_check"][0]["texels"] == 32 * 32
+    assert report["prior_check"][0]["texels"] == 32 * 32 and report["prior_check"][0]["scale"] == 4
     assert report["prior_check"][0]["use_prior"]
     # the check one scale down, the init and the pseudo-GT of the rendered views: x2
     assert prior.calls[:2] == [(8, 2), (32, 2)]

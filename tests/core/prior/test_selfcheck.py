@@ -18,7 +18,7 @@ from pbrsr_core.optim import presets
 from pbrsr_core.options import UpscaleOptions
 from pbrsr_core.pipeline import upscale_asset
 from pbrsr_core.prior.base import Prior
-from pbrsr_core.prior.selfcheck import prior_self_check
+from pbrsr_core.prior.selfcheck import MIN_SIDE, check_factor, prior_self_check
 
 
 class BlurringPrior(Prior):
@@ -55,6 +55,7 @@ class SelectivePrior(BlurringPrior):
     the blurring prior on every other input."""
 
     name = "selective"
+    scales = (4,)  # knows the x4 check's crop: no x2 to check a small map at (check_factor)
 
     def __init__(self, lr_map: np.ndarray, scale: int = 4):
         super().__init__()
@@ -80,11 +81,33 @@ def test_blurring_prior_is_rejected_and_a_perfect_one_accepted():
     bad = prior_self_check(BlurringPrior(), tex, 4)
     assert bad is not None and not bad["use_prior"] and bad["prior_db"] < bad["bicubic_db"]
     assert bad["texels"] == 96 * 96
-    assert bad["margins"] == [round(bad["prior_db"] - bad["bicubic_db"], 3)]
+    assert bad["margins"][0] == pytest.approx(bad["prior_db"] - bad["bicubic_db"], abs=1.1e-3)
+    assert bad["scale"] == 2  # 96 texels at x4: checked at x2 (check_factor)
     good = prior_self_check(OraclePrior(tex), tex, 4)
     assert good["use_prior"] and good["prior_db"] == 100.0
     assert good["margins"][0] > 0 and bad["margins"][0] < 0
     assert prior_self_check(BlurringPrior(), tex[:8, :8], 4) is None  # too small to check
+
+
+def test_a_small_map_is_checked_at_a_smaller_factor():
+    """One scale down the crop keeps MIN_SIDE texels a side where the priors allow: a 128²
+    map at x8 is checked at x4 (16² would decide on too little), a 256² one at x8."""
+    assert MIN_SIDE == 32
+    assert [check_factor(n, 8) for n in (512, 256, 255, 128, 64, 40)] == [8, 8, 4, 4, 2, 2]
+    assert [check_factor(n, 4) for n in (512, 128, 127, 96)] == [4, 4, 2, 2]
+    assert check_factor(96, 4, [OraclePrior(np.zeros((8, 8, 3), np.float32))]) == 4  # x4 only
+    assert check_factor(16, 2) == 2 and check_factor(24, 3) == 3
+
+    class Blurring8(BlurringPrior):
+        scales = (2, 4, 8)
+
+    tex = _texture(128)
+    small = prior_self_check(Blurring8(), tex, 8)
+    assert small is not None and small["scale"] == 4 and small["texels"] == 128 * 128
+    # what the report says is what was compared: the same check asked at x4 directly
+    assert prior_self_check(Blurring8(), tex, 4) == small
+    assert prior_self_check(Blurring8(), _texture(256), 8)["scale"] == 8
+    assert prior_self_check(Blurring8(), tex[:31, :31], 8) is None  # under 4 * 8 texels
 
 
 class HalfOraclePrior(OraclePrior):
@@ -135,7 +158,7 @@ def test_pipeline_reports_the_check_and_uses_bicubic_when_the_prior_loses(tmp_pa
     monkeypatch.setitem(presets.PRESETS, "fast", every_kind)
     report = upscale_asset(asset, out, UpscaleOptions(preset="fast", prior="blurring"))
     keys = {"image", "index", "priors", "prior_db", "bicubic_db", "candidates", "texels"}
-    keys |= {"use_prior", "channels", "margins"}
+    keys |= {"use_prior", "channels", "margins", "scale"}
     assert all(set(c) == keys and not c["use_prior"] for c in report["prior_check"])
     check = next(c for c in report["prior_check"] if c["image"] == "bricks_albedo")
     assert check["channels"] == [False]
@@ -337,6 +360,8 @@ class ChannelOracle(BlurringPrior):
     """Perfect on channel ``c`` of the check's crop of one map (it knows the HR crop that
     check degraded), the blurring prior elsewhere; off the check, channel ``c`` is ``c / 4``
     everywhere, so its output shows which prior made which channel."""
+
+    scales = (4,)  # knows the x4 check's crop, as SelectivePrior
 
     def __init__(self, lr_map: np.ndarray, c: int, scale: int = 4):
         super().__init__()
