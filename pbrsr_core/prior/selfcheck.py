@@ -48,9 +48,7 @@ def check_factor(side: int, scale: int, priors: Sequence[Prior] = ()) -> int:
     at: ``scale``, halved while the crop one scale down would hold fewer than ``MIN_SIDE``
     texels a side and every prior in ``priors`` upscales by the half (never below 2)."""
     f = scale
-    while side < MIN_SIDE * f and f % 2 == 0 and f // 2 >= 2:
-        if not all(f // 2 in p.scales for p in priors):
-            break
+    while side < MIN_SIDE * f and f % 4 == 0 and all(f // 2 in p.scales for p in priors):
         f //= 2
     return f
 
