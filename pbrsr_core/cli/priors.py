@@ -125,11 +125,12 @@ def _run_training(
 ) -> None:
     """Train one network per kind (or one for all with ``joint``) from ``init`` (see
     :func:`~pbrsr_core.prior.train.weights.resolve_start`); ``arch``, ``widths`` and
-    ``residual`` None: the start weights' (``random``: UpConv7's, or the compact network's
-    64 x 17). ``first``: a set (or file) whose x2 network for each kind makes the first pass,
-    frozen, while the trained network learns the passes after it (from a set's later-pass
-    network where ``init`` has one); ``distill``: it learns the first network's own second
-    pass instead of the HR crop; ``graphics``: the share of colour crops drawn procedurally."""
+    ``residual`` None: the start weights' (``random``: UpConv7's, the compact network's 64 x
+    17 or the SPAN network's 48 x 6). ``first``: a set (or file) whose x2 network for each
+    kind makes the first pass, frozen, while the trained network learns the passes after it
+    (from a set's later-pass network where ``init`` has one); ``distill``: it learns the first
+    network's own second pass instead of the HR crop; ``graphics``: the share of colour crops
+    drawn procedurally."""
     from tqdm import tqdm
 
     from ..errors import InvalidOptions
@@ -308,9 +309,11 @@ def train_cmd(
     seed: int = _SEED,
     jpeg: str | None = _JPEG,
     jpeg_share: float | None = _JPEG_SHARE,
-    arch: str = typer.Option("upconv7", help="Network: upconv7 or compact."),
+    arch: str = typer.Option("upconv7", help="Network: upconv7, compact or span."),
     widths: str = typer.Option(
-        None, help="Convolution widths (upconv7: 16,32,64,128,128,256; compact: 64 x 17)."
+        None,
+        help="Convolution widths (upconv7: 16,32,64,128,128,256; compact: 64 x 17, one per "
+        "convolution; span: 48 x 6, one per block).",
     ),
     residual: bool = typer.Option(
         False,

@@ -1,4 +1,4 @@
-"""Texture priors: networks (UpConv7 or compact) trained on PBR texture maps (``pbrsr priors
+"""Texture priors: networks (UpConv7, compact or SPAN) trained on PBR texture maps (``pbrsr priors
 finetune``), one set of weights per map kind (colour, data, normal) or one shared by several
 kinds, of stride 2 or 4.
 

@@ -3,8 +3,9 @@ of the steps, L1 on the HR crop's interior, EMA weights, validation on held-out 
 checkpoints a run resumes from exactly, and the best EMA weights by validation written as
 safetensors (:mod:`pbrsr_core.prior.texture` loads them).
 
-The network is an :class:`~pbrsr_core.prior.waifu2x.UpConv7` or a
-:class:`~pbrsr_core.prior.compact.Compact` network, of stride 2 or 4 (x4 training of a stride-2
+The network is an :class:`~pbrsr_core.prior.waifu2x.UpConv7`, a
+:class:`~pbrsr_core.prior.compact.Compact` or a :class:`~pbrsr_core.prior.span.Span` network,
+of stride 2 or 4 (x4 training of a stride-2
 network chains two passes with a clamp between them, as inference does). A run with ``first``
 trains a later-pass network: the frozen ``first`` network makes the first x2 pass, the trained
 one the second; the run's folder gets a copy of the first network beside the trained one, so
@@ -50,7 +51,8 @@ class TrainConfig:
     ema: float = 0.999
     seed: int = 0
     arch: str = "upconv7"
-    """``upconv7`` or ``compact`` (:func:`~pbrsr_core.prior.train.weights.new_network`)."""
+    """``upconv7``, ``compact`` or ``span``
+    (:func:`~pbrsr_core.prior.train.weights.new_network`)."""
     widths: tuple[int, ...] = (16, 32, 64, 128, 128, 256)
     stride: int = 2
     """Upscaling of one network pass: 2 (``scale`` 4 chains two passes) or 4."""

@@ -220,8 +220,9 @@ def model_card(folders: list[Path], results: dict, table: str) -> str:
     own = [n for n in nets if n[1].get("name") == n[0].parent.name] or nets
     meta0 = own[0][1]
     held = meta0.get("held_out", "").split(",")
+    archs = sorted({ARCH_NAMES.get(meta.get("arch", ""), "UpConv7") for _, meta, _, _ in own})
     lines = [
-        "# Model card: texture priors (UpConv7 trained on PBR maps)",
+        f"# Model card: texture priors ({' and '.join(archs)} trained on PBR maps)",
         "",
         "## Networks",
         "",
@@ -279,8 +280,28 @@ def model_card(folders: list[Path], results: dict, table: str) -> str:
         "",
         "## Measured (held-out materials)",
         table,
-        "Licence of the weights: CC0 1.0 training data; the start weights are waifu2x's "
-        "UpConv7 photo model (MIT licence).",
+        "Licence of the weights: CC0 1.0 training data; " + _start_line(own) + ".",
         "",
     ]
     return "\n".join(lines)
+
+
+ARCH_NAMES = {"upconv7": "UpConv7", "compact": "SRVGGNetCompact", "span": "SPAN"}
+
+
+def _start_line(nets: list) -> str:
+    """Where the networks' start weights came from, with their licences."""
+    inits = {Path(str(cfg.get("init"))).name for _, _, cfg, _ in nets}
+    parts = [
+        START_WEIGHTS.get(i, f"started from `{i}` (its model card names its start weights)")
+        for i in sorted(inits)
+    ]
+    return "; ".join(parts)
+
+
+START_WEIGHTS = {
+    "waifu2x-photo": "the start weights are waifu2x's UpConv7 photo model (MIT licence)",
+    "realesr-animevideov3": "the start weights are Real-ESRGAN's realesr-animevideov3 "
+    "(BSD-3-Clause)",
+    "random": "trained from random start weights (seeded)",
+}

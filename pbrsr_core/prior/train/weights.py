@@ -14,29 +14,35 @@ import torch
 from ...errors import PriorUnavailable
 from ..compact import START as COMPACT_START
 from ..compact import Compact
+from ..span import Span
 from ..waifu2x import UpConv7
 
 if TYPE_CHECKING:
     from .loop import TrainConfig
 
-Network = UpConv7 | Compact
-ARCHS = ("upconv7", "compact")
+Network = UpConv7 | Compact | Span
+ARCHS = ("upconv7", "compact", "span")
 
 
 def arch_of(net: Network) -> str:
+    if isinstance(net, Span):
+        return "span"
     return "compact" if isinstance(net, Compact) else "upconv7"
 
 
 def new_network(arch: str, widths: tuple[int, ...], stride: int, residual: bool = False) -> Network:
-    """A network of ``arch`` at random weights: UpConv7 of ``widths``, or a compact network
-    of ``len(widths) - 1`` body convolutions of ``widths[0]`` features (all equal). A
-    ``residual`` UpConv7 (bicubic plus the network) starts with its last layer at zero, so at
-    step 0 it is bicubic exactly."""
-    if arch == "compact":
+    """A network of ``arch`` at random weights: UpConv7 of ``widths``, a compact network of
+    ``len(widths) - 1`` body convolutions of ``widths[0]`` features, or a SPAN network of
+    ``len(widths)`` blocks of ``widths[0]`` features (both: all widths equal). A ``residual``
+    UpConv7 (bicubic plus the network) starts with its last layer at zero, so at step 0 it is
+    bicubic exactly, as a SPAN network always does."""
+    if arch in ("compact", "span"):
         if len(set(widths)) != 1:
-            raise ValueError(f"a compact network has equal widths, not {widths}")
+            raise ValueError(f"a {arch} network has equal widths, not {widths}")
         if residual:
-            raise ValueError("a compact network is residual by design; residual is for upconv7")
+            raise ValueError(f"a {arch} network is residual by design; residual is for upconv7")
+        if arch == "span":
+            return Span(widths[0], len(widths), stride)
         return Compact(widths[0], len(widths) - 1, stride)
     if arch == "upconv7":
         net = UpConv7(widths, stride=stride, residual=residual)
@@ -51,18 +57,21 @@ def new_network(arch: str, widths: tuple[int, ...], stride: int, residual: bool 
 
 def head_prefix(net: Network) -> str:
     """The state-dict prefix of the layer that upscales (the part a new stride replaces)."""
-    return "head." if isinstance(net, Compact) else f"mods.{len(net.widths)}."
+    return "head." if isinstance(net, Compact | Span) else f"mods.{len(net.widths)}."
 
 
 def save_network(net: Network, path: Path, config: TrainConfig, extra: dict[str, str]) -> None:
     """Write ``net``'s weights (float32) with metadata: ``arch``, its shape (UpConv7:
-    ``widths``, ``slope``, ``residual``; compact: ``feat``, ``convs``), ``stride``, ``pass``
+    ``widths``, ``slope``, ``residual``; compact: ``feat``, ``convs``; SPAN: ``feat``,
+    ``blocks``), ``stride``, ``pass``
     (``first``, or ``later``: a network trained behind another that runs the first x2 pass),
     ``kinds``, ``scale``, the training config as JSON and ``extra``."""
     from safetensors.torch import save_file
 
     if isinstance(net, Compact):
         shape = {"feat": str(net.feat), "convs": str(net.convs)}
+    elif isinstance(net, Span):
+        shape = {"feat": str(net.feat), "blocks": str(net.blocks)}
     else:
         shape = {"slope": str(net.slope), "residual": "1" if net.residual else "0"}
     meta = {
@@ -112,6 +121,8 @@ def load_network(path: Path) -> Network:
         net: Network
         if arch == "compact":
             net = Compact(int(meta["feat"]), int(meta["convs"]), stride)
+        elif arch == "span":
+            net = Span(int(meta["feat"]), int(meta["blocks"]), stride)
         else:
             widths = tuple(int(w) for w in meta["widths"].split(","))
             net = UpConv7(
@@ -132,6 +143,8 @@ def start_shape(start: str, arch: str) -> tuple[str, tuple[int, ...], bool]:
     """(architecture, widths, residual) of the start weights ``start`` (a
     :func:`resolve_start` result); ``random`` takes ``arch`` at its default widths."""
     if start == "random":
+        if arch == "span":
+            return arch, Span().widths, False
         return arch, (Compact().widths if arch == "compact" else UpConv7().widths), False
     if start == "waifu2x-photo":
         return "upconv7", UpConv7().widths, False
