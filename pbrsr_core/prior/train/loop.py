@@ -5,11 +5,10 @@ safetensors (:mod:`pbrsr_core.prior.texture` loads them).
 
 The network is an :class:`~pbrsr_core.prior.waifu2x.UpConv7`, a
 :class:`~pbrsr_core.prior.compact.Compact` or a :class:`~pbrsr_core.prior.span.Span` network,
-of stride 2 or 4 (x4 training of a stride-2
-network chains two passes with a clamp between them, as inference does). A run with ``first``
-trains a later-pass network: the frozen ``first`` network makes the first x2 pass, the trained
-one the second; the run's folder gets a copy of the first network beside the trained one, so
-the folder is a texture set of its own."""
+of stride 2 or 4 (x4 training of a stride-2 network chains two passes with a clamp between
+them, as inference does). A run with ``first`` trains a later-pass network: the frozen
+``first`` network makes the first x2 pass, the trained one the second; the run's folder gets a
+copy of the first network beside the trained one, so the folder is a texture set of its own."""
 
 from __future__ import annotations
 

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .. import compact, waifu2x
 from ..base import Prior
 from ..direct import normal_length, renormalize_encoded_normals
 from .data import KINDS, Material, degrade_pair, validation_crops
@@ -300,8 +301,7 @@ def _start_line(nets: list) -> str:
 
 
 START_WEIGHTS = {
-    "waifu2x-photo": "the start weights are waifu2x's UpConv7 photo model (MIT licence)",
-    "realesr-animevideov3": "the start weights are Real-ESRGAN's realesr-animevideov3 "
-    "(BSD-3-Clause)",
+    waifu2x.NAME: "the start weights are waifu2x's UpConv7 photo model (MIT licence)",
+    compact.START: f"the start weights are Real-ESRGAN's {compact.START} (BSD-3-Clause)",
     "random": "trained from random start weights (seeded)",
 }
