@@ -129,8 +129,8 @@ def _run_training(
     17 or the SPAN network's 48 x 6). ``first``: a set (or file) whose x2 network for each
     kind makes the first pass, frozen, while the trained network learns the passes after it
     (from a set's later-pass network where ``init`` has one); ``distill``: it learns the first
-    network's own second pass instead of the HR crop; ``graphics``: the share of colour crops
-    drawn procedurally."""
+    network's own second pass instead of the HR crop; ``graphics``: the share of colour and
+    normal crops drawn procedurally."""
     from tqdm import tqdm
 
     from ..errors import InvalidOptions
@@ -153,8 +153,10 @@ def _run_training(
     qualities = _jpeg_range(jpeg)
     if jpeg_share is not None and qualities is None:
         raise InvalidOptions("--jpeg-share needs --jpeg LOW-HIGH (the qualities to compress at)")
-    if graphics and "colour" not in kind_t:
-        raise InvalidOptions("procedural graphics are colour crops: train a colour network")
+    if graphics and not {"colour", "normal"} & set(kind_t):
+        raise InvalidOptions(
+            "procedural graphics are colour and normal crops: train a colour or normal network"
+        )
     configs = []
     for g in groups:
         start = resolve_start(init, g[0], stride, later=first is not None)
@@ -184,7 +186,7 @@ def _run_training(
                 residual=start_residual if residual is None else residual,
                 first=None if first is None else resolve_start(first, g[0], 2),
                 distill=distill,
-                graphics=graphics if "colour" in g else 0.0,
+                graphics=graphics if {"colour", "normal"} & set(g) else 0.0,
             )
         )
     for c in configs:
@@ -285,9 +287,10 @@ _DISTILL = typer.Option(
 )
 _GRAPHICS = typer.Option(
     0.0,
-    help="Share of the colour crops drawn procedurally (text, shapes, lines; "
-    "pbrsr_core/prior/train/graphics.py) in place of material crops: drawn labels and decals, "
-    "which the CC0 materials seldom show. For --distill runs, whose target needs no HR crop.",
+    help="Share of the colour and normal crops drawn procedurally "
+    "(pbrsr_core/prior/train/graphics.py) in place of material crops: text, shapes and lines, "
+    "drawn in colour or raised and sunk as a baked normal map; the labels, decals and "
+    "modelled details that the CC0 materials seldom show.",
 )
 _RESUME = typer.Option(True, help="Continue from the folder's checkpoints.")
 _QUIET = typer.Option(False, "--quiet", "-q")

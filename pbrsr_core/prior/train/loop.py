@@ -77,10 +77,10 @@ class TrainConfig:
     only."""
     jpeg_share: float = 0.5
     graphics: float = 0.0
-    """Share of the colour crops drawn procedurally (text, shapes, lines:
-    :func:`~pbrsr_core.prior.train.graphics.graphics_crop`) instead of cut from a material;
-    with ``distill`` the target is the first network's second pass, so a drawing needs no HR
-    ground truth beyond itself."""
+    """Share of the colour and normal crops drawn procedurally (text, shapes, lines in colour,
+    or raised and sunk as a normal map: :mod:`~pbrsr_core.prior.train.graphics`) instead of
+    cut from a material; a drawing is its own HR ground truth, and with ``distill`` the target
+    is the first network's second pass."""
     val_every: int = 250
     val_patch: int = 128
     ckpt_every: int = 250
@@ -112,8 +112,10 @@ class TrainConfig:
             raise InvalidOptions(f"the JPEG share must be in (0, 1], not {self.jpeg_share}")
         if not 0.0 <= self.graphics <= 1.0:
             raise InvalidOptions(f"the graphics share must be in [0, 1], not {self.graphics}")
-        if self.graphics and "colour" not in self.kinds:
-            raise InvalidOptions("procedural graphics are colour crops: train a colour network")
+        if self.graphics and not {"colour", "normal"} & set(self.kinds):
+            raise InvalidOptions(
+                "procedural graphics are colour and normal crops: train a colour or normal network"
+            )
         if not (0.0 <= self.ema < 1.0):
             raise InvalidOptions(f"ema must be in [0, 1), not {self.ema}")
         try:

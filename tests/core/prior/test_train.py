@@ -24,7 +24,7 @@ from pbrsr_core.prior.train.data import (
     read_manifest,
     split_materials,
 )
-from pbrsr_core.prior.train.graphics import graphics_crop
+from pbrsr_core.prior.train.graphics import graphics_crop, height_normals, normal_graphics_crop
 from pbrsr_core.prior.train.loop import TrainConfig, build_network, train
 from pbrsr_core.prior.train.weights import load_network, save_network
 from pbrsr_core.prior.waifu2x import UpConv7
@@ -167,7 +167,42 @@ def test_graphics_crops_are_flat_coloured_drawings_drawn_from_the_generator():
     assert all(len(np.unique(c.reshape(-1, 3), axis=0)) > 1 for c in crops)
 
 
-def test_graphics_share_replaces_colour_crops_only_and_stays_deterministic(materials, monkeypatch):
+def test_height_normals_lean_away_from_the_rise_in_the_opengl_frame():
+    ramp = np.tile(np.arange(8.0), (8, 1))  # rises to the right, 1 a texel
+    for down in (1, 2):
+        n = height_normals(ramp, 0.5, down=down)
+        assert n.shape == (8 // down, 8 // down, 3)
+        np.testing.assert_allclose(n, np.broadcast_to([-0.5, 0, 1] / np.sqrt(1.25), n.shape))
+    # rows run down the image: a height rising down the image rises towards -Y
+    n = height_normals(ramp.T.copy(), 2.0)
+    np.testing.assert_allclose(n, np.broadcast_to([0, 2, 1] / np.sqrt(5.0), n.shape))
+    bump = np.exp(-((np.arange(32.0)[:, None] - 16) ** 2 + (np.arange(32.0) - 16) ** 2) / 20)
+    n = height_normals(bump, 8.0)
+    assert n[16, 20, 0] > 0.1 and n[16, 12, 0] < -0.1  # right side leans right
+    assert n[12, 16, 1] > 0.1 and n[20, 16, 1] < -0.1  # the side above leans up
+    np.testing.assert_allclose(np.linalg.norm(n, axis=-1), 1.0, rtol=1e-12)
+
+
+def test_normal_graphics_crops_are_normal_maps_of_flat_ground_and_bevelled_shapes():
+    a = normal_graphics_crop(np.random.default_rng(3), 64)
+    assert a.shape == (64, 64, 3) and a.dtype == np.uint8
+    assert np.array_equal(a, normal_graphics_crop(np.random.default_rng(3), 64))
+    assert not np.array_equal(a, normal_graphics_crop(np.random.default_rng(4), 64))
+    flat, tilted = [], []
+    for seed in range(20):
+        n = normal_graphics_crop(np.random.default_rng(seed), 64).astype(np.float64) / 127.5 - 1
+        length = np.linalg.norm(n, axis=-1)
+        assert np.all(np.abs(length - 1) < 0.02) and np.all(n[..., 2] > 0)
+        angle = np.degrees(np.arccos(np.clip(n[..., 2] / length, -1, 1)))
+        flat.append(np.mean(angle < 1.0))
+        tilted.append(np.mean(angle > 10.0))
+    assert np.mean(flat) > 0.3, flat  # flat ground between the shapes
+    assert sum(t > 0.01 for t in tilted) >= 15, tilted  # bevels that lean the normal
+
+
+def test_graphics_share_replaces_colour_and_normal_crops_and_stays_deterministic(
+    materials, monkeypatch
+):
     train_m, _ = materials
     kinds = ("colour", "data", "normal")
     plain = CropSampler(train_m, kinds, 2, 32, 6, seed=5)
@@ -188,18 +223,29 @@ def test_graphics_share_replaces_colour_crops_only_and_stays_deterministic(mater
     for i, kind in enumerate(k):
         assert kind != "colour" or flat(hr[i]) > 0.5
         assert torch.equal(lr[i], degrade_pair(hr[i][None], 2, kind)[0])
-    drawn_n = []
-    monkeypatch.setattr(
-        data_mod, "graphics_crop", lambda rng, p: drawn_n.append(1) or graphics_crop(rng, p)
-    )
-    half = CropSampler(train_m, ("colour",), 2, 32, 8, seed=5, graphics=0.5)
+    drawn = {"colour": 0, "normal": 0}
+
+    def counted(kind, draw):
+        def fn(rng, p):
+            drawn[kind] += 1
+            return draw(rng, p)
+
+        return fn
+
+    monkeypatch.setattr(data_mod, "graphics_crop", counted("colour", graphics_crop))
+    monkeypatch.setattr(data_mod, "normal_graphics_crop", counted("normal", normal_graphics_crop))
+    every.batch(3)
+    assert drawn == {"colour": 2, "normal": 2}  # every colour and normal crop of 6, no data crop
+    drawn.update(colour=0, normal=0)
+    half = CropSampler(train_m, ("colour", "normal"), 2, 32, 8, seed=5, graphics=0.5)
     for step in range(8):
         half.batch(step)
-    assert 16 <= len(drawn_n) <= 48, len(drawn_n)  # of 64
+    assert 8 <= drawn["colour"] <= 24 and 8 <= drawn["normal"] <= 24, drawn  # of 32 each
     with pytest.raises(InvalidOptions, match="graphics share"):
         TrainConfig(kinds=("colour",), graphics=1.5).check()
-    with pytest.raises(InvalidOptions, match="colour network"):
-        TrainConfig(kinds=("normal",), graphics=0.5).check()
+    TrainConfig(kinds=("normal",), graphics=0.5).check()
+    with pytest.raises(InvalidOptions, match="colour or normal network"):
+        TrainConfig(kinds=("data",), graphics=0.5).check()
 
 
 def test_bad_jpeg_range_is_refused():
@@ -401,7 +447,7 @@ def test_cli_trains_reports_and_the_result_is_a_prior(tmp_path, capfd):
         (["--jpeg", "95-70"], "JPEG qualities"),
         (["--jpeg-share", "1"], "--jpeg-share needs --jpeg"),
         (["--graphics", "2"], "graphics share"),
-        (["--graphics", "0.5", "--kinds", "normal"], "colour network"),
+        (["--graphics", "0.5", "--kinds", "data"], "colour or normal network"),
     ],
 )
 def test_cli_refuses_bad_training_input(tmp_path, capfd, extra, says):
