@@ -140,6 +140,7 @@ def _run_training(
         split_materials,
         texture_folder,
     )
+    from ..prior.train.graphics import DRAWN_KINDS
     from ..prior.train.loop import TrainConfig, train
     from ..prior.train.weights import ARCHS, resolve_start, start_shape
 
@@ -153,7 +154,7 @@ def _run_training(
     qualities = _jpeg_range(jpeg)
     if jpeg_share is not None and qualities is None:
         raise InvalidOptions("--jpeg-share needs --jpeg LOW-HIGH (the qualities to compress at)")
-    if graphics and not {"colour", "normal"} & set(kind_t):
+    if graphics and not DRAWN_KINDS & set(kind_t):
         raise InvalidOptions(
             "procedural graphics are colour and normal crops: train a colour or normal network"
         )
@@ -186,7 +187,7 @@ def _run_training(
                 residual=start_residual if residual is None else residual,
                 first=None if first is None else resolve_start(first, g[0], 2),
                 distill=distill,
-                graphics=graphics if {"colour", "normal"} & set(g) else 0.0,
+                graphics=graphics if DRAWN_KINDS & set(g) else 0.0,
             )
         )
     for c in configs:

@@ -36,7 +36,7 @@ import torch
 from ...asset.jpeg import compress, standard_quant
 from ...degrade import degrade_tensor
 from ...errors import InvalidOptions
-from .graphics import graphics_crop, normal_graphics_crop
+from .graphics import DRAWN_KINDS, graphics_crop, normal_graphics_crop
 
 KINDS = ("colour", "data", "normal")
 SCALAR_MAPS = ("roughness", "metallic", "ao", "height")
@@ -243,7 +243,7 @@ class CropSampler:
         self.graphics = graphics
 
     def _crop(self, rng: np.random.Generator, kind: str) -> np.ndarray:
-        if kind in ("colour", "normal") and self.graphics and rng.random() < self.graphics:
+        if kind in DRAWN_KINDS and self.graphics and rng.random() < self.graphics:
             draw = graphics_crop if kind == "colour" else normal_graphics_crop
             return draw(rng, self.patch)
         mats = self.by_kind[kind]

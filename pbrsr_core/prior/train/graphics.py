@@ -16,6 +16,9 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFilter, ImageFont
 
 GLYPHS = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789-+.%/&#"
+DRAWN_KINDS = frozenset({"colour", "normal"})
+"""The map kinds a drawing can stand in for (:func:`graphics_crop`,
+:func:`normal_graphics_crop`)."""
 
 
 def _colour(rng: np.random.Generator) -> tuple[int, int, int]:

@@ -29,6 +29,7 @@ from ..backproject import back_project
 from ..waifu2x import UpConv7
 from . import weights
 from .data import KINDS, CropSampler, Material, degrade_pair, validation_crops
+from .graphics import DRAWN_KINDS
 
 CHECKPOINT = "checkpoint.pt"
 HISTORY = "history.json"
@@ -112,7 +113,7 @@ class TrainConfig:
             raise InvalidOptions(f"the JPEG share must be in (0, 1], not {self.jpeg_share}")
         if not 0.0 <= self.graphics <= 1.0:
             raise InvalidOptions(f"the graphics share must be in [0, 1], not {self.graphics}")
-        if self.graphics and not {"colour", "normal"} & set(self.kinds):
+        if self.graphics and not DRAWN_KINDS & set(self.kinds):
             raise InvalidOptions(
                 "procedural graphics are colour and normal crops: train a colour or normal network"
             )

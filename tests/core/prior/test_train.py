@@ -44,13 +44,10 @@ def _height(size: int, seed: int) -> np.ndarray:
 
 
 def normals_from_height(h: np.ndarray, strength: float = 4.0) -> np.ndarray:
-    """Encoded OpenGL normals (+X right, +Y up) of a height field (rows run down)."""
-    d_row, d_col = np.gradient(h)
-    n = np.stack(
-        [-d_col * strength * h.shape[1], d_row * strength * h.shape[0], np.ones_like(h)], -1
-    )
-    n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    return (n * 0.5 + 0.5).astype(np.float32)
+    """Encoded OpenGL normals (+X right, +Y up) of a square height field over the unit
+    square, ``strength`` its height scale."""
+    assert h.shape[0] == h.shape[1]
+    return (height_normals(h, strength * h.shape[0]) * 0.5 + 0.5).astype(np.float32)
 
 
 def _write(path: Path, pixels: np.ndarray) -> None:
