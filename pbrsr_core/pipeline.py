@@ -58,7 +58,10 @@ from .prior.direct import (
     keep_normal_length,
     project_map,
     restore_hidden,
+    upscale_map,
 )
+from .prior.guided import CHANNELS as GUIDED_CHANNELS
+from .prior.guided import MARGIN, guide_pairs, guided_self_check, guided_upscale
 from .prior.selfcheck import chosen, merge_channels, prior_self_check, upscale_channels
 from .progress import Progress, ProgressFn, emit
 from .render.light import EnvLight
@@ -175,8 +178,10 @@ def _upscale_maps(
             lr_pixels[img.index] = filled_cutout(lr_pixels[img.index], seen_from)
     channels, checks, sources = _prior_channels_checked(asset, images, prior, lr_pixels, s,
                                                         config, timer, progress)  # fmt: skip
-    init_encoded, init, lr = _init_maps(images, sources, lr_pixels, s, wraps, config, timer,
-                                        progress)  # fmt: skip
+    guides = _guided_channels(asset, images, channels, checks, sources, lr_pixels, s, config,
+                              timer)  # fmt: skip
+    init_encoded, init, lr = _init_maps(images, sources, guides, lr_pixels, s, wraps, config,
+                                        timer, progress)  # fmt: skip
     if checks is not None and not any(any(c) for c in channels.values()):
         prior = load_prior("bicubic", device)  # for the pseudo-GT
     out, report = _optimise(
@@ -320,15 +325,59 @@ def _prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, p
     return channels, checks, sources
 
 
-def _init_maps(images, sources, lr_pixels, s, wraps, config, timer, progress):
+def _guided_channels(asset, images, channels, checks, sources, lr_pixels, s, config, timer):
+    """With ``guide_data``: the metallic-roughness channels to upscale with their colour map
+    as guide (prior/guided.py), where that beats, one scale down, both bicubic and the
+    candidate the self-check chose by ``MARGIN``. Updates ``channels``, ``sources`` (None:
+    not the prior) and the ``checks`` entries (``guided``); returns {image: (guide image,
+    [bool per channel])}."""
+    if not config.guide_data or checks is None:
+        return {}
+    by_index = {img.index: img for img in images}
+    entries = {c["index"]: c for c in checks if "margins" in c}
+    allowed = {img.index: prior_channels(img, config) for img in images}
+    guides = {}
+    with timer("prior_check"):
+        covered = None
+        for i, g in guide_pairs(asset, set(by_index)).items():
+            if i not in entries or not any(allowed[i][c] for c in GUIDED_CHANNELS):
+                continue
+            if covered is None:
+                covered = coverage_masks(asset)
+            src = (sources.get(g) or [None])[0]
+
+            def upscale_guide(px, f, src=src):
+                if src is None:
+                    return bicubic_map(px, "colour", f)
+                return upscale_map(src, px, "colour", f, max_prior_scale=config.max_prior_scale)
+
+            entry = entries[i]
+            n = len(channels[i])
+            margins = guided_self_check(lr_pixels[i][..., :n], lr_pixels[g], upscale_guide,
+                                        entry["scale"], covered=covered.get(i))  # fmt: skip
+            use = [
+                m is not None and allowed[i][c] and m > max(0.0, entry["margins"][c]) + MARGIN
+                for c, m in enumerate(margins)
+            ]
+            entry["guided"] = {"guide": by_index[g].name, "margins": margins, "channels": use}
+            if any(use):
+                guides[i] = (g, use)
+                channels[i] = [a or b for a, b in zip(channels[i], use, strict=True)]
+                entry["channels"], entry["use_prior"] = channels[i], True
+                sources[i] = [None if u else p for p, u in zip(sources[i], use, strict=True)]
+    return guides
+
+
+def _init_maps(images, sources, guides, lr_pixels, s, wraps, config, timer, progress):
     """The optimiser's start: bicubic, with a prior's upscale in the channels ``sources``
-    gives one for (per image, per channel: the prior or None). Returns
+    gives one for (per image, per channel: the prior or None), and the colour-guided upscale
+    in the channels ``guides`` names (colour maps come first: they are the guides). Returns
     ({image: HR map, stored encoding}, the same as optimisation parameters, the LR maps as
     parameters)."""
     init_encoded, init, lr = {}, {}, {}
     with timer("init"):
         tiles = MapProgress(progress, "init", images)
-        for img in images:
+        for img in sorted(images, key=lambda im: kind_of(im.roles) != "colour"):
             kind = kind_of(img.roles)
             px = lr_pixels[img.index]
             hr = bicubic_map(px, kind, s, wraps[img.index])  # px: a cutout's already filled
@@ -336,6 +385,11 @@ def _init_maps(images, sources, lr_pixels, s, wraps, config, timer, progress):
             hr = upscale_channels(sources.get(img.index, [None]), px, kind, s, hr,
                                   max_prior_scale=config.max_prior_scale, progress=tiles.on(img),
                                   wrap=wraps[img.index])  # fmt: skip
+            if img.index in guides:
+                g, use = guides[img.index]
+                picked = [c for c, u in enumerate(use) if u]
+                hr = hr.copy()
+                hr[..., picked] = guided_upscale(px[..., picked], lr_pixels[g], init_encoded[g], s)
             init_encoded[img.index] = hr
             init[img.index] = encoded_to_param(torch.from_numpy(hr), kind)
             lr[img.index] = encoded_to_param(torch.from_numpy(px), kind)

@@ -30,7 +30,7 @@ ToyCar's roughness: +0.34 / -0.04 one scale down, +3.8 dB at the real scale.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -57,6 +57,28 @@ def _centre(a: np.ndarray, size: int) -> np.ndarray:
     h, w = a.shape[:2]
     y, x = max(0, (h - size) // 2), max(0, (w - size) // 2)
     return a[y : y + size, x : x + size]
+
+
+def scorer(
+    crop: np.ndarray, shape: tuple[int, ...], covered: np.ndarray | None, scale: int
+) -> tuple[Callable[[np.ndarray, np.ndarray], float], int]:
+    """(``db(up, ref)``, the texels it compares): ``db`` is the PSNR of an upscale of
+    ``shape`` against ``ref`` (channels of the map's centre ``crop``) over the texels both
+    cover, of those only the ones ``covered`` (H, W, the whole map's mask) marks, or all of
+    them when that leaves fewer than ``(4 scale)²``."""
+    h, w = min(crop.shape[0], shape[0]), min(crop.shape[1], shape[1])
+    mask = np.ones((h, w), dtype=bool)
+    if covered is not None:
+        m = _centre(covered, CROP)[:h, :w]
+        if int(m.sum()) >= (4 * scale) ** 2:
+            mask = m
+
+    def db(up: np.ndarray, ref: np.ndarray) -> float:
+        diff = (up[:h, :w].astype(np.float64) - ref[:h, :w])[mask]
+        se = float((diff**2).sum())
+        return 100.0 if se <= 0 else 10.0 * math.log10(diff.size / se)
+
+    return db, int(mask.sum())
 
 
 def prior_self_check(
@@ -103,19 +125,10 @@ def prior_self_check(
         for c in candidates
     ]
     up_b = bicubic_map(small, kind, scale, cutout=cutout)
-    h = min(crop.shape[0], up_b.shape[0])
-    w = min(crop.shape[1], up_b.shape[1])
-    ref = crop[:h, :w, :n_colour]
-    mask = np.ones((h, w), dtype=bool)
-    if covered is not None:
-        m = _centre(covered, CROP)[:h, :w]
-        if int(m.sum()) >= (4 * scale) ** 2:
-            mask = m
+    score, texels = scorer(crop, up_b.shape, covered, scale)
 
     def db(up: np.ndarray, c: slice) -> float:
-        diff = (up[:h, :w, c] - ref[..., c])[mask]
-        se = float((diff.astype(np.float64) ** 2).sum())
-        return 100.0 if se <= 0 else 10.0 * math.log10(diff.size / se)
+        return score(up[..., c], crop[..., c])
 
     whole = slice(0, n_colour)
     b = db(up_b, whole)
@@ -135,7 +148,7 @@ def prior_self_check(
         "prior_db": max(each.values()),
         "bicubic_db": round(b, 3),
         "candidates": each,
-        "texels": int(mask.sum()),
+        "texels": texels,
         "use_prior": any(channels),
         "channels": channels,
         "margins": margins,

@@ -149,12 +149,15 @@ def test_pipeline_reports_the_check_and_uses_bicubic_when_the_prior_loses(tmp_pa
     )
     asset = make_demo_asset(tmp_path / "demo.glb", size=64)
     out = tmp_path / "out"
+    # the prior's own check (the colour map as guide is tested in test_guided.py)
+    fast = presets.FAST.with_(guide_data=False)
+    monkeypatch.setitem(presets.PRESETS, "fast", fast)
     # the CPU presets leave normal maps unchecked (the prior initialises them)
     report = upscale_asset(asset, tmp_path / "cpu", UpscaleOptions(preset="fast", prior="blurring"))
     (normal,) = [c for c in report["prior_check"] if "normal" in c["image"]]
     assert normal["use_prior"] and normal["note"] == "normal maps are not checked"
     assert report["prior_used"] == "blurring" and report["prior_init"] == [normal["image"]]
-    every_kind = presets.FAST.with_(check_prior=("colour", "data", "normal"))
+    every_kind = fast.with_(check_prior=("colour", "data", "normal"))
     monkeypatch.setitem(presets.PRESETS, "fast", every_kind)
     report = upscale_asset(asset, out, UpscaleOptions(preset="fast", prior="blurring"))
     keys = {"image", "index", "priors", "prior_db", "bicubic_db", "candidates", "texels"}

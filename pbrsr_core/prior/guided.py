@@ -1,0 +1,153 @@
+"""Roughness and metallic upscaled with the material's colour map as guide.
+
+In an authored asset the roughness and metallic maps change where the paint, the label or the
+metal part changes, and so does the colour map, which the prior upscales best. A local linear
+model ``p = a . I + b`` of the data channel ``p`` in the colour ``I`` is fitted in every
+(2r+1)² window of the LR maps (the guided filter, He, Sun and Tang 2010; fitted at the LR
+size and applied at the HR size as in He and Sun's fast guided filter, 2015); its averaged
+coefficients, interpolated to the HR size, are applied to the upscaled colour map, and the
+result is back-projected onto the LR channel (prior/backproject.py). Where the channel does not
+follow the colour (``a`` near 0), it comes out as a smooth interpolation.
+
+Whether it wins is decided per channel by the self-check (prior/selfcheck.py): one scale
+down, with the colour map upscaled by the source the colour map's own check chose, against
+the prior's candidates and bicubic, by at least ``MARGIN``. ``RADIUS`` and ``EPS`` were
+chosen on the 49 roughness and metallic maps of the CC0 texture set (x4, 512² crops), with no
+benchmark asset taking part; ``MARGIN`` scored best there of 0, 0.05, 0.1, 0.2 and 0.3 dB
+(docs/METHOD.md, "The colour map as guide").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..asset.model import Asset
+from ..degrade import degrade_image
+from .backproject import back_project
+from .direct import bicubic_map
+from .selfcheck import CROP, _centre, scorer
+
+RADIUS = 1
+"""Window radius in LR texels."""
+EPS = 1e-4
+"""Regularisation of the fit (values in [0, 1]): larger keeps the channel smoother."""
+MARGIN = 0.1
+"""dB by which the guided upscale must beat, one scale down, both bicubic and the candidate
+the check chose (the 49 CC0 maps' mean gain over bicubic with the check's picks: +1.125 dB
+with this margin, +1.122 without)."""
+CHANNELS = (1, 2)
+"""The channels of a metallic-roughness image that may follow its colour map: roughness (G)
+and metallic (B). Occlusion (R) follows the geometry, not the paint."""
+
+
+def guide_pairs(asset: Asset, indices: set[int]) -> dict[int, int]:
+    """{metallic-roughness image: the colour image that guides it}, for every image of
+    ``indices`` that each material using it as ``metallic_roughness`` pairs with the same
+    ``base_color`` image of ``indices`` through the same UVs (texcoord and transform); an
+    image without such a single partner is left out."""
+    pairs: dict[int, int | None] = {}
+    for m in asset.materials:
+        mr, bc = m.metallic_roughness, m.base_color
+        if mr is None or mr.image not in indices:
+            continue
+        ok = (
+            bc is not None
+            and bc.image in indices
+            and bc.image != mr.image
+            and bc.texcoord == mr.texcoord
+            and bc.uv_transform == mr.uv_transform
+        )
+        partner = bc.image if ok and bc is not None else None
+        if pairs.get(mr.image, partner) != partner:
+            partner = None
+        pairs[mr.image] = partner
+    return {i: g for i, g in pairs.items() if g is not None}
+
+
+def _t(a: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float64)).permute(2, 0, 1)[None]
+
+
+def _box(x: torch.Tensor, r: int) -> torch.Tensor:
+    return F.avg_pool2d(F.pad(x, (r,) * 4, mode="replicate"), 2 * r + 1, stride=1)
+
+
+def _resize(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    if tuple(x.shape[-2:]) == size:
+        return x
+    return F.interpolate(x, size=size, mode="bicubic", align_corners=False, antialias=True)
+
+
+def guided_upscale(
+    lr: np.ndarray,
+    guide_lr: np.ndarray,
+    guide_hr: np.ndarray,
+    scale: int,
+    *,
+    radius: int = RADIUS,
+    eps: float = EPS,
+) -> np.ndarray:
+    """``lr`` (h, w, C) data channels upscaled to (s*h, s*w, C) with ``guide_lr`` (any size,
+    3 colour channels first) as the guide's LR and ``guide_hr`` (any size) as its upscaled
+    version; each guide is resampled to the channel's grid. Values in [0, 1]."""
+    if lr.ndim != 3 or guide_lr.ndim != 3 or guide_hr.ndim != 3:
+        raise ValueError("lr, guide_lr and guide_hr must be (H, W, C) arrays")
+    h, w = lr.shape[:2]
+    size_hr = (h * scale, w * scale)
+    with torch.inference_mode():
+        i_lr = _resize(_t(guide_lr[..., :3]), (h, w))
+        i_hr = _resize(_t(guide_hr[..., :3]), size_hr).float()
+        m_i = _box(i_lr, radius)
+        var = torch.stack(
+            [
+                _box(i_lr[:, j : j + 1] * i_lr[:, k : k + 1], radius)[:, 0] - m_i[:, j] * m_i[:, k]
+                for j in range(3)
+                for k in range(3)
+            ],
+            -1,
+        ).reshape(h * w, 3, 3) + eps * torch.eye(3, dtype=torch.float64)
+        out = []
+        for c in range(lr.shape[2]):
+            p = _t(lr[..., c : c + 1])
+            m_p = _box(p, radius)
+            cov = (_box(i_lr * p, radius) - m_i * m_p)[0].permute(1, 2, 0).reshape(h * w, 3, 1)
+            a = torch.linalg.solve(var, cov)[..., 0].reshape(h, w, 3).permute(2, 0, 1)[None]
+            b = m_p - (a * m_i).sum(1, keepdim=True)
+            a_hr = F.interpolate(_box(a, radius).float(), size=size_hr, mode="bilinear")
+            b_hr = F.interpolate(_box(b, radius).float(), size=size_hr, mode="bilinear")
+            q = ((a_hr * i_hr).sum(1, keepdim=True) + b_hr).clamp_(0.0, 1.0)
+            out.append(back_project(q, p.float(), scale)[0, 0])
+        hr = torch.stack(out, -1).nan_to_num_(0.0).clamp_(0.0, 1.0)
+    return hr.numpy().astype(np.float32)
+
+
+def guided_self_check(
+    lr: np.ndarray,
+    guide_lr: np.ndarray,
+    upscale_guide: Callable[[np.ndarray, int], np.ndarray],
+    factor: int,
+    *,
+    covered: np.ndarray | None = None,
+) -> list[float | None]:
+    """Per channel of ``lr`` (H, W, C; :data:`CHANNELS` only, None for the others), how many
+    dB the guided upscale beats bicubic by one scale down: the map's centre crop (as the
+    self-check takes it) and the guide's, each degraded by ``factor``, the guide upscaled
+    back by ``upscale_guide(pixels, factor)`` (what the run will guide with), compared with
+    the crop over the ``covered`` texels (all of them when fewer than ``(4 factor)²``)."""
+    h, w = lr.shape[:2]
+    with torch.inference_mode():
+        g = _resize(_t(guide_lr[..., :3]), (h, w))[0].permute(1, 2, 0).numpy().astype(np.float32)
+    crop, g_crop = _centre(lr, CROP), _centre(g, CROP)
+    small, g_small = degrade_image(crop, factor), degrade_image(g_crop, factor)
+    channels = [c for c in CHANNELS if c < lr.shape[2]]
+    up_g = guided_upscale(small[..., channels], g_small, upscale_guide(g_small, factor), factor)
+    up_b = bicubic_map(small, "data", factor)
+    db, _ = scorer(crop, up_b.shape, covered, factor)
+    margins: list[float | None] = [None] * lr.shape[2]
+    for k, c in enumerate(channels):
+        margins[c] = round(db(up_g[..., k], crop[..., c]) - db(up_b[..., c], crop[..., c]), 3)
+    return margins

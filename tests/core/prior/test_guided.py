@@ -1,0 +1,193 @@
+"""Roughness and metallic upscaled with the colour map as guide (prior/guided.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from pbrsr_core.asset import load_asset
+from pbrsr_core.asset.procedural import make_quad_asset
+from pbrsr_core.degrade import degrade_image
+from pbrsr_core.metrics import psnr
+from pbrsr_core.optim import presets
+from pbrsr_core.options import UpscaleOptions
+from pbrsr_core.pipeline import upscale_asset
+from pbrsr_core.prior import selfcheck
+from pbrsr_core.prior.base import Prior
+from pbrsr_core.prior.direct import bicubic_map
+from pbrsr_core.prior.guided import guide_pairs, guided_self_check, guided_upscale
+
+
+def _blocks(size: int, block: int, seed: int) -> np.ndarray:
+    """A colour map of flat blocks with sharp edges (paint regions), values in [0.1, 0.9]."""
+    g = np.random.default_rng(seed)
+    cells = g.random((size // block, size // block, 3)) * 0.8 + 0.1
+    return np.repeat(np.repeat(cells, block, 0), block, 1).astype(np.float32)
+
+
+def _follows(colour: np.ndarray) -> np.ndarray:
+    """Roughness and metallic as affine functions of the colour, in [0, 1]."""
+    r, g, b = colour[..., 0], colour[..., 1], colour[..., 2]
+    rough = 0.1 + 0.5 * r + 0.3 * b
+    metal = 0.9 - 0.4 * g - 0.4 * b
+    return np.stack([rough, metal], -1).astype(np.float32)
+
+
+def test_a_channel_affine_in_the_colour_is_recovered_from_the_hr_guide():
+    hr_colour = _blocks(128, 8, seed=1)
+    hr_data = _follows(hr_colour)
+    lr_colour, lr_data = degrade_image(hr_colour, 4), degrade_image(hr_data, 4)
+    up = guided_upscale(lr_data, lr_colour, hr_colour, 4)
+    assert up.shape == (128, 128, 2) and up.dtype == np.float32
+    bic = bicubic_map(lr_data, "data", 4)
+    for c in range(2):
+        exact, plain = psnr(up[..., c], hr_data[..., c]), psnr(bic[..., c], hr_data[..., c])
+        assert exact > 40.0 and exact > plain + 15.0, (c, exact, plain)
+
+
+def test_flat_and_degenerate_inputs_stay_finite_and_flat():
+    lr_colour = _blocks(32, 4, seed=2)
+    flat = np.full((32, 32, 2), 0.37, np.float32)
+    up = guided_upscale(flat, lr_colour, _blocks(128, 16, seed=2), 4)
+    assert np.abs(up - 0.37).max() < 1e-5
+    # a flat guide carries nothing: the fit's regularisation gives a smooth interpolation
+    data = _follows(_blocks(32, 4, seed=3))
+    up = guided_upscale(data, np.full((32, 32, 3), 0.5, np.float32), np.zeros((7, 9, 3)), 4)
+    assert np.isfinite(up).all() and up.min() >= 0.0 and up.max() <= 1.0
+    assert psnr(up, bicubic_map(data, "data", 4)) > 30.0
+    # a guide of another size is resampled to the channel's grid
+    up = guided_upscale(data, _blocks(64, 8, seed=3), _blocks(256, 32, seed=3), 4)
+    assert up.shape == (128, 128, 2) and np.isfinite(up).all()
+    with pytest.raises(ValueError, match=r"\(H, W, C\)"):
+        guided_upscale(data[..., 0], lr_colour, lr_colour, 4)
+
+
+def test_the_check_one_scale_down_scores_only_roughness_and_metallic():
+    lr_colour = _blocks(64, 8, seed=4)
+    orm = np.concatenate([np.random.default_rng(4).random((64, 64, 1)), _follows(lr_colour)], -1)
+    orm = orm.astype(np.float32)
+
+    def exact_guide(px: np.ndarray, f: int) -> np.ndarray:  # the colour map it was degraded from
+        assert px.shape[:2] == (64 // f, 64 // f)
+        return lr_colour
+
+    margins = guided_self_check(orm, lr_colour, exact_guide, 4)
+    assert margins[0] is None and margins[1] > 10.0 and margins[2] > 10.0
+    # only covered texels count
+    covered = np.zeros((64, 64), bool)
+    covered[:32] = True
+    assert guided_self_check(orm, lr_colour, exact_guide, 4, covered=covered)[1] > 10.0
+    # with a guide upscaled by bicubic the guided upscale gains little over bicubic
+    blurred = guided_self_check(orm, lr_colour, lambda px, f: bicubic_map(px, "colour", f), 4)
+    assert blurred[1] < margins[1] - 5.0
+
+
+def _material_asset(tmp_path):
+    """A quad whose material has a colour map and a metallic-roughness map."""
+    colour = _blocks(32, 4, seed=5)
+    orm = np.concatenate([np.full((32, 32, 1), 1.0), _follows(colour)], -1).astype(np.float32)
+    path = make_quad_asset(tmp_path / "q.gltf", {"base_color": colour, "metallic_roughness": orm})
+    return load_asset(path)
+
+
+def test_guide_pairs_follow_the_materials_uvs(tmp_path):
+    import dataclasses
+
+    asset = _material_asset(tmp_path)
+    (bc, mr) = (asset.materials[0].base_color, asset.materials[0].metallic_roughness)
+    assert bc is not None and mr is not None
+    assert guide_pairs(asset, {bc.image, mr.image}) == {mr.image: bc.image}
+    assert guide_pairs(asset, {mr.image}) == {}  # the colour map is not upscaled: no guide
+    other_uvs = dataclasses.replace(mr, texcoord=1)
+    m = dataclasses.replace(asset.materials[0], metallic_roughness=other_uvs)
+    assert guide_pairs(dataclasses.replace(asset, materials=[m]), {bc.image, mr.image}) == {}
+    moved = dataclasses.replace(mr, uv_transform=(2, 0, 0, 0, 2, 0, 0, 0, 1))
+    m = dataclasses.replace(asset.materials[0], metallic_roughness=moved)
+    assert guide_pairs(dataclasses.replace(asset, materials=[m]), {bc.image, mr.image}) == {}
+    # one metallic-roughness map shared by two materials of different colour maps: no guide
+    second = dataclasses.replace(
+        asset.materials[0], index=1, base_color=dataclasses.replace(bc, image=mr.image + 7)
+    )
+    two = dataclasses.replace(asset, materials=[asset.materials[0], second])
+    assert guide_pairs(two, {bc.image, mr.image, mr.image + 7}) == {}
+
+
+class KnowsTheColourMap(Prior):
+    """Exact on one colour map: its LR map degraded once more gives the LR map back (the
+    self-check one scale down), the LR map gives its HR map; any other input is blurred
+    (nearest, then a box filter: loses to bicubic)."""
+
+    name = "knows"
+    scales = (4,)
+    back_project = False
+
+    def __init__(self, lr: np.ndarray, hr: np.ndarray):
+        super().__init__()
+
+        def t(a: np.ndarray) -> torch.Tensor:
+            return torch.from_numpy(np.ascontiguousarray(a[..., :3])).permute(2, 0, 1)
+
+        self.pairs = [(t(degrade_image(lr, 4)), t(lr)), (t(lr), t(hr))]
+
+    def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
+        for src, out in self.pairs:
+            if x.shape[1:] == src.shape and torch.allclose(x[0], src, atol=1e-5):
+                return out[None].clone()
+        up = F.interpolate(x, scale_factor=scale, mode="nearest")
+        return F.avg_pool2d(up, 2 * scale + 1, stride=1, padding=scale, count_include_pad=False)
+
+
+def test_balanced_upscales_roughness_and_metallic_with_the_colour_map(tmp_path, monkeypatch):
+    import pbrsr_core.pipeline as pipeline
+
+    hr_colour = _blocks(128, 8, seed=6)
+    hr_data = _follows(hr_colour)
+    rng = np.random.default_rng(6)
+    occlusion = (rng.random((32, 32, 1)) * 0.5 + 0.5).astype(np.float32)
+    lr_orm = np.concatenate([occlusion, degrade_image(hr_data, 4)], -1)
+    path = make_quad_asset(
+        tmp_path / "q.gltf",
+        {"base_color": degrade_image(hr_colour, 4), "metallic_roughness": lr_orm},
+    )
+    lr = load_asset(path)
+    mat = lr.materials[0]
+    assert mat.base_color is not None and mat.metallic_roughness is not None
+    lr_colour = lr.images[mat.base_color.image].pixels
+    stored_orm = lr.images[mat.metallic_roughness.image].pixels
+    prior = KnowsTheColourMap(lr_colour, hr_colour)
+    monkeypatch.setattr(pipeline, "load_prior", lambda n, d: prior)
+    monkeypatch.setattr(selfcheck, "MIN_SIDE", 8)  # check the 32² maps at x4
+    monkeypatch.setitem(presets.PRESETS, "balanced", presets.BALANCED.with_(project_lr=()))
+
+    def run(name: str) -> tuple[np.ndarray, dict]:
+        report = upscale_asset(path, tmp_path / name, UpscaleOptions(preset="balanced"))
+        out = load_asset(tmp_path / name / "q.gltf")
+        return out.images[out.materials[0].metallic_roughness.image].pixels, report
+
+    orm, report = run("guided")
+    (entry,) = [c for c in report["prior_check"] if c["index"] == mat.metallic_roughness.image]
+    guided = entry["guided"]
+    assert guided["guide"] == lr.images[mat.base_color.image].name
+    assert guided["margins"][0] is None and min(guided["margins"][1:]) > 5.0
+    assert guided["channels"] == [False, True, True] == entry["channels"]
+    bic = bicubic_map(stored_orm, "metallic_roughness", 4)
+    for c in (1, 2):
+        got, plain = psnr(orm[..., c], hr_data[..., c - 1]), psnr(bic[..., c], hr_data[..., c - 1])
+        assert got > plain + 10.0, (c, got, plain)
+    assert np.abs(orm[..., 0] - bic[..., 0]).max() <= 1 / 255  # occlusion: bicubic's
+    # without guide_data the channels start from bicubic (the prior loses on them)
+    monkeypatch.setitem(
+        presets.PRESETS, "balanced", presets.BALANCED.with_(project_lr=(), guide_data=False)
+    )
+    orm, report = run("plain")
+    assert all("guided" not in c for c in report["prior_check"])
+    assert np.abs(orm[..., :3] - bic[..., :3]).max() <= 1 / 255
+    # nor where data maps are not checked: the check decides each channel
+    monkeypatch.setitem(
+        presets.PRESETS, "balanced", presets.BALANCED.with_(project_lr=(), check_prior=("colour",))
+    )
+    orm, report = run("unchecked")
+    assert all("guided" not in c for c in report["prior_check"])
+    assert np.abs(orm[..., 1:3] - bic[..., 1:3]).max() > 0.05  # the prior's blur, unchecked
