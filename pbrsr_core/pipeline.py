@@ -371,13 +371,15 @@ def _guided_channels(asset, images, channels, checks, sources, lr_pixels, s, con
 def _init_maps(images, sources, guides, lr_pixels, s, wraps, config, timer, progress):
     """The optimiser's start: bicubic, with a prior's upscale in the channels ``sources``
     gives one for (per image, per channel: the prior or None), and the colour-guided upscale
-    in the channels ``guides`` names (colour maps come first: they are the guides). Returns
+    in the channels ``guides`` names (their guides come first). Returns
     ({image: HR map, stored encoding}, the same as optimisation parameters, the LR maps as
     parameters)."""
     init_encoded, init, lr = {}, {}, {}
+    leading = {g for g, _ in guides.values()}
+    order = sorted(images, key=lambda im: im.index not in leading)
     with timer("init"):
-        tiles = MapProgress(progress, "init", images)
-        for img in sorted(images, key=lambda im: kind_of(im.roles) != "colour"):
+        tiles = MapProgress(progress, "init", order)
+        for img in order:
             kind = kind_of(img.roles)
             px = lr_pixels[img.index]
             hr = bicubic_map(px, kind, s, wraps[img.index])  # px: a cutout's already filled
@@ -390,6 +392,7 @@ def _init_maps(images, sources, guides, lr_pixels, s, wraps, config, timer, prog
                 picked = [c for c, u in enumerate(use) if u]
                 hr = hr.copy()
                 hr[..., picked] = guided_upscale(px[..., picked], lr_pixels[g], init_encoded[g], s)
+            tiles.on(img)(1, 1)  # done, whether a prior ran on it or not
             init_encoded[img.index] = hr
             init[img.index] = encoded_to_param(torch.from_numpy(hr), kind)
             lr[img.index] = encoded_to_param(torch.from_numpy(px), kind)

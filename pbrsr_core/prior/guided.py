@@ -68,8 +68,8 @@ def guide_pairs(asset: Asset, indices: set[int]) -> dict[int, int]:
     return {i: g for i, g in pairs.items() if g is not None}
 
 
-def _t(a: np.ndarray) -> torch.Tensor:
-    return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float64)).permute(2, 0, 1)[None]
+def _t(a: np.ndarray, dtype: type = np.float64) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(a, dtype=dtype)).permute(2, 0, 1)[None]
 
 
 def _box(x: torch.Tensor, r: int) -> torch.Tensor:
@@ -100,7 +100,7 @@ def guided_upscale(
     size_hr = (h * scale, w * scale)
     with torch.inference_mode():
         i_lr = _resize(_t(guide_lr[..., :3]), (h, w))
-        i_hr = _resize(_t(guide_hr[..., :3]), size_hr).float()
+        i_hr = _resize(_t(guide_hr[..., :3], np.float32), size_hr)  # the HR side in float32
         m_i = _box(i_lr, radius)
         var = torch.stack(
             [
@@ -117,9 +117,14 @@ def guided_upscale(
             cov = (_box(i_lr * p, radius) - m_i * m_p)[0].permute(1, 2, 0).reshape(h * w, 3, 1)
             a = torch.linalg.solve(var, cov)[..., 0].reshape(h, w, 3).permute(2, 0, 1)[None]
             b = m_p - (a * m_i).sum(1, keepdim=True)
-            a_hr = F.interpolate(_box(a, radius).float(), size=size_hr, mode="bilinear")
-            b_hr = F.interpolate(_box(b, radius).float(), size=size_hr, mode="bilinear")
-            q = ((a_hr * i_hr).sum(1, keepdim=True) + b_hr).clamp_(0.0, 1.0)
+            a, b = _box(a, radius).float(), _box(b, radius).float()
+            q = F.interpolate(b, size=size_hr, mode="bilinear")
+            for k in range(3):  # one HR coefficient plane at a time
+                q += (
+                    F.interpolate(a[:, k : k + 1], size=size_hr, mode="bilinear")
+                    * i_hr[:, k : k + 1]
+                )
+            q.clamp_(0.0, 1.0)
             out.append(back_project(q, p.float(), scale)[0, 0])
         hr = torch.stack(out, -1).nan_to_num_(0.0).clamp_(0.0, 1.0)
     return hr.numpy().astype(np.float32)

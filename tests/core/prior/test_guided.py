@@ -18,6 +18,7 @@ from pbrsr_core.prior import selfcheck
 from pbrsr_core.prior.base import Prior
 from pbrsr_core.prior.direct import bicubic_map
 from pbrsr_core.prior.guided import guide_pairs, guided_self_check, guided_upscale
+from pbrsr_core.progress import Progress
 
 
 def _blocks(size: int, block: int, seed: int) -> np.ndarray:
@@ -147,9 +148,9 @@ def test_balanced_upscales_roughness_and_metallic_with_the_colour_map(tmp_path, 
     rng = np.random.default_rng(6)
     occlusion = (rng.random((32, 32, 1)) * 0.5 + 0.5).astype(np.float32)
     lr_orm = np.concatenate([occlusion, degrade_image(hr_data, 4)], -1)
-    path = make_quad_asset(
+    path = make_quad_asset(  # the metallic-roughness image first: its guide is made first
         tmp_path / "q.gltf",
-        {"base_color": degrade_image(hr_colour, 4), "metallic_roughness": lr_orm},
+        {"metallic_roughness": lr_orm, "base_color": degrade_image(hr_colour, 4)},
     )
     lr = load_asset(path)
     mat = lr.materials[0]
@@ -162,7 +163,11 @@ def test_balanced_upscales_roughness_and_metallic_with_the_colour_map(tmp_path, 
     monkeypatch.setitem(presets.PRESETS, "balanced", presets.BALANCED.with_(project_lr=()))
 
     def run(name: str) -> tuple[np.ndarray, dict]:
-        report = upscale_asset(path, tmp_path / name, UpscaleOptions(preset="balanced"))
+        events: list[Progress] = []
+        options = UpscaleOptions(preset="balanced")
+        report = upscale_asset(path, tmp_path / name, options, progress=events.append)
+        steps = [e.step for e in events if e.stage == "init"]
+        assert steps == sorted(steps) and steps[-1] == 1000, steps
         out = load_asset(tmp_path / name / "q.gltf")
         return out.images[out.materials[0].metallic_roughness.image].pixels, report
 
