@@ -178,8 +178,7 @@ def _upscale_maps(
             lr_pixels[img.index] = filled_cutout(lr_pixels[img.index], seen_from)
     channels, checks, sources = _prior_channels_checked(asset, images, prior, lr_pixels, s,
                                                         config, timer, progress)  # fmt: skip
-    guides = _guided_channels(asset, images, channels, checks, sources, lr_pixels, s, config,
-                              timer)  # fmt: skip
+    guides = _guided_channels(asset, images, channels, checks, sources, lr_pixels, config, timer)
     init_encoded, init, lr = _init_maps(images, sources, guides, lr_pixels, s, wraps, config,
                                         timer, progress)  # fmt: skip
     if checks is not None and not any(any(c) for c in channels.values()):
@@ -325,7 +324,7 @@ def _prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, p
     return channels, checks, sources
 
 
-def _guided_channels(asset, images, channels, checks, sources, lr_pixels, s, config, timer):
+def _guided_channels(asset, images, channels, checks, sources, lr_pixels, config, timer):
     """With ``guide_data``: the metallic-roughness channels to upscale with their colour map
     as guide (prior/guided.py), where that beats, one scale down, both bicubic and the
     candidate the self-check chose by ``MARGIN``. Updates ``channels``, ``sources`` (None:
@@ -389,8 +388,7 @@ def _init_maps(images, sources, guides, lr_pixels, s, wraps, config, timer, prog
                                   wrap=wraps[img.index])  # fmt: skip
             if img.index in guides:
                 g, use = guides[img.index]
-                picked = [c for c, u in enumerate(use) if u]
-                hr = hr.copy()
+                picked = [c for c, u in enumerate(use) if u]  # hr is this call's own array
                 hr[..., picked] = guided_upscale(px[..., picked], lr_pixels[g], init_encoded[g], s)
             tiles.on(img)(1, 1)  # done, whether a prior ran on it or not
             init_encoded[img.index] = hr

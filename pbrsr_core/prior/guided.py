@@ -14,7 +14,7 @@ down, with the colour map upscaled by the source the colour map's own check chos
 the prior's candidates and bicubic, by at least ``MARGIN``. ``RADIUS`` and ``EPS`` were
 chosen on the 49 roughness and metallic maps of the CC0 texture set (x4, 512² crops), with no
 benchmark asset taking part; ``MARGIN`` scored best there of 0, 0.05, 0.1, 0.2 and 0.3 dB
-(docs/METHOD.md, "The colour map as guide").
+(docs/METHOD.md, "Roughness and metallic guided by the colour map").
 """
 
 from __future__ import annotations
