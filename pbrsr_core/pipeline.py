@@ -52,6 +52,7 @@ from .metrics import seam_ratio
 from .options import UpscaleOptions
 from .preview import write_previews
 from .prior import load_prior
+from .prior.blend import MARGIN, blend, blend_check
 from .prior.direct import (
     bicubic_map,
     filled_cutout,
@@ -61,8 +62,14 @@ from .prior.direct import (
     upscale_map,
 )
 from .prior.guided import CHANNELS as GUIDED_CHANNELS
-from .prior.guided import MARGIN, guide_pairs, guided_self_check, guided_upscale
-from .prior.selfcheck import chosen, merge_channels, prior_self_check, upscale_channels
+from .prior.guided import guide_pairs, guided_check_upscale, guided_upscale
+from .prior.selfcheck import (
+    chosen,
+    merge_channels,
+    prior_self_check,
+    upscale_channels,
+    upscale_each,
+)
 from .progress import Progress, ProgressFn, emit
 from .render.light import EnvLight
 from .scene import make_scene, procedural_light
@@ -176,10 +183,13 @@ def _upscale_maps(
     for img in images:  # a cutout's hidden colour takes no part (init, losses, projection)
         if (seen_from := cutouts[img.index]) is not None:
             lr_pixels[img.index] = filled_cutout(lr_pixels[img.index], seen_from)
+    kept: dict[int, dict] | None = {} if config.blend_data else None
     channels, checks, sources = _prior_channels_checked(asset, images, prior, lr_pixels, s,
-                                                        config, timer, progress)  # fmt: skip
-    guides = _guided_channels(asset, images, channels, checks, sources, lr_pixels, config, timer)
-    init_encoded, init, lr = _init_maps(images, sources, guides, lr_pixels, s, wraps, config,
+                                                        config, timer, progress, kept)  # fmt: skip
+    blends = _blended_channels(asset, images, prior, channels, checks, sources, kept, lr_pixels,
+                               config, timer)  # fmt: skip
+    del kept
+    init_encoded, init, lr = _init_maps(images, sources, blends, lr_pixels, s, wraps, config,
                                         timer, progress)  # fmt: skip
     if checks is not None and not any(any(c) for c in channels.values()):
         prior = load_prior("bicubic", device)  # for the pseudo-GT
@@ -255,9 +265,11 @@ def _deblocked(images, config: PbrsrConfig, timer: StageTimer):
     return lr_pixels, deblocked
 
 
-def _self_checks(asset, images, prior, lr_pixels, s, kinds, max_prior_scale, timer, progress):
+def _self_checks(asset, images, prior, lr_pixels, s, kinds, max_prior_scale, timer, progress,
+                 kept=None):  # fmt: skip
     """The self-check (prior/selfcheck.py) of each image of a kind in ``kinds``, over the
-    texels a viewer sees: {image index: report, or None for a map too small to check}."""
+    texels a viewer sees: {image index: report, or None for a map too small to check}.
+    ``kept``: filled with {data image index: what its check compared}."""
     checks: dict[int, dict | None] = {}
     todo = [img for img in images if kind_of(img.roles) in kinds]
     if not todo:
@@ -280,14 +292,19 @@ def _self_checks(asset, images, prior, lr_pixels, s, kinds, max_prior_scale, tim
                 max_prior_scale=max_prior_scale,
                 covered=seen,
                 cutout=hidden_to,
+                keep=kept.setdefault(img.index, {})
+                if kept is not None and kind_of(img.roles) == "data"
+                else None,
             )
     return checks
 
 
-def _prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, progress):
+def _prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, progress,
+                            kept=None):  # fmt: skip
     """Which channels of each image the prior initialises (paper 3.1: the maps the preset
     names in ``prior_maps``; an ORM image's channels one by one; bicubic the rest), and with
-    ``check_prior`` only those where the prior beats bicubic one scale down. Returns
+    ``check_prior`` only those where the prior beats bicubic one scale down (``kept``: as
+    :func:`_self_checks` fills it). Returns
     ({image: [bool per channel]}, the self-check reports or None when nothing was checked,
     {image: per channel, the prior's candidate the check chose, or None for bicubic})."""
     channels = {img.index: prior_channels(img, config) for img in images}
@@ -295,7 +312,7 @@ def _prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, p
         return channels, None, {i: [prior if c else None for c in ch] for i, ch in channels.items()}
     used = [img for img in images if any(channels[img.index])]
     found = _self_checks(asset, used, prior, lr_pixels, s, set(config.check_prior),
-                         config.max_prior_scale, timer, progress)  # fmt: skip
+                         config.max_prior_scale, timer, progress, kept)  # fmt: skip
     checks: list[dict] = []
     for img in used:
         kind = kind_of(img.roles)
@@ -324,57 +341,78 @@ def _prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, p
     return channels, checks, sources
 
 
-def _guided_channels(asset, images, channels, checks, sources, lr_pixels, config, timer):
-    """With ``guide_data``: the metallic-roughness channels to upscale with their colour map
-    as guide (prior/guided.py), where that beats, one scale down, both bicubic and the
-    candidate the self-check chose by ``MARGIN``. Updates ``channels``, ``sources`` (None:
-    not the prior) and the ``checks`` entries (``guided``); returns {image: (guide image,
-    [bool per channel])}."""
-    if not config.guide_data or checks is None:
+def _blended_channels(asset, images, prior, channels, checks, sources, kept, lr_pixels, config,
+                      timer):  # fmt: skip
+    """With ``blend_data``: each checked data map's channels (those the preset lets a prior
+    initialise) as a blend of the prior's candidates, bicubic and, for the roughness and
+    metallic of a metallic-roughness map, the upscale guided by its colour map
+    (prior/blend.py, prior/guided.py), weighted one scale down from the upscales its check
+    compared (``kept``); a channel whose blend beats bicubic by less than ``MARGIN`` stays
+    bicubic's. Updates ``channels``, ``sources`` (None: blended or bicubic) and the ``checks``
+    entries (``blend``); returns {image: (the blend's sources, a candidate or "guided"; per
+    channel their weights; the guide image or None)}."""
+    if not config.blend_data or checks is None or not kept:
         return {}
     by_index = {img.index: img for img in images}
     entries = {c["index"]: c for c in checks if "margins" in c}
-    allowed = {img.index: prior_channels(img, config) for img in images}
-    guides = {}
+    pairs = guide_pairs(asset, set(by_index))
+    blends = {}
     with timer("prior_check"):
-        covered = None
-        for i, g in guide_pairs(asset, set(by_index)).items():
-            if i not in entries or not any(allowed[i][c] for c in GUIDED_CHANNELS):
+        for i, k in kept.items():
+            if i not in entries or not k:
                 continue
-            if covered is None:
-                covered = coverage_masks(asset)
-            src = (sources.get(g) or [None])[0]
-
-            def upscale_guide(px, f, src=src):
-                if src is None:
-                    return bicubic_map(px, "colour", f)
-                return upscale_map(src, px, "colour", f, max_prior_scale=config.max_prior_scale)
-
-            entry = entries[i]
             n = len(channels[i])
-            margins = guided_self_check(lr_pixels[i][..., :n], lr_pixels[g], upscale_guide,
-                                        entry["scale"], covered=covered.get(i))  # fmt: skip
-            use = [
-                m is not None and allowed[i][c] and m > max(0.0, entry["margins"][c]) + MARGIN
-                for c, m in enumerate(margins)
-            ]
-            entry["guided"] = {"guide": by_index[g].name, "margins": margins, "channels": use}
+            todo = [c for c, ok in enumerate(prior_channels(by_index[i], config)) if ok]
+            guided, g = {}, pairs.get(i)
+            gc = [c for c in GUIDED_CHANNELS if c in todo and c < n]
+            if g is not None and gc:
+                src = (sources.get(g) or [None])[0]
+
+                def upscale_guide(px, f, src=src):
+                    if src is None:
+                        return bicubic_map(px, "colour", f)
+                    return upscale_map(src, px, "colour", f, max_prior_scale=config.max_prior_scale)
+
+                size = lr_pixels[i].shape[:2]
+                up = guided_check_upscale(k, size, lr_pixels[g], upscale_guide, gc)
+                guided = {c: up[..., m] for m, c in enumerate(gc)}
+            fits = blend_check(k, todo, guided)
+            names = list(k["ups"]) + (["guided"] if guided else [])
+            weights = [[0.0] * len(names) for _ in range(n)]
+            use = [False] * n
+            for c, (fit_names, w, gain) in fits.items():
+                if gain > MARGIN:
+                    use[c] = True
+                    for name, wk in zip(fit_names, w, strict=True):
+                        weights[c][names.index(name)] = wk
+            entry = entries[i]
+            entry["blend"] = {
+                "sources": names,
+                "guide": by_index[g].name if guided and g is not None else None,
+                "weights": weights,
+                "margins": [fits[c][2] if c in fits else None for c in range(n)],
+            }
+            entry["channels"], entry["use_prior"] = use, any(use)
+            channels[i], sources[i] = use, [None] * n
             if any(use):
-                guides[i] = (g, use)
-                channels[i] = [a or b for a, b in zip(channels[i], use, strict=True)]
-                entry["channels"], entry["use_prior"] = channels[i], True
-                sources[i] = [None if u else p for p, u in zip(sources[i], use, strict=True)]
-    return guides
+                by_name = {p.name: p for p in prior.candidates(kind_of(by_index[i].roles))}
+                used_names = [m for m, name in enumerate(names) if any(w[m] for w in weights)]
+                blends[i] = (
+                    [by_name.get(names[m], "guided") for m in used_names],
+                    [[w[m] for m in used_names] for w in weights],
+                    g if "guided" in (names[m] for m in used_names) else None,
+                )
+    return blends
 
 
-def _init_maps(images, sources, guides, lr_pixels, s, wraps, config, timer, progress):
+def _init_maps(images, sources, blends, lr_pixels, s, wraps, config, timer, progress):
     """The optimiser's start: bicubic, with a prior's upscale in the channels ``sources``
-    gives one for (per image, per channel: the prior or None), and the colour-guided upscale
-    in the channels ``guides`` names (their guides come first). Returns
+    gives one for (per image, per channel: the prior or None), and the blends of ``blends``
+    (:func:`_blended_channels`; the colour maps that guide one come first). Returns
     ({image: HR map, stored encoding}, the same as optimisation parameters, the LR maps as
     parameters)."""
     init_encoded, init, lr = {}, {}, {}
-    leading = {g for g, _ in guides.values()}
+    leading = {g for _, _, g in blends.values() if g is not None}
     order = sorted(images, key=lambda im: im.index not in leading)
     with timer("init"):
         tiles = MapProgress(progress, "init", order)
@@ -383,18 +421,39 @@ def _init_maps(images, sources, guides, lr_pixels, s, wraps, config, timer, prog
             px = lr_pixels[img.index]
             hr = bicubic_map(px, kind, s, wraps[img.index])  # px: a cutout's already filled
             tiles.on(img)(0, 1)
-            hr = upscale_channels(sources.get(img.index, [None]), px, kind, s, hr,
-                                  max_prior_scale=config.max_prior_scale, progress=tiles.on(img),
-                                  wrap=wraps[img.index])  # fmt: skip
-            if img.index in guides:
-                g, use = guides[img.index]
-                picked = [c for c, u in enumerate(use) if u]  # hr is this call's own array
-                hr[..., picked] = guided_upscale(px[..., picked], lr_pixels[g], init_encoded[g], s)
+            if img.index in blends:
+                hr = _blend_map(hr, px, blends[img.index], init_encoded, lr_pixels, s, kind,
+                                wraps[img.index], config, tiles.on(img))  # fmt: skip
+            else:
+                hr = upscale_channels(sources.get(img.index, [None]), px, kind, s, hr,
+                                      max_prior_scale=config.max_prior_scale,
+                                      progress=tiles.on(img), wrap=wraps[img.index])  # fmt: skip
             tiles.on(img)(1, 1)  # done, whether a prior ran on it or not
             init_encoded[img.index] = hr
             init[img.index] = encoded_to_param(torch.from_numpy(hr), kind)
             lr[img.index] = encoded_to_param(torch.from_numpy(px), kind)
     return init_encoded, init, lr
+
+
+def _blend_map(bicubic, px, how, init_encoded, lr_pixels, s, kind, wrap, config, progress):
+    """A data map whose channels blend its upscales (``how``, as :func:`_blended_channels`
+    gives it) over ``bicubic``; the guide's HR map is in ``init_encoded``."""
+    sources, weights, g = how
+    priors = [p for p in sources if not isinstance(p, str)]
+    ups = upscale_each(priors, px, kind, s, max_prior_scale=config.max_prior_scale,
+                       progress=progress, wrap=wrap)  # fmt: skip
+    by_source = dict(zip(priors, ups, strict=True))
+    if g is not None:
+        guided = bicubic.copy()
+        k = sources.index("guided")
+        gc = [c for c in GUIDED_CHANNELS if c < len(weights) and weights[c][k]]
+        guided[..., gc] = guided_upscale(px[..., gc], lr_pixels[g], init_encoded[g], s)
+        by_source["guided"] = guided
+    out = bicubic.copy()
+    for c, w in enumerate(weights):
+        if any(w):
+            out[..., c] = blend([by_source[p][..., c] for p in sources], bicubic[..., c], w)
+    return out
 
 
 def _optimise(asset, images, init_encoded, init, lr, lr_pixels, channels, prior, options, config,

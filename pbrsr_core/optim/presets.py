@@ -71,11 +71,12 @@ class PbrsrConfig:
     one back-projection step onto its input (prior/direct.py ``upscale_rgb``): in the init,
     in the self-check (which scores the same upscaling) and in the pseudo-GT. None: the prior
     does the whole scale (the paper)."""
-    guide_data: bool = False
-    """The roughness and metallic channels of a metallic-roughness map may be upscaled with
-    the material's upscaled colour map as guide (prior/guided.py), where the self-check finds
-    that closer one scale down than the prior's candidates and bicubic; only when the check
-    covers data maps (``check_prior``). The paper upscales each map on its own."""
+    blend_data: bool = False
+    """Each channel of a data map is a blend of the prior's candidates, bicubic and, for a
+    metallic-roughness map's roughness and metallic, the upscale guided by the material's
+    colour map (prior/guided.py), weighted by a least-squares fit one scale down
+    (prior/blend.py); only when the check covers data maps (``check_prior``). Off: each
+    channel takes the check's pick. The paper upscales each map on its own."""
     deblock_jpeg: bool = False
     """LR maps stored as JPEG have their block artefacts reduced with the file's own
     quantisation tables (every component of 4:4:4 files, the luma of chroma-subsampled ones)
@@ -289,7 +290,7 @@ _CPU = PbrsrConfig(
     render_res=None,
     target="detail",
     check_prior=CHECK_PRIOR_CPU,
-    guide_data=True,
+    blend_data=True,
     deblock_jpeg=True,
     lr=2.5e-4,
     prior_maps=PRIOR_MAPS_CPU,

@@ -9,12 +9,11 @@ coefficients, interpolated to the HR size, are applied to the upscaled colour ma
 result is back-projected onto the LR channel (prior/backproject.py). Where the channel does not
 follow the colour (``a`` near 0), it comes out as a smooth interpolation.
 
-Whether it wins is decided per channel by the self-check (prior/selfcheck.py): one scale
-down, with the colour map upscaled by the source the colour map's own check chose, against
-the prior's candidates and bicubic, by at least ``MARGIN``. ``RADIUS`` and ``EPS`` were
-chosen on the 49 roughness and metallic maps of the CC0 texture set (x4, 512² crops), with no
-benchmark asset taking part; ``MARGIN`` scored best there of 0, 0.05, 0.1, 0.2 and 0.3 dB
-(docs/METHOD.md, "Roughness and metallic guided by the colour map").
+It is one of the upscales a channel's blend weighs (prior/blend.py), scored one scale down
+with the colour map upscaled by the source the colour map's own check chose. ``RADIUS`` and
+``EPS`` were chosen on the roughness and metallic maps of the CC0 texture set (x4, 512²
+crops), with no benchmark asset taking part (docs/METHOD.md, "Roughness and metallic guided
+by the colour map").
 """
 
 from __future__ import annotations
@@ -28,17 +27,12 @@ import torch.nn.functional as F
 from ..asset.model import Asset
 from ..degrade import degrade_image
 from .backproject import back_project
-from .direct import bicubic_map
-from .selfcheck import CROP, _centre, scorer
+from .selfcheck import CROP, _centre
 
 RADIUS = 1
 """Window radius in LR texels."""
 EPS = 1e-4
 """Regularisation of the fit (values in [0, 1]): larger keeps the channel smoother."""
-MARGIN = 0.1
-"""dB by which the guided upscale must beat, one scale down, both bicubic and the candidate
-the check chose (the 49 CC0 maps' mean gain over bicubic with the check's picks: +1.125 dB
-with this margin, +1.122 without)."""
 CHANNELS = (1, 2)
 """The channels of a metallic-roughness image that may follow its colour map: roughness (G)
 and metallic (B). Occlusion (R) follows the geometry, not the paint."""
@@ -130,29 +124,23 @@ def guided_upscale(
     return hr.numpy().astype(np.float32)
 
 
-def guided_self_check(
-    lr: np.ndarray,
+def guided_check_upscale(
+    kept: dict,
+    size: tuple[int, int],
     guide_lr: np.ndarray,
     upscale_guide: Callable[[np.ndarray, int], np.ndarray],
-    factor: int,
-    *,
-    covered: np.ndarray | None = None,
-) -> list[float | None]:
-    """Per channel of ``lr`` (H, W, C; :data:`CHANNELS` only, None for the others), how many
-    dB the guided upscale beats bicubic by one scale down: the map's centre crop (as the
-    self-check takes it) and the guide's, each degraded by ``factor``, the guide upscaled
-    back by ``upscale_guide(pixels, factor)`` (what the run will guide with), compared with
-    the crop over the ``covered`` texels (all of them when fewer than ``(4 factor)²``)."""
-    h, w = lr.shape[:2]
+    channels: list[int],
+) -> np.ndarray:
+    """The guided upscale of ``channels`` of a map of ``size`` (H, W) from one scale down, as
+    its self-check upscaled the candidates (``kept``, what
+    :func:`~.selfcheck.prior_self_check` keeps): the guide resampled to the map's grid, its
+    centre crop degraded by the same factor and upscaled back by
+    ``upscale_guide(pixels, factor)`` (what the run will guide with). (h, w, len(channels)),
+    cut to the check's mask."""
     with torch.inference_mode():
-        g = _resize(_t(guide_lr[..., :3]), (h, w))[0].permute(1, 2, 0).numpy().astype(np.float32)
-    crop, g_crop = _centre(lr, CROP), _centre(g, CROP)
-    small, g_small = degrade_image(crop, factor), degrade_image(g_crop, factor)
-    channels = [c for c in CHANNELS if c < lr.shape[2]]
-    up_g = guided_upscale(small[..., channels], g_small, upscale_guide(g_small, factor), factor)
-    up_b = bicubic_map(small, "data", factor)
-    db, _ = scorer(crop, up_b.shape, covered, factor)
-    margins: list[float | None] = [None] * lr.shape[2]
-    for k, c in enumerate(channels):
-        margins[c] = round(db(up_g[..., k], crop[..., c]) - db(up_b[..., c], crop[..., c]), 3)
-    return margins
+        g = _resize(_t(guide_lr[..., :3]), size)[0].permute(1, 2, 0).numpy().astype(np.float32)
+    f = kept["factor"]
+    g_small = degrade_image(_centre(g, CROP), f)
+    up = guided_upscale(kept["small"][..., channels], g_small, upscale_guide(g_small, f), f)
+    h, w = kept["mask"].shape
+    return up[:h, :w]

@@ -61,11 +61,11 @@ def _centre(a: np.ndarray, size: int) -> np.ndarray:
 
 def scorer(
     crop: np.ndarray, shape: tuple[int, ...], covered: np.ndarray | None, scale: int
-) -> tuple[Callable[[np.ndarray, np.ndarray], float], int]:
-    """(``db(up, ref)``, the texels it compares): ``db`` is the PSNR of an upscale of
-    ``shape`` against ``ref`` (channels of the map's centre ``crop``) over the texels both
-    cover, of those only the ones ``covered`` (H, W, the whole map's mask) marks, or all of
-    them when that leaves fewer than ``(4 scale)²``."""
+) -> tuple[Callable[[np.ndarray, np.ndarray], float], np.ndarray]:
+    """(``db(up, ref)``, the texels it compares as a mask): ``db`` is the PSNR of an upscale
+    of ``shape`` against ``ref`` (channels of the map's centre ``crop``) over the texels both
+    cover (the mask's shape), of those only the ones ``covered`` (H, W, the whole map's mask)
+    marks, or all of them when that leaves fewer than ``(4 scale)²``."""
     h, w = min(crop.shape[0], shape[0]), min(crop.shape[1], shape[1])
     mask = np.ones((h, w), dtype=bool)
     if covered is not None:
@@ -78,7 +78,7 @@ def scorer(
         se = float((diff**2).sum())
         return 100.0 if se <= 0 else 10.0 * math.log10(diff.size / se)
 
-    return db, int(mask.sum())
+    return db, mask
 
 
 def prior_self_check(
@@ -90,6 +90,7 @@ def prior_self_check(
     max_prior_scale: int | None = None,
     covered: np.ndarray | None = None,
     cutout: float | None = None,
+    keep: dict | None = None,
 ) -> dict | None:
     """``{"priors", "prior_db", "bicubic_db", "candidates", "texels", "use_prior",
     "channels", "margins", "scale"}`` for one map (H, W, C) as stored, or None when it is not
@@ -109,7 +110,10 @@ def prior_self_check(
     the init will use.
     ``covered`` (H, W) bool: the texels the mesh's UVs cover; only those are compared (all of
     the crop when it covers fewer than ``4 * scale`` squared of them). ``cutout``: upscale as
-    a cutout's colour (:func:`~.direct.with_cutout`), as the init will."""
+    a cutout's colour (:func:`~.direct.with_cutout`), as the init will. ``keep``: filled
+    with what the check compared (``crop``, ``small``, ``factor``, ``mask``, the scorer
+    ``db``, the candidates' upscales ``ups`` by name, ``bicubic``; each cut to the mask's
+    shape), for a decision made from the same upscales (prior/blend.py)."""
     a = np.asarray(lr_map, dtype=np.float32)
     n_colour = 3 if a.shape[2] >= 3 else 1
     crop = _centre(a, CROP)
@@ -125,7 +129,12 @@ def prior_self_check(
         for c in candidates
     ]
     up_b = bicubic_map(small, kind, scale, cutout=cutout)
-    score, texels = scorer(crop, up_b.shape, covered, scale)
+    score, mask = scorer(crop, up_b.shape, covered, scale)
+    if keep is not None:
+        h, w = mask.shape
+        keep.update(crop=crop[:h, :w], small=small, factor=scale, mask=mask, db=score,
+                    ups={c.name: up[:h, :w] for c, up in zip(candidates, ups, strict=True)},
+                    bicubic=up_b[:h, :w])  # fmt: skip
 
     def db(up: np.ndarray, c: slice) -> float:
         return score(up[..., c], crop[..., c])
@@ -148,7 +157,7 @@ def prior_self_check(
         "prior_db": max(each.values()),
         "bicubic_db": round(b, 3),
         "candidates": each,
-        "texels": texels,
+        "texels": int(mask.sum()),
         "use_prior": any(channels),
         "channels": channels,
         "margins": margins,
@@ -177,6 +186,19 @@ def merge_channels(prior_map: np.ndarray, bicubic: np.ndarray, channels: list[bo
     return out
 
 
+def upscale_each(priors: Sequence[Prior], pixels: np.ndarray, kind: str, scale: int, **kw):
+    """The map upscaled by each of ``priors`` (:func:`~.direct.upscale_map` with ``kw``); a
+    ``progress`` callback in ``kw`` sees the runs as one: ``(tiles done, tiles)`` over all
+    of them."""
+    progress = kw.pop("progress", None)
+    n, out = len(priors), []
+    for k, p in enumerate(priors):
+        if progress is not None:
+            kw["progress"] = lambda done, total, k=k: progress(k * total + done, n * total)
+        out.append(upscale_map(p, pixels, kind, scale, **kw))
+    return out
+
+
 def upscale_channels(
     sources: Sequence[Prior | None],
     pixels: np.ndarray,
@@ -186,17 +208,11 @@ def upscale_channels(
     **kw,
 ) -> np.ndarray:
     """A map upscaled channel entry by channel entry (as ``channels`` counts them): each
-    entry of ``sources`` names the prior for it (:func:`~.direct.upscale_map` with ``kw``),
-    None keeps ``base``'s (bicubic). Each prior runs once, on the whole map; a ``progress``
-    callback in ``kw`` sees the runs as one: ``(tiles done, tiles)`` over all of them."""
+    entry of ``sources`` names the prior for it (:func:`upscale_each` with ``kw``: each prior
+    runs once, on the whole map), None keeps ``base``'s (bicubic)."""
     out = base
     priors = list(dict.fromkeys(q for q in sources if q is not None))
-    progress = kw.pop("progress", None)
-    n = len(priors)
-    for k, p in enumerate(priors):
-        if progress is not None:
-            kw["progress"] = lambda done, total, k=k: progress(k * total + done, n * total)
-        up = upscale_map(p, pixels, kind, scale, **kw)
+    for p, up in zip(priors, upscale_each(priors, pixels, kind, scale, **kw), strict=True):
         out = up if out is None else merge_channels(up, out, [q is p for q in sources])
     if out is None:
         raise ValueError("no prior and no base map to upscale with")

@@ -17,7 +17,7 @@ from pbrsr_core.pipeline import upscale_asset
 from pbrsr_core.prior import selfcheck
 from pbrsr_core.prior.base import Prior
 from pbrsr_core.prior.direct import bicubic_map
-from pbrsr_core.prior.guided import guide_pairs, guided_self_check, guided_upscale
+from pbrsr_core.prior.guided import guide_pairs, guided_check_upscale, guided_upscale
 from pbrsr_core.progress import Progress
 
 
@@ -65,24 +65,30 @@ def test_flat_and_degenerate_inputs_stay_finite_and_flat():
         guided_upscale(data[..., 0], lr_colour, lr_colour, 4)
 
 
-def test_the_check_one_scale_down_scores_only_roughness_and_metallic():
+def test_the_check_upscales_the_crop_one_scale_down_with_the_guide_degraded_alike():
     lr_colour = _blocks(64, 8, seed=4)
     orm = np.concatenate([np.random.default_rng(4).random((64, 64, 1)), _follows(lr_colour)], -1)
     orm = orm.astype(np.float32)
+    small = degrade_image(orm, 4)
+    kept = {"small": small, "factor": 4, "mask": np.ones((64, 64), bool)}
 
     def exact_guide(px: np.ndarray, f: int) -> np.ndarray:  # the colour map it was degraded from
-        assert px.shape[:2] == (64 // f, 64 // f)
+        assert px.shape[:2] == (64 // f, 64 // f) and f == 4
         return lr_colour
 
-    margins = guided_self_check(orm, lr_colour, exact_guide, 4)
-    assert margins[0] is None and margins[1] > 10.0 and margins[2] > 10.0
-    # only covered texels count
-    covered = np.zeros((64, 64), bool)
-    covered[:32] = True
-    assert guided_self_check(orm, lr_colour, exact_guide, 4, covered=covered)[1] > 10.0
+    bicubic_guide = lambda px, f: bicubic_map(px, "colour", f)  # noqa: E731
+    up = guided_check_upscale(kept, (64, 64), lr_colour, exact_guide, [1, 2])
+    assert up.shape == (64, 64, 2)
+    bic = bicubic_map(small, "data", 4)
+    for k, c in enumerate((1, 2)):
+        assert psnr(up[..., k], orm[..., c]) > psnr(bic[..., c], orm[..., c]) + 10.0
     # with a guide upscaled by bicubic the guided upscale gains little over bicubic
-    blurred = guided_self_check(orm, lr_colour, lambda px, f: bicubic_map(px, "colour", f), 4)
-    assert blurred[1] < margins[1] - 5.0
+    blurred = guided_check_upscale(kept, (64, 64), lr_colour, bicubic_guide, [1])
+    assert psnr(blurred[..., 0], orm[..., 1]) < psnr(up[..., 0], orm[..., 1]) - 5.0
+    # a guide of another size is resampled to the map's grid first; cut to the mask's shape
+    kept["mask"] = np.ones((60, 62), bool)
+    up = guided_check_upscale(kept, (64, 64), _blocks(128, 16, seed=4), bicubic_guide, [2])
+    assert up.shape == (60, 62, 1) and np.isfinite(up).all()
 
 
 def _material_asset(tmp_path):
@@ -140,7 +146,7 @@ class KnowsTheColourMap(Prior):
         return F.avg_pool2d(up, 2 * scale + 1, stride=1, padding=scale, count_include_pad=False)
 
 
-def test_balanced_upscales_roughness_and_metallic_with_the_colour_map(tmp_path, monkeypatch):
+def test_balanced_blends_roughness_and_metallic_with_the_guided_upscale(tmp_path, monkeypatch):
     import pbrsr_core.pipeline as pipeline
 
     hr_colour = _blocks(128, 8, seed=6)
@@ -171,28 +177,32 @@ def test_balanced_upscales_roughness_and_metallic_with_the_colour_map(tmp_path, 
         out = load_asset(tmp_path / name / "q.gltf")
         return out.images[out.materials[0].metallic_roughness.image].pixels, report
 
-    orm, report = run("guided")
+    orm, report = run("blended")
     (entry,) = [c for c in report["prior_check"] if c["index"] == mat.metallic_roughness.image]
-    guided = entry["guided"]
-    assert guided["guide"] == lr.images[mat.base_color.image].name
-    assert guided["margins"][0] is None and min(guided["margins"][1:]) > 5.0
-    assert guided["channels"] == [False, True, True] == entry["channels"]
+    blended = entry["blend"]
+    assert blended["guide"] == lr.images[mat.base_color.image].name
+    assert blended["sources"] == ["knows", "guided"]
+    # roughness and metallic: the guided upscale, exact one scale down; occlusion (noise the
+    # prior blurs and no guide follows) stays bicubic's
+    assert min(blended["margins"][1:]) > 5.0
+    assert [w[1] > 0.9 for w in blended["weights"]] == [False, True, True]
+    assert entry["channels"] == [False, True, True]
     bic = bicubic_map(stored_orm, "metallic_roughness", 4)
     for c in (1, 2):
         got, plain = psnr(orm[..., c], hr_data[..., c - 1]), psnr(bic[..., c], hr_data[..., c - 1])
         assert got > plain + 10.0, (c, got, plain)
     assert np.abs(orm[..., 0] - bic[..., 0]).max() <= 1 / 255  # occlusion: bicubic's
-    # without guide_data the channels start from bicubic (the prior loses on them)
+    # without blend_data the check picks per channel: bicubic (the prior loses on them)
     monkeypatch.setitem(
-        presets.PRESETS, "balanced", presets.BALANCED.with_(project_lr=(), guide_data=False)
+        presets.PRESETS, "balanced", presets.BALANCED.with_(project_lr=(), blend_data=False)
     )
     orm, report = run("plain")
-    assert all("guided" not in c for c in report["prior_check"])
+    assert all("blend" not in c for c in report["prior_check"])
     assert np.abs(orm[..., :3] - bic[..., :3]).max() <= 1 / 255
-    # nor where data maps are not checked: the check decides each channel
+    # nor where data maps are not checked: the prior initialises each channel
     monkeypatch.setitem(
         presets.PRESETS, "balanced", presets.BALANCED.with_(project_lr=(), check_prior=("colour",))
     )
     orm, report = run("unchecked")
-    assert all("guided" not in c for c in report["prior_check"])
+    assert all("blend" not in c for c in report["prior_check"])
     assert np.abs(orm[..., 1:3] - bic[..., 1:3]).max() > 0.05  # the prior's blur, unchecked

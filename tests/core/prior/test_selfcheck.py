@@ -149,8 +149,8 @@ def test_pipeline_reports_the_check_and_uses_bicubic_when_the_prior_loses(tmp_pa
     )
     asset = make_demo_asset(tmp_path / "demo.glb", size=64)
     out = tmp_path / "out"
-    # the prior's own check (the colour map as guide is tested in test_guided.py)
-    fast = presets.FAST.with_(guide_data=False)
+    # the prior's own check (the data channels' blend is tested in test_guided.py)
+    fast = presets.FAST.with_(blend_data=False)
     monkeypatch.setitem(presets.PRESETS, "fast", fast)
     # the CPU presets leave normal maps unchecked (the prior initialises them)
     report = upscale_asset(asset, tmp_path / "cpu", UpscaleOptions(preset="fast", prior="blurring"))

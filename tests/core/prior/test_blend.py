@@ -1,0 +1,75 @@
+"""A data channel as a blend of its upscales, weighted one scale down (prior/blend.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pbrsr_core.metrics import psnr
+from pbrsr_core.prior.blend import MIN_WEIGHT, blend, blend_check, blend_weights
+
+
+def _images(seed: int, n: int, shape=(48, 48)) -> list[np.ndarray]:
+    g = np.random.default_rng(seed)
+    return [g.random(shape).astype(np.float32) for _ in range(n)]
+
+
+def test_the_weights_of_a_convex_blend_are_recovered():
+    u1, u2, bic = _images(1, 3)
+    ref = 0.3 * u1 + 0.5 * u2 + 0.2 * bic
+    w = blend_weights([u1, u2], bic, ref)
+    assert np.allclose(w, [0.3, 0.5], atol=1e-3)
+    out = blend([u1, u2], bic, w)
+    assert out.dtype == np.float32 and psnr(out, ref) > 60.0
+
+
+def test_weights_are_clipped_and_slivers_dropped():
+    u1, u2, bic = _images(2, 3)
+    # an extrapolation past the first upscale: clipped to it alone, bicubic gets nothing
+    w = blend_weights([u1, u2], bic, 1.5 * u1 - 0.5 * bic)
+    assert w[0] == 1.0 and w[1] == 0.0
+    # an upscale that carries nothing the reference has is dropped, not kept as a sliver
+    noise = np.random.default_rng(3).random(u1.shape).astype(np.float32)
+    w = blend_weights([u1, noise], bic, 0.6 * u1 + 0.4 * bic + 0.01 * (noise - 0.5))
+    assert w[1] == 0.0 and abs(w[0] - 0.6) < 0.02
+    assert all(x == 0.0 or x >= MIN_WEIGHT for x in w)
+
+
+def test_only_the_masked_texels_count():
+    u1, u2, bic = _images(4, 3)
+    mask = np.zeros(u1.shape, bool)
+    mask[:, :24] = True
+    ref = np.where(mask, u1, u2)
+    assert blend_weights([u1, u2], bic, ref, mask) == [1.0, 0.0]
+    assert blend_weights([u1, u2], bic, ref, ~mask) == [0.0, 1.0]
+
+
+def test_degenerate_upscales_give_finite_weights_and_maps():
+    (bic,) = _images(5, 1)
+    # upscales equal to bicubic (a flat map): nothing to weigh
+    assert blend_weights([bic, bic.copy()], bic, bic) == [0.0, 0.0]
+    flat = np.full((16, 16), 0.4, np.float32)
+    assert blend_weights([flat], flat, flat) == [0.0]
+    bad = bic.copy()
+    bad[0, 0] = np.nan
+    out = blend([bad], bic, [1.0])
+    assert np.isfinite(out).all() and out.min() >= 0.0 and out.max() <= 1.0
+
+
+def test_the_check_scores_each_channel_and_names_the_guided_upscale():
+    u1, u2, bic, paint = (
+        np.stack(x, -1) for x in zip(*(_images(s, 4) for s in (6, 7, 8)), strict=True)
+    )
+    ref = 0.5 * u1 + 0.5 * bic  # half the first candidate, but the last channel follows the paint
+    ref[..., 2] = paint[..., 2]
+    mask = np.ones(ref.shape[:2], bool)
+
+    def db(up, r):
+        return psnr(up[mask], r[mask])
+
+    kept = {"db": db, "crop": ref, "bicubic": bic, "mask": mask, "ups": {"a": u1, "b": u2}}
+    fits = blend_check(kept, [0, 2], {2: paint[..., 2]})
+    assert set(fits) == {0, 2}
+    names, w, gain = fits[0]
+    assert names == ["a", "b"] and np.allclose(w, [0.5, 0.0], atol=1e-3) and gain > 40.0
+    names, w, gain = fits[2]
+    assert names == ["a", "b", "guided"] and w == [0.0, 0.0, 1.0] and gain > 40.0
