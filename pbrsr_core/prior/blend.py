@@ -28,6 +28,9 @@ bicubic's (a channel the upscales barely change is left as the LR map has it).""
 MIN_WEIGHT = 0.05
 """An upscale weighted less than this is dropped and the rest refitted: a run does not call a
 network for a sliver of a channel."""
+NETWORK_DB = 0.1
+"""dB (one scale down, summed over a map's channels) a candidate network must add to the
+blends to run on the map at all: the work follows what the map gains from it."""
 RIDGE = 1e-6
 """Regularisation of the normal equations (upscales that agree everywhere)."""
 
@@ -46,6 +49,8 @@ def blend_weights(
     blend comes closest to ``ref`` over the texels ``mask`` marks (all when None): least
     squares, clipped to [0, 1], at most 1 in all, refitted without the upscales weighted
     under :data:`MIN_WEIGHT`."""
+    if not ups:
+        return []
     sel = slice(None) if mask is None else mask.reshape(-1)
     base = np.asarray(bicubic, np.float64).reshape(-1)[sel]
     t = np.asarray(ref, np.float64).reshape(-1)[sel] - base
@@ -72,21 +77,43 @@ def blend(ups: Sequence[np.ndarray], bicubic: np.ndarray, weights: Sequence[floa
 
 
 def blend_check(
-    kept: dict, channels: Sequence[int], guided: dict[int, np.ndarray] | None = None
+    kept: dict,
+    channels: Sequence[int],
+    guided: dict[int, np.ndarray] | None = None,
+    network_db: float = NETWORK_DB,
 ) -> dict[int, tuple[list[str], list[float], float]]:
     """Per channel of ``channels`` of a data map: (the upscales' names, their weights, the
     blend's dB over bicubic), one scale down, from what its self-check compared (``kept``,
     :func:`~.selfcheck.prior_self_check`): each candidate's upscale, and ``guided[c]`` where
-    given (named ``"guided"``)."""
+    given (named ``"guided"``). A candidate is left out of every channel while that costs the
+    map's channels less than ``network_db`` in all (counting only channels that gain more
+    than :data:`MARGIN`): its network then does not run on the map."""
     db, ref, bic = kept["db"], kept["crop"], kept["bicubic"]
-    out = {}
-    for c in channels:
-        names = list(kept["ups"])
-        ups = [kept["ups"][n][..., c] for n in names]
-        if guided and c in guided:
-            names.append("guided")
-            ups.append(guided[c])
-        w = blend_weights(ups, bic[..., c], ref[..., c], kept["mask"])
-        gain = db(blend(ups, bic[..., c], w), ref[..., c]) - db(bic[..., c], ref[..., c])
-        out[c] = (names, w, round(gain, 3))
-    return out
+    guided = guided or {}
+
+    def fit(nets: list[str]) -> dict[int, tuple[list[str], list[float], float]]:
+        out = {}
+        for c in channels:
+            names = nets + (["guided"] if c in guided else [])
+            ups = [kept["ups"][n][..., c] for n in nets] + ([guided[c]] if c in guided else [])
+            w = blend_weights(ups, bic[..., c], ref[..., c], kept["mask"])
+            gain = db(blend(ups, bic[..., c], w), ref[..., c]) - db(bic[..., c], ref[..., c])
+            out[c] = (names, w, round(gain, 3))
+        return out
+
+    def worth(fits: dict) -> float:
+        return sum(g for _, _, g in fits.values() if g > MARGIN)
+
+    nets = list(kept["ups"])
+    fits = fit(nets)
+    while nets:
+        weighted = [n for n in nets if any(w[ns.index(n)] for ns, w, _ in fits.values())]
+        if weighted != nets:  # a network no channel weighs: refitted without it
+            nets, fits = weighted, fit(weighted)
+            continue
+        dropped = {n: fit([m for m in nets if m != n]) for n in nets}
+        n = min(nets, key=lambda m: worth(fits) - worth(dropped[m]))
+        if worth(fits) - worth(dropped[n]) >= network_db:
+            break
+        nets, fits = [m for m in nets if m != n], dropped[n]
+    return fits

@@ -70,6 +70,27 @@ def test_the_check_scores_each_channel_and_names_the_guided_upscale():
     fits = blend_check(kept, [0, 2], {2: paint[..., 2]})
     assert set(fits) == {0, 2}
     names, w, gain = fits[0]
-    assert names == ["a", "b"] and np.allclose(w, [0.5, 0.0], atol=1e-3) and gain > 40.0
+    # b, weighed by no channel, is left out (its network would not run)
+    assert names == ["a"] and np.allclose(w, [0.5], atol=1e-3) and gain > 40.0
     names, w, gain = fits[2]
-    assert names == ["a", "b", "guided"] and w == [0.0, 0.0, 1.0] and gain > 40.0
+    assert names == ["a", "guided"] and w == [0.0, 1.0] and gain > 40.0
+
+
+def test_a_network_that_adds_little_is_not_run():
+    u1, u2, bic = _images(9, 3)
+    noise = np.random.default_rng(10).normal(0, 0.1, u1.shape).astype(np.float32)
+    ref = (0.5 * u1 + 0.5 * bic + 0.08 * (u2 - bic) + noise)[..., None]
+    mask = np.ones(u1.shape, bool)
+    kept = {
+        "db": lambda up, r: psnr(up[mask], r[mask]),
+        "crop": ref,
+        "bicubic": bic[..., None],
+        "mask": mask,
+        "ups": {"a": u1[..., None], "b": u2[..., None]},
+    }
+    names, w, both = blend_check(kept, [0], network_db=0.0)[0]
+    assert names == ["a", "b"] and w[1] > MIN_WEIGHT
+    names, w, one = blend_check(kept, [0], network_db=1.0)[0]  # b adds under 1 dB: left out
+    assert names == ["a"] and abs(w[0] - 0.5) < 0.06 and 0 < both - one < 1.0
+    assert blend_check(kept, [0])[0][0] == ["a", "b"]  # it adds more than NETWORK_DB
+    assert blend_check(kept, [0], network_db=1e3)[0] == ([], [], 0.0)
