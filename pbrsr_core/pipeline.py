@@ -385,10 +385,13 @@ def _blended_channels(asset, images, prior, channels, checks, sources, kept, lr_
                     use[c] = True
                     for name, wk in zip(fit_names, w, strict=True):
                         weights[c][names.index(name)] = wk
+            kept_at = [m for m in range(len(names)) if any(w[m] for w in weights)]
+            names, weights = [names[m] for m in kept_at], [[w[m] for m in kept_at] for w in weights]
+            guide = g if "guided" in names else None
             entry = entries[i]
-            entry["blend"] = {
+            entry["blend"] = {  # the upscales the run blends (each network runs once)
                 "sources": names,
-                "guide": by_index[g].name if guided and g is not None else None,
+                "guide": by_index[g].name if guide is not None and g is not None else None,
                 "weights": weights,
                 "margins": [fits[c][2] if c in fits else None for c in range(n)],
             }
@@ -396,12 +399,7 @@ def _blended_channels(asset, images, prior, channels, checks, sources, kept, lr_
             channels[i], sources[i] = use, [None] * n
             if any(use):
                 by_name = {p.name: p for p in prior.candidates(kind_of(by_index[i].roles))}
-                used_names = [m for m, name in enumerate(names) if any(w[m] for w in weights)]
-                blends[i] = (
-                    [by_name.get(names[m], "guided") for m in used_names],
-                    [[w[m] for m in used_names] for w in weights],
-                    g if "guided" in (names[m] for m in used_names) else None,
-                )
+                blends[i] = ([by_name.get(m, "guided") for m in names], weights, guide)
     return blends
 
 

@@ -252,11 +252,12 @@ PROJECT_LR_CPU = ("colour", "data")
 #   prior would cost the Avocado's roughness 0.67 dB (-0.04 one scale down) and the BoomBox's
 #   constant occlusion channel 72 dB (-47 one scale down).
 CHECK_PRIOR_CPU = ("colour", "data")
-# * guide_data: roughness and metallic upscaled with the colour map as guide where the check
-#   finds that 0.1 dB better one scale down (prior/guided.py). x4, 40 evaluation views,
-#   render PSNR without / with: ToyCar 34.97 / 35.19 (roughness 37.12 / 45.68 dB), WaterBottle
-#   38.80 / 39.18 (metallic 35.22 / 35.95), cabinet 30.78 / 30.77, the other assets unchanged;
-#   mean gain over bicubic +1.96 / +2.04 dB (balanced), +1.79 / +1.82 (fast).
+# * blend_data: each data channel a least-squares blend, fitted one scale down, of the prior's
+#   candidates, bicubic and (roughness, metallic) the colour-guided upscale (prior/blend.py).
+#   x4, 40 evaluation views, mean render gain over bicubic without / with: balanced +1.96 /
+#   +2.08 dB, fast +1.79 / +1.89 (BoomBox +0.41, WaterBottle +0.28, ToyCar +0.16 with
+#   balanced); fast's Avocado roughness 0.12 dB below bicubic with it; run times the same or
+#   shorter (docs/BENCHMARKS.md, "Data channels blended").
 # * fast: PBR-SR's init and export with no optimisation steps, the prior at x2 of the scale
 #   (max_prior_scale 2; bicubic the rest, then the back-projection step). waifu2x-photo's x2
 #   pass on a 512² map costs 2.1 s against 13.0 s for its x4 (two passes), and on the shared

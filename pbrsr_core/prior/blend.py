@@ -11,9 +11,10 @@ the run applies the same weights to the upscales at the real scale. Three or fou
 on thousands of texels: the fit barely overfits the scale it is made at.
 
 Measured on the CC0 texture set's roughness and metallic maps (x4, 512² crops, 59 channels,
-no benchmark asset taking part), mean gain over bicubic at the real scale: the pick of the
-check with the guided candidate +0.622 dB (worst channel -2.22), the blend +0.717 (worst
--0.32), +0.683 with :data:`MARGIN` (docs/METHOD.md, "Data channels blended").
+no benchmark asset taking part), mean gain over bicubic at the real scale: the closest
+upscale +0.622 dB (worst channel -2.22), the blend +0.708 (worst -0.32), +0.678 with
+:data:`MARGIN` and +0.656 with :data:`NETWORK_DB` too, which runs 0.73 networks per map
+against 1.22 (docs/METHOD.md, "Data channels blended").
 """
 
 from __future__ import annotations

@@ -181,11 +181,13 @@ def test_balanced_blends_roughness_and_metallic_with_the_guided_upscale(tmp_path
     (entry,) = [c for c in report["prior_check"] if c["index"] == mat.metallic_roughness.image]
     blended = entry["blend"]
     assert blended["guide"] == lr.images[mat.base_color.image].name
-    assert blended["sources"] == ["knows", "guided"]
+    assert blended["sources"][-1] == "guided"  # with only the upscales some channel weighs
+    k = blended["sources"].index("guided")
     # roughness and metallic: the guided upscale, exact one scale down; occlusion (noise the
     # prior blurs and no guide follows) stays bicubic's
     assert min(blended["margins"][1:]) > 5.0
-    assert [w[1] > 0.9 for w in blended["weights"]] == [False, True, True]
+    assert [w[k] > 0.9 for w in blended["weights"]] == [False, True, True]
+    assert all(any(w[m] for w in blended["weights"]) for m in range(len(blended["sources"])))
     assert entry["channels"] == [False, True, True]
     bic = bicubic_map(stored_orm, "metallic_roughness", 4)
     for c in (1, 2):
