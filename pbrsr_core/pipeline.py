@@ -364,7 +364,7 @@ def _blended_channels(asset, images, prior, channels, checks, sources, kept, lr_
             n = len(channels[i])
             todo = [c for c, ok in enumerate(prior_channels(by_index[i], config)) if ok]
             guided, g = {}, pairs.get(i)
-            gc = [c for c in GUIDED_CHANNELS if c in todo and c < n]
+            gc = [c for c in GUIDED_CHANNELS if c in todo]
             if g is not None and gc:
                 src = (sources.get(g) or [None])[0]
 
@@ -419,7 +419,7 @@ def _init_maps(images, sources, blends, lr_pixels, s, wraps, config, timer, prog
             px = lr_pixels[img.index]
             hr = bicubic_map(px, kind, s, wraps[img.index])  # px: a cutout's already filled
             tiles.on(img)(0, 1)
-            if img.index in blends:
+            if img.index in blends:  # hr is this call's own array
                 hr = _blend_map(hr, px, blends[img.index], init_encoded, lr_pixels, s, kind,
                                 wraps[img.index], config, tiles.on(img))  # fmt: skip
             else:
@@ -435,23 +435,25 @@ def _init_maps(images, sources, blends, lr_pixels, s, wraps, config, timer, prog
 
 def _blend_map(bicubic, px, how, init_encoded, lr_pixels, s, kind, wrap, config, progress):
     """A data map whose channels blend its upscales (``how``, as :func:`_blended_channels`
-    gives it) over ``bicubic``; the guide's HR map is in ``init_encoded``."""
+    gives it) over ``bicubic`` (this call's own array: the blended channels are written into
+    it); the guide's HR map is in ``init_encoded``."""
     sources, weights, g = how
     priors = [p for p in sources if not isinstance(p, str)]
     ups = upscale_each(priors, px, kind, s, max_prior_scale=config.max_prior_scale,
                        progress=progress, wrap=wrap)  # fmt: skip
     by_source = dict(zip(priors, ups, strict=True))
+    guided = {}
     if g is not None:
-        guided = bicubic.copy()
         k = sources.index("guided")
         gc = [c for c in GUIDED_CHANNELS if c < len(weights) and weights[c][k]]
-        guided[..., gc] = guided_upscale(px[..., gc], lr_pixels[g], init_encoded[g], s)
-        by_source["guided"] = guided
-    out = bicubic.copy()
+        up = guided_upscale(px[..., gc], lr_pixels[g], init_encoded[g], s)
+        guided = {c: up[..., m] for m, c in enumerate(gc)}
     for c, w in enumerate(weights):
         if any(w):
-            out[..., c] = blend([by_source[p][..., c] for p in sources], bicubic[..., c], w)
-    return out
+            bic = bicubic[..., c]
+            chans = [guided.get(c, bic) if p == "guided" else by_source[p][..., c] for p in sources]
+            bicubic[..., c] = blend(chans, bic, w)
+    return bicubic
 
 
 def _optimise(asset, images, init_encoded, init, lr, lr_pixels, channels, prior, options, config,
