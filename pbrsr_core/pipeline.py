@@ -14,8 +14,7 @@ import os
 import shutil
 import tempfile
 import time
-from collections.abc import Callable, Collection, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -37,9 +36,17 @@ from .crops import write_map_crops
 from .device import resolve_device
 from .errors import PbrsrError, StorageError, UnprocessableAsset
 from .footprint import check_memory, estimate_peak_bytes
+from .initial_maps import (
+    blended_channels,
+    deblocked_lr,
+    initial_maps,
+    prior_channels,
+    prior_channels_checked,
+    self_checks,
+    unread_channels_follow,
+)
 from .limits import Limits, check_output_size
 from .maps import (
-    encoded_to_param,
     image_cutout,
     image_wrap,
     kind_of,
@@ -52,46 +59,25 @@ from .metrics import seam_ratio
 from .options import UpscaleOptions
 from .preview import write_previews
 from .prior import load_prior
-from .prior.blend import MARGIN, blend, blend_check
 from .prior.direct import (
     bicubic_map,
     filled_cutout,
     keep_normal_length,
     project_map,
     restore_hidden,
-    upscale_map,
 )
-from .prior.guided import CHANNELS as GUIDED_CHANNELS
-from .prior.guided import guide_pairs, guided_check_upscale, guided_upscale
 from .prior.selfcheck import (
     chosen,
     merge_channels,
-    prior_self_check,
     upscale_channels,
-    upscale_each,
 )
-from .progress import Progress, ProgressFn, emit
+from .progress import MapProgress, Progress, ProgressFn, StageTimer, emit
 from .render.light import EnvLight
 from .scene import make_scene, procedural_light
 from .uvmask import coverage_masks
 
 if TYPE_CHECKING:
     from .optim.presets import PbrsrConfig
-
-
-class StageTimer:
-    """Wall seconds per named stage, in order."""
-
-    def __init__(self) -> None:
-        self.seconds: dict[str, float] = {}
-
-    @contextmanager
-    def __call__(self, name: str) -> Iterator[None]:
-        t0 = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
 
 
 def _resolve_input(input_path: Path, work_dir: Path, limits: Limits) -> Path:
@@ -153,10 +139,10 @@ def _upscale_maps(
         # where the prior offers candidates, the self-check picks one per colour and data map
         offered = [img for img in images if len(prior.candidates(kind_of(img.roles))) > 1]
         lr_pixels = {img.index: img.pixels for img in offered}
-        found = _self_checks(asset, offered, prior, lr_pixels, s, CHECK_PRIOR_CPU, None, timer,
-                             progress)  # fmt: skip
+        found = self_checks(asset, offered, prior, lr_pixels, s, CHECK_PRIOR_CPU, None, timer,
+                            progress)  # fmt: skip
         picks = {
-            img.index: _unread_channels_follow(
+            img.index: unread_channels_follow(
                 chosen(prior, kind_of(img.roles), found.get(img.index), 1),
                 prior_channels(img, BALANCED),
             )
@@ -179,18 +165,18 @@ def _upscale_maps(
     from .optim.presets import get_preset
 
     config = config or get_preset(options.preset)
-    lr_pixels, deblocked = _deblocked(images, config, timer)
+    lr_pixels, deblocked = deblocked_lr(images, config, timer)
     for img in images:  # a cutout's hidden colour takes no part (init, losses, projection)
         if (seen_from := cutouts[img.index]) is not None:
             lr_pixels[img.index] = filled_cutout(lr_pixels[img.index], seen_from)
     kept: dict[int, dict] | None = {} if config.blend_data else None
-    channels, checks, sources = _prior_channels_checked(asset, images, prior, lr_pixels, s,
+    channels, checks, sources = prior_channels_checked(asset, images, prior, lr_pixels, s,
                                                         config, timer, progress, kept)  # fmt: skip
-    blends = _blended_channels(asset, images, prior, channels, checks, sources, kept, lr_pixels,
-                               config, timer)  # fmt: skip
+    blends = blended_channels(asset, images, prior, channels, checks, sources, kept, lr_pixels,
+                              config, timer)  # fmt: skip
     del kept
-    init_encoded, init, lr = _init_maps(images, sources, blends, lr_pixels, s, wraps, config,
-                                        timer, progress)  # fmt: skip
+    init_encoded, init, lr = initial_maps(images, sources, blends, lr_pixels, s, wraps, config,
+                                          timer, progress)  # fmt: skip
     if checks is not None and not any(any(c) for c in channels.values()):
         prior = load_prior("bicubic", device)  # for the pseudo-GT
     out, report = _optimise(
@@ -207,253 +193,6 @@ def _upscale_maps(
         "prior_init": sorted(img.name for img in images if any(channels[img.index])),
         "jpeg_deblocked": deblocked,
     }
-
-
-class MapProgress:
-    """Progress of a stage that runs the prior over several maps, tile by tile: the fraction
-    of all the maps' pixels done (out of ``STEPS``), the map and tile in the message, and an
-    ETA from the time per pixel so far."""
-
-    STEPS = 1000
-
-    def __init__(self, progress: ProgressFn | None, stage: str, images) -> None:
-        self.progress, self.stage = progress, stage
-        self.pixels = {img.index: img.width * img.height for img in images}
-        self.before: dict[int, int] = {}
-        done = 0
-        for img in images:
-            self.before[img.index] = done
-            done += self.pixels[img.index]
-        self.total = max(done, 1)
-        self.t0 = time.perf_counter()
-        emit(progress, Progress(stage=stage, step=0, total=self.STEPS))
-
-    def on(self, img) -> Callable[[int, int], None]:
-        """The prior's tile callback for ``img``: ``(tiles done, tiles)``."""
-
-        def tile(done: int, total: int) -> None:
-            pixels = self.before[img.index] + self.pixels[img.index] * done / max(total, 1)
-            fraction = pixels / self.total
-            elapsed = time.perf_counter() - self.t0
-            eta = elapsed * (1 - fraction) / fraction if fraction > 0 else None
-            event = Progress(
-                stage=self.stage,
-                step=int(self.STEPS * fraction),
-                total=self.STEPS,
-                eta_s=eta,
-                message=f"{img.name}: tile {done}/{total}",
-            )
-            emit(self.progress, event)
-
-        return tile
-
-
-def _deblocked(images, config: PbrsrConfig, timer: StageTimer):
-    """The LR maps as the method sees them: JPEG block artefacts reduced with the file's own
-    tables (asset/jpeg.py) when the preset says so, so that the consistency term does not copy
-    them to the HR maps; and the names of the images deblocked."""
-    from .asset.jpeg import deblock
-
-    lr_pixels = {img.index: img.pixels for img in images}
-    deblocked = []
-    if config.deblock_jpeg:
-        with timer("deblock"):
-            for img in images:
-                if img.jpeg is not None:
-                    lr_pixels[img.index] = deblock(img.pixels, img.jpeg)
-                    deblocked.append(img.name)
-    return lr_pixels, deblocked
-
-
-def _self_checks(asset, images, prior, lr_pixels, s, kinds, max_prior_scale, timer, progress,
-                 kept=None):  # fmt: skip
-    """The self-check (prior/selfcheck.py) of each image of a kind in ``kinds``, over the
-    texels a viewer sees: {image index: report, or None for a map too small to check}.
-    ``kept``: filled with {data image index: what its check compared}."""
-    checks: dict[int, dict | None] = {}
-    todo = [img for img in images if kind_of(img.roles) in kinds]
-    if not todo:
-        return checks
-    with timer("prior_check"):
-        emit(progress, Progress(stage="prior_check"))
-        covered = coverage_masks(asset)  # at the LR size: the texels the check compares
-        for img in todo:
-            seen = covered.get(img.index)
-            hidden_to = image_cutout(asset, img.index)
-            if hidden_to is not None:  # score the texels a viewer can see
-                px = img.pixels
-                visible = px[..., px.shape[2] - 1] > hidden_to
-                seen = visible if seen is None else seen & visible
-            checks[img.index] = prior_self_check(
-                prior,
-                lr_pixels[img.index],
-                s,
-                kind_of(img.roles),
-                max_prior_scale=max_prior_scale,
-                covered=seen,
-                cutout=hidden_to,
-                keep=kept.setdefault(img.index, {})
-                if kept is not None and kind_of(img.roles) == "data"
-                else None,
-            )
-    return checks
-
-
-def _prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, progress,
-                            kept=None):  # fmt: skip
-    """Which channels of each image the prior initialises (paper 3.1: the maps the preset
-    names in ``prior_maps``; an ORM image's channels one by one; bicubic the rest), and with
-    ``check_prior`` only those where the prior beats bicubic one scale down (``kept``: as
-    :func:`_self_checks` fills it). Returns
-    ({image: [bool per channel]}, the self-check reports or None when nothing was checked,
-    {image: per channel, the prior's candidate the check chose, or None for bicubic})."""
-    channels = {img.index: prior_channels(img, config) for img in images}
-    if not (config.check_prior and prior.name != "bicubic" and any(map(any, channels.values()))):
-        return channels, None, {i: [prior if c else None for c in ch] for i, ch in channels.items()}
-    used = [img for img in images if any(channels[img.index])]
-    found = _self_checks(asset, used, prior, lr_pixels, s, set(config.check_prior),
-                         config.max_prior_scale, timer, progress, kept)  # fmt: skip
-    checks: list[dict] = []
-    for img in used:
-        kind = kind_of(img.roles)
-        if img.index not in found:
-            note = {"use_prior": True, "note": f"{kind} maps are not checked"}
-            checks.append({"image": img.name, "index": img.index, **note})
-            continue
-        c = found[img.index]
-        too_small = {"use_prior": True, "note": f"under {4 * s} texels a side"}
-        if c is not None:
-            use = [a and b for a, b in zip(channels[img.index], c["channels"], strict=True)]
-            c = {**c, "channels": use, "use_prior": any(use)}
-            channels[img.index] = use
-        checks.append({"image": img.name, "index": img.index, **(c or too_small)})
-    sources = {
-        img.index: [
-            p if use else None
-            for p, use in zip(
-                chosen(prior, kind_of(img.roles), found.get(img.index), len(channels[img.index])),
-                channels[img.index],
-                strict=True,
-            )
-        ]
-        for img in used
-    }
-    return channels, checks, sources
-
-
-def _blended_channels(asset, images, prior, channels, checks, sources, kept, lr_pixels, config,
-                      timer):  # fmt: skip
-    """With ``blend_data``: each checked data map's channels (those the preset lets a prior
-    initialise) as a blend of the prior's candidates, bicubic and, for the roughness and
-    metallic of a metallic-roughness map, the upscale guided by its colour map
-    (prior/blend.py, prior/guided.py), weighted one scale down from the upscales its check
-    compared (``kept``); a channel whose blend beats bicubic by less than ``MARGIN`` stays
-    bicubic's. Updates ``channels``, ``sources`` (None: blended or bicubic) and the ``checks``
-    entries (``blend``); returns {image: (the blend's sources, a candidate or "guided"; per
-    channel their weights; the guide image or None)}."""
-    if not config.blend_data or checks is None or not kept:
-        return {}
-    by_index = {img.index: img for img in images}
-    entries = {c["index"]: c for c in checks if "margins" in c}
-    pairs = guide_pairs(asset, set(by_index))
-    blends = {}
-    with timer("prior_check"):
-        for i, k in kept.items():
-            if i not in entries or not k:
-                continue
-            n = len(channels[i])
-            todo = [c for c, ok in enumerate(prior_channels(by_index[i], config)) if ok]
-            guided, g = {}, pairs.get(i)
-            gc = [c for c in GUIDED_CHANNELS if c in todo]
-            if g is not None and gc:
-                src = (sources.get(g) or [None])[0]
-
-                def upscale_guide(px, f, src=src):
-                    if src is None:
-                        return bicubic_map(px, "colour", f)
-                    return upscale_map(src, px, "colour", f, max_prior_scale=config.max_prior_scale)
-
-                size = lr_pixels[i].shape[:2]
-                up = guided_check_upscale(k, size, lr_pixels[g], upscale_guide, gc)
-                guided = {c: up[..., m] for m, c in enumerate(gc)}
-            fits = blend_check(k, todo, guided)
-            names = list(k["ups"]) + (["guided"] if guided else [])
-            weights = [[0.0] * len(names) for _ in range(n)]
-            use = [False] * n
-            for c, (fit_names, w, gain) in fits.items():
-                if gain > MARGIN:
-                    use[c] = True
-                    for name, wk in zip(fit_names, w, strict=True):
-                        weights[c][names.index(name)] = wk
-            kept_at = [m for m in range(len(names)) if any(w[m] for w in weights)]
-            names, weights = [names[m] for m in kept_at], [[w[m] for m in kept_at] for w in weights]
-            guide = g if "guided" in names else None
-            entry = entries[i]
-            entry["blend"] = {  # the upscales the run blends (each network runs once)
-                "sources": names,
-                "guide": by_index[g].name if guide is not None and g is not None else None,
-                "weights": weights,
-                "margins": [fits[c][2] if c in fits else None for c in range(n)],
-            }
-            entry["channels"], entry["use_prior"] = use, any(use)
-            channels[i], sources[i] = use, [None] * n
-            if any(use):
-                by_name = {p.name: p for p in prior.candidates(kind_of(by_index[i].roles))}
-                blends[i] = ([by_name.get(m, "guided") for m in names], weights, guide)
-    return blends
-
-
-def _init_maps(images, sources, blends, lr_pixels, s, wraps, config, timer, progress):
-    """The optimiser's start: bicubic, with a prior's upscale in the channels ``sources``
-    gives one for (per image, per channel: the prior or None), and the blends of ``blends``
-    (:func:`_blended_channels`; the colour maps that guide one come first). Returns
-    ({image: HR map, stored encoding}, the same as optimisation parameters, the LR maps as
-    parameters)."""
-    init_encoded, init, lr = {}, {}, {}
-    leading = {g for _, _, g in blends.values() if g is not None}
-    order = sorted(images, key=lambda im: im.index not in leading)
-    with timer("init"):
-        tiles = MapProgress(progress, "init", order)
-        for img in order:
-            kind = kind_of(img.roles)
-            px = lr_pixels[img.index]
-            hr = bicubic_map(px, kind, s, wraps[img.index])  # px: a cutout's already filled
-            tiles.on(img)(0, 1)
-            if img.index in blends:  # hr is this call's own array
-                hr = _blend_map(hr, px, blends[img.index], init_encoded, lr_pixels, s, kind,
-                                wraps[img.index], config, tiles.on(img))  # fmt: skip
-            else:
-                hr = upscale_channels(sources.get(img.index, [None]), px, kind, s, hr,
-                                      max_prior_scale=config.max_prior_scale,
-                                      progress=tiles.on(img), wrap=wraps[img.index])  # fmt: skip
-            tiles.on(img)(1, 1)  # done, whether a prior ran on it or not
-            init_encoded[img.index] = hr
-            init[img.index] = encoded_to_param(torch.from_numpy(hr), kind)
-            lr[img.index] = encoded_to_param(torch.from_numpy(px), kind)
-    return init_encoded, init, lr
-
-
-def _blend_map(bicubic, px, how, init_encoded, lr_pixels, s, kind, wrap, config, progress):
-    """A data map whose channels blend its upscales (``how``, as :func:`_blended_channels`
-    gives it) over ``bicubic`` (this call's own array: the blended channels are written into
-    it); the guide's HR map is in ``init_encoded``."""
-    sources, weights, g = how
-    priors = [p for p in sources if not isinstance(p, str)]
-    ups = upscale_each(priors, px, kind, s, max_prior_scale=config.max_prior_scale,
-                       progress=progress, wrap=wrap)  # fmt: skip
-    by_source = dict(zip(priors, ups, strict=True))
-    guided = {}
-    if g is not None:
-        k = sources.index("guided")
-        gc = [c for c in GUIDED_CHANNELS if c < len(weights) and weights[c][k]]
-        up = guided_upscale(px[..., gc], lr_pixels[g], init_encoded[g], s)
-        guided = {c: up[..., m] for m, c in enumerate(gc)}
-    for c, w in enumerate(weights):
-        if any(w):
-            bic = bicubic[..., c]
-            chans = [guided.get(c, bic) if p == "guided" else by_source[p][..., c] for p in sources]
-            bicubic[..., c] = blend(chans, bic, w)
-    return bicubic
 
 
 def _optimise(asset, images, init_encoded, init, lr, lr_pixels, channels, prior, options, config,
@@ -529,39 +268,6 @@ def _export_map(
     elif kind == "normal":
         hr = keep_normal_length(hr, lr, scale)
     return hr
-
-
-def _unread_channels_follow(picks: list, read: list[bool]) -> list:
-    """``picks`` per channel with a channel no material reads (the R of a metallic-roughness
-    image without occlusion) given the prior of the first channel that is read, so that it
-    runs no prior of its own."""
-    if len(picks) != len(read) or not any(read):
-        return picks
-    first = picks[read.index(True)]
-    return [p if r else first for p, r in zip(picks, read, strict=True)]
-
-
-def prior_channels(img, config) -> list[bool]:
-    """Which of an image's colour channels the preset lets the prior initialise: one entry
-    for colour and normal maps (the image as a whole), one per channel for data maps (an ORM
-    image's occlusion, roughness and metallic are separate maps, named in ``prior_maps``)."""
-    from .optim.groups import map_groups
-
-    n_colour = 3 if img.pixels.shape[2] >= 3 else 1
-    if not img.roles & set(MAP_ROLES):  # KHR_materials_* maps only: as the core map of its kind
-        like = {"colour": "base_color", "normal": "normal", "data": "roughness"}
-        return [like[kind_of(img.roles)] in config.prior_maps] * (
-            1 if kind_of(img.roles) != "data" else n_colour
-        )
-    named = {
-        c
-        for g in map_groups(set(img.roles), n_colour, config)
-        if g.name in config.prior_maps
-        for c in g.channels
-    }
-    if kind_of(img.roles) != "data":
-        return [bool(named)]
-    return [c in named for c in range(n_colour)]
 
 
 Snapshots = tuple[Collection[int], Callable[[int, Callable[[], dict[int, np.ndarray]]], None]]

@@ -8,7 +8,8 @@ A long-running function takes ``progress: ProgressFn | None`` and calls it with 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 
@@ -47,3 +48,57 @@ class Eta:
             return None
         per = (time.perf_counter() - self.start) / done
         return per * max(self.total - done, 0)
+
+
+class StageTimer:
+    """Wall seconds per named stage, in order."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
+
+
+class MapProgress:
+    """Progress of a stage that runs the prior over several maps, tile by tile: the fraction
+    of all the maps' pixels done (out of ``STEPS``), the map and tile in the message, and an
+    ETA from the time per pixel so far."""
+
+    STEPS = 1000
+
+    def __init__(self, progress: ProgressFn | None, stage: str, images) -> None:
+        self.progress, self.stage = progress, stage
+        self.pixels = {img.index: img.width * img.height for img in images}
+        self.before: dict[int, int] = {}
+        done = 0
+        for img in images:
+            self.before[img.index] = done
+            done += self.pixels[img.index]
+        self.total = max(done, 1)
+        self.t0 = time.perf_counter()
+        emit(progress, Progress(stage=stage, step=0, total=self.STEPS))
+
+    def on(self, img) -> Callable[[int, int], None]:
+        """The prior's tile callback for ``img``: ``(tiles done, tiles)``."""
+
+        def tile(done: int, total: int) -> None:
+            pixels = self.before[img.index] + self.pixels[img.index] * done / max(total, 1)
+            fraction = pixels / self.total
+            elapsed = time.perf_counter() - self.t0
+            eta = elapsed * (1 - fraction) / fraction if fraction > 0 else None
+            event = Progress(
+                stage=self.stage,
+                step=int(self.STEPS * fraction),
+                total=self.STEPS,
+                eta_s=eta,
+                message=f"{img.name}: tile {done}/{total}",
+            )
+            emit(self.progress, event)
+
+        return tile

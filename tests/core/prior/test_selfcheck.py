@@ -255,7 +255,7 @@ def test_data_map_channels_are_decided_one_by_one():
 def test_presets_name_the_maps_and_orm_channels_the_prior_may_initialise():
     from types import SimpleNamespace
 
-    from pbrsr_core.pipeline import prior_channels
+    from pbrsr_core.initial_maps import prior_channels
 
     def img(roles, channels=3):
         return SimpleNamespace(roles=set(roles), pixels=np.zeros((4, 4, channels), np.float32))
