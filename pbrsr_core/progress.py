@@ -43,7 +43,7 @@ class Eta:
         self.total = total
         self.start = time.perf_counter()
 
-    def __call__(self, done: int) -> float | None:
+    def __call__(self, done: float) -> float | None:
         if done <= 0:
             return None
         per = (time.perf_counter() - self.start) / done
@@ -81,7 +81,7 @@ class MapProgress:
             self.before[img.index] = done
             done += self.pixels[img.index]
         self.total = max(done, 1)
-        self.t0 = time.perf_counter()
+        self.eta = Eta(self.STEPS)
         emit(progress, Progress(stage=stage, step=0, total=self.STEPS))
 
     def on(self, img) -> Callable[[int, int], None]:
@@ -89,14 +89,12 @@ class MapProgress:
 
         def tile(done: int, total: int) -> None:
             pixels = self.before[img.index] + self.pixels[img.index] * done / max(total, 1)
-            fraction = pixels / self.total
-            elapsed = time.perf_counter() - self.t0
-            eta = elapsed * (1 - fraction) / fraction if fraction > 0 else None
+            step = self.STEPS * pixels / self.total
             event = Progress(
                 stage=self.stage,
-                step=int(self.STEPS * fraction),
+                step=int(step),
                 total=self.STEPS,
-                eta_s=eta,
+                eta_s=self.eta(step),
                 message=f"{img.name}: tile {done}/{total}",
             )
             emit(self.progress, event)
