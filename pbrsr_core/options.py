@@ -6,9 +6,10 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-DEFAULT_PRIOR = "pbr-upconv7"
-"""The image SR prior a run uses unless told otherwise: the shipped texture prior
-(pbrsr_core/prior/texture.py), whose kinds without trained weights use waifu2x-photo."""
+DEFAULT_PRIOR = "pbr-srmd"
+"""The image SR prior a run uses unless told otherwise: a shipped texture prior
+(pbrsr_core/prior/texture.py; pbr-upconv7's networks, an SRMD network for colour maps at x4),
+whose kinds without trained weights use waifu2x-photo."""
 
 Method = Literal["pbrsr", "direct", "bicubic"]
 ImageFormat = Literal["same", "png", "png16", "exr", "jpeg", "ktx2", "webp", "avif"]
@@ -28,8 +29,9 @@ class UpscaleOptions(BaseModel):
     preset: str = Field("balanced", description="fast, balanced, quality or paper (pbrsr only).")
     prior: str = Field(
         DEFAULT_PRIOR,
-        description="Image SR prior: pbr-upconv7, pbr-upconv7-fast, waifu2x-photo, rrdn-thick, "
-        "bicubic, texture:<weights folder>, spandrel:<weights path>, diffusion:<model dir>.",
+        description="Image SR prior: pbr-upconv7, pbr-upconv7-fast, pbr-srmd, waifu2x-photo, "
+        "rrdn-thick, bicubic, texture:<weights folder>, spandrel:<weights path>, "
+        "diffusion:<model dir>.",
     )
     envmap: str | None = Field(
         None,

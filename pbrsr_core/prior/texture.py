@@ -1,6 +1,6 @@
-"""Texture priors: networks (UpConv7, compact or SPAN) trained on PBR texture maps (``pbrsr priors
-finetune``), one set of weights per map kind (colour, data, normal) or one shared by several
-kinds, of stride 2 or 4.
+"""Texture priors: networks (UpConv7, compact, SPAN or SRMD) trained on PBR texture maps
+(``pbrsr priors finetune``), one set of weights per map kind (colour, data, normal) or one
+shared by several kinds, of stride 2 or 4.
 
 The shipped sets (:data:`SHIPPED`) are files in ``pbrsr_core/prior/weights/<set>/`` (each made
 by the command in its folder's MODEL_CARD.md); ``texture:<folder or file>`` loads any set
@@ -35,6 +35,12 @@ SHIPPED: dict[str, tuple[str, ...]] = {
     "pbr-upconv7-fast": (
         *(f"pbr-upconv7/pbr-upconv7-{k}.safetensors" for k in ("colour", "data", "normal")),
         *(f"pbr-upconv7-fast/pbr-upconv7-fast-{k}.safetensors" for k in ("colour", "normal")),
+    ),
+    # pbr-upconv7's x2 networks, and for colour maps an SRMD network fine-tuned from srmdnf_x4
+    # that makes x4 in one pass (x8: it, then the x2 network)
+    "pbr-srmd": (
+        *(f"pbr-upconv7/pbr-upconv7-{k}.safetensors" for k in ("colour", "data", "normal")),
+        "pbr-srmd/pbr-srmd-colour.safetensors",
     ),
 }
 """Shipped set name -> its weights files under :data:`WEIGHTS_ROOT` (one per kind and

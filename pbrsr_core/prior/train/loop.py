@@ -4,8 +4,9 @@ checkpoints a run resumes from exactly, and the best EMA weights by validation w
 safetensors (:mod:`pbrsr_core.prior.texture` loads them).
 
 The network is an :class:`~pbrsr_core.prior.waifu2x.UpConv7`, a
-:class:`~pbrsr_core.prior.compact.Compact` or a :class:`~pbrsr_core.prior.span.Span` network,
-of stride 2 or 4 (x4 training of a stride-2 network chains two passes with a clamp between
+:class:`~pbrsr_core.prior.compact.Compact`, a :class:`~pbrsr_core.prior.span.Span` or a
+:class:`~pbrsr_core.prior.srmd.SRMD` network, of stride 2 or 4 (x4 training of a stride-2
+network chains two passes with a clamp between
 them, as inference does). A run with ``first`` trains a later-pass network: the frozen
 ``first`` network makes the first x2 pass, the trained one the second; the run's folder gets a
 copy of the first network beside the trained one, so the folder is a texture set of its own."""
@@ -24,7 +25,7 @@ from pathlib import Path
 import torch
 
 from ...errors import InvalidOptions, PriorUnavailable
-from .. import compact
+from .. import compact, srmd
 from ..backproject import back_project
 from ..waifu2x import UpConv7
 from . import weights
@@ -51,7 +52,7 @@ class TrainConfig:
     ema: float = 0.999
     seed: int = 0
     arch: str = "upconv7"
-    """``upconv7``, ``compact`` or ``span``
+    """``upconv7``, ``compact``, ``span`` or ``srmd``
     (:func:`~pbrsr_core.prior.train.weights.new_network`)."""
     widths: tuple[int, ...] = (16, 32, 64, 128, 128, 256)
     stride: int = 2
@@ -69,8 +70,9 @@ class TrainConfig:
     natural materials seldom show. Validation then scores agreement with that second pass on
     the held-out crops (the HR crops hardly tell later passes apart)."""
     init: str = "waifu2x-photo"
-    """Start weights: ``waifu2x-photo`` (UpConv7), ``realesr-animevideov3`` (compact), a
-    weights file, or ``random`` (seeded). Start weights of another stride give the
+    """Start weights: ``waifu2x-photo`` (UpConv7), ``realesr-animevideov3`` (compact), ``srmdnf``
+    (SRMD, of the run's stride), a weights file, or ``random`` (seeded). Start weights of
+    another stride give the
     convolutions; the new head starts at random."""
     jpeg: tuple[int, int] | None = None
     """JPEG stage of the LR model: a quality range (inclusive) for ``jpeg_share`` of the LR
@@ -152,8 +154,9 @@ Progress = Callable[[int, int, dict], None]
 validation, ``val`` (mean PSNR)."""
 
 
-def start_network(init: str) -> weights.Network:
-    """The start weights ``init`` names (not ``random``) as a network."""
+def start_network(init: str, stride: int = 2) -> weights.Network:
+    """The start weights ``init`` names (not ``random``) as a network; SRMD's of ``stride``
+    (its package has a network per scale)."""
     if init == "waifu2x-photo":
         from ..ncnn import read_model
         from ..waifu2x import INSTALL_HINT, model_files
@@ -164,6 +167,8 @@ def start_network(init: str) -> weights.Network:
         return UpConv7.from_ncnn(read_model(*files))
     if init == compact.START:
         return compact.start_network()
+    if init == srmd.START:
+        return srmd.start_network(stride)
     return weights.load_network(Path(init))
 
 
@@ -183,7 +188,7 @@ def build_network(config: TrainConfig) -> weights.Network:
     net = weights.new_network(config.arch, config.widths, config.stride, config.residual)
     if config.init == "random":
         return net
-    start = start_network(config.init)
+    start = start_network(config.init, config.stride)
     residual = getattr(start, "residual", False)  # compact networks have no bicubic branch
     if (
         weights.arch_of(start) != config.arch

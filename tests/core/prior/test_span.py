@@ -112,7 +112,7 @@ def test_cli_trains_a_span_set_that_runs_x4_in_one_pass(tmp_path, capfd):
     code, err = run_cli([*args[:8], "--arch", "span", "--widths", "8,4", "-q"], capfd)
     assert code == InvalidOptions.exit_code and "equal widths" in err
     code, err = run_cli([*args[:8], "--arch", "span", "--residual", "-q"], capfd)
-    assert code == InvalidOptions.exit_code and "residual by design" in err
+    assert code == InvalidOptions.exit_code and "residual is an upconv7 option" in err
 
 
 def test_new_network_builds_span_from_widths():

