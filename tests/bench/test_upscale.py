@@ -198,7 +198,9 @@ def test_publish_writes_the_summary_between_the_markers_only(tmp_path):
         _row("b", "bicubic", 30.0, 31.0, 1.0),
         _row("b", "fast", 31.0, 31.2, 14.0),
     ]
-    meta = {"scale": 4, "prior": "pbr-upconv7", "eval_res": 256, "eval_views": 40}
+    from pbrsr_core.options import DEFAULT_PRIOR
+
+    meta = {"scale": 4, "prior": DEFAULT_PRIOR, "eval_res": 256, "eval_views": 40}
     meta.update(lights=["a.hdr", "b.hdr"], machine="a test CPU, 2 cores")
     out = tmp_path / "out"
     out.mkdir()
