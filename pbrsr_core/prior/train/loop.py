@@ -6,10 +6,10 @@ safetensors (:mod:`pbrsr_core.prior.texture` loads them).
 The network is an :class:`~pbrsr_core.prior.waifu2x.UpConv7`, a
 :class:`~pbrsr_core.prior.compact.Compact`, a :class:`~pbrsr_core.prior.span.Span` or a
 :class:`~pbrsr_core.prior.srmd.SRMD` network, of stride 2 or 4 (x4 training of a stride-2
-network chains two passes with a clamp between
-them, as inference does). A run with ``first`` trains a later-pass network: the frozen
-``first`` network makes the first x2 pass, the trained one the second; the run's folder gets a
-copy of the first network beside the trained one, so the folder is a texture set of its own."""
+network chains two passes with a clamp between them, as inference does). A run with ``first``
+trains a later-pass network: the frozen ``first`` network makes the first x2 pass, the trained
+one the second; the run's folder gets a copy of the first network beside the trained one, so
+the folder is a texture set of its own."""
 
 from __future__ import annotations
 
@@ -72,8 +72,7 @@ class TrainConfig:
     init: str = "waifu2x-photo"
     """Start weights: ``waifu2x-photo`` (UpConv7), ``realesr-animevideov3`` (compact), ``srmdnf``
     (SRMD, of the run's stride), a weights file, or ``random`` (seeded). Start weights of
-    another stride give the
-    convolutions; the new head starts at random."""
+    another stride give the convolutions; the new head starts at random."""
     jpeg: tuple[int, int] | None = None
     """JPEG stage of the LR model: a quality range (inclusive) for ``jpeg_share`` of the LR
     crops (:func:`~pbrsr_core.prior.train.data.jpeg_lr`); None: the protocol's blur + bicubic

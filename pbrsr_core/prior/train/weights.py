@@ -78,12 +78,10 @@ def save_network(net: Network, path: Path, config: TrainConfig, extra: dict[str,
     ``kinds``, ``scale``, the training config as JSON and ``extra``."""
     from safetensors.torch import save_file
 
-    if isinstance(net, Compact):
+    if isinstance(net, Compact | SRMD):
         shape = {"feat": str(net.feat), "convs": str(net.convs)}
     elif isinstance(net, Span):
         shape = {"feat": str(net.feat), "blocks": str(net.blocks)}
-    elif isinstance(net, SRMD):
-        shape = {"feat": str(net.feat), "convs": str(net.convs)}
     else:
         shape = {"slope": str(net.slope), "residual": "1" if net.residual else "0"}
     meta = {

@@ -117,7 +117,8 @@ def test_cli_trains_an_srmd_set_stored_as_float16(tmp_path, capfd):
     from safetensors import safe_open
 
     with safe_open(str(file), framework="pt") as f:
-        assert {f.get_tensor(k).dtype for k in f.keys()}  # noqa: SIM118 == {torch.float16}
+        dtypes = {f.get_tensor(k).dtype for k in f.keys()}  # noqa: SIM118 (not a dict)
+    assert dtypes == {torch.float16}
     net = load_network(file)
     assert isinstance(net, srmd.SRMD) and net.code.dtype == torch.float32
     prior = TexturePrior(out)
