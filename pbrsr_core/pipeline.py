@@ -136,9 +136,10 @@ def _upscale_maps(
     if options.method == "direct":
         from .optim.presets import BALANCED, CHECK_PRIOR_CPU
 
-        # where the prior offers candidates, the self-check picks one per colour and data map
+        # JPEG maps deblocked with their own tables, as every preset does; where the prior
+        # offers candidates, the self-check picks one per colour and data map
+        lr_pixels, deblocked = deblocked_lr(images, BALANCED, timer)
         offered = [img for img in images if len(prior.candidates(kind_of(img.roles))) > 1]
-        lr_pixels = {img.index: img.pixels for img in offered}
         found = self_checks(asset, offered, prior, lr_pixels, s, CHECK_PRIOR_CPU, None, timer,
                             progress)  # fmt: skip
         picks = {
@@ -154,13 +155,13 @@ def _upscale_maps(
             for img in images:
                 kind = kind_of(img.roles)
                 out[img.index] = upscale_channels(
-                    picks.get(img.index, [prior]), img.pixels, kind, s, progress=tiles.on(img),
+                    picks.get(img.index, [prior]), lr_pixels[img.index], kind, s,
+                    progress=tiles.on(img),
                     wrap=wraps[img.index], cutout=cutouts[img.index],
                 )  # fmt: skip
         names = {img.index: img.name for img in images}
-        return out, {
-            "prior_picks": {names[i]: [p.name for p in ps] for i, ps in picks.items()}
-        } if picks else {}
+        picked = {names[i]: [p.name for p in ps] for i, ps in picks.items()}
+        return out, {"jpeg_deblocked": deblocked, **({"prior_picks": picked} if picks else {})}
 
     from .optim.presets import get_preset
 

@@ -152,7 +152,7 @@ def test_deblocking_grey_and_odd_sizes():
     assert _psnr(out[..., 0], img[..., 0]) > _psnr(decoded[..., 0], img[..., 0])
 
 
-def test_pipeline_deblocks_jpeg_maps_in_the_cpu_presets_only(tmp_path: Path):
+def test_pipeline_deblocks_jpeg_maps_in_direct_and_the_cpu_presets(tmp_path: Path):
     src = make_test_asset(tmp_path / "in" / "a.glb", size=32, features={"jpeg"})
     jpegs = {im.name for im in load_asset(src).images if im.roles and im.jpeg is not None}
     assert jpegs
@@ -163,6 +163,15 @@ def test_pipeline_deblocks_jpeg_maps_in_the_cpu_presets_only(tmp_path: Path):
     res = load_asset(tmp_path / "f" / "a.glb")
     for img in res.images:
         assert np.isfinite(img.pixels).all()
+    direct = upscale_asset(
+        src, tmp_path / "d", UpscaleOptions(method="direct", prior="bicubic", scale=2)
+    )
+    assert set(direct["jpeg_deblocked"]) == jpegs and "deblock" in direct["timings"]
+    upscale_asset(src, tmp_path / "b", UpscaleOptions(method="bicubic", scale=2))
+    by_name = {im.name: im.pixels for im in load_asset(tmp_path / "b" / "a.glb").images}
+    for img in load_asset(tmp_path / "d" / "a.glb").images:  # direct upscaled the deblocked maps
+        if img.name in jpegs:
+            assert np.abs(img.pixels - by_name[img.name]).max() > 1e-3
     assert not get_preset("paper").deblock_jpeg  # the paper takes the LR maps as they are
 
 
