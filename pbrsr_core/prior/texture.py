@@ -36,11 +36,11 @@ SHIPPED: dict[str, tuple[str, ...]] = {
         *(f"pbr-upconv7/pbr-upconv7-{k}.safetensors" for k in ("colour", "data", "normal")),
         *(f"pbr-upconv7-fast/pbr-upconv7-fast-{k}.safetensors" for k in ("colour", "normal")),
     ),
-    # pbr-upconv7's x2 networks, and for colour maps an SRMD network fine-tuned from srmdnf_x4
-    # that makes x4 in one pass (x8: it, then the x2 network)
+    # pbr-upconv7's x2 networks, and for colour and normal maps SRMD networks fine-tuned from
+    # srmdnf_x4 that make x4 in one pass (x8: it, then the x2 network)
     "pbr-srmd": (
         *(f"pbr-upconv7/pbr-upconv7-{k}.safetensors" for k in ("colour", "data", "normal")),
-        "pbr-srmd/pbr-srmd-colour.safetensors",
+        *(f"pbr-srmd/pbr-srmd-{k}.safetensors" for k in ("colour", "normal")),
     ),
 }
 """Shipped set name -> its weights files under :data:`WEIGHTS_ROOT` (one per kind and

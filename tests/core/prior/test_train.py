@@ -375,10 +375,10 @@ def test_shipped_fast_prior_runs_narrow_later_passes_behind_pbr_upconv7(capfd):
     assert code == 0, err
 
 
-def test_shipped_srmd_prior_makes_colour_x4_in_one_srmd_pass(capfd):
-    """pbr-srmd, the default prior: pbr-upconv7's x2 networks, and for colour maps an SRMD
-    network (float16 on disk, under 4 MiB) that makes x4 in one pass and the first pass of x8
-    (MODEL_CARD.md in its folder)."""
+def test_shipped_srmd_prior_makes_colour_and_normal_x4_in_one_srmd_pass(capfd):
+    """pbr-srmd, the default prior: pbr-upconv7's x2 networks, and for colour and normal maps
+    SRMD networks (float16 on disk, under 4 MiB) that make x4 in one pass and the first pass
+    of x8 (MODEL_CARD.md in its folder); data maps are pbr-upconv7's at every scale."""
     from pbrsr_core.options import DEFAULT_PRIOR
     from pbrsr_core.prior.srmd import SRMD
     from pbrsr_core.prior.texture import shipped_files
@@ -389,16 +389,18 @@ def test_shipped_srmd_prior_makes_colour_x4_in_one_srmd_pass(capfd):
     assert all(f.stat().st_size < 4 * 2**20 for f in shipped_files("pbr-srmd"))
     x = torch.rand(1, 3, 20, 20)
     with torch.no_grad():
-        srmd, up2 = prior.nets["colour"][4], prior.nets["colour"][2]
-        assert isinstance(srmd, SRMD) and srmd.stride == 4
-        assert torch.equal(prior._forward(x, 4), srmd(x).clamp(0, 1))
-        assert torch.equal(prior._forward(x, 2), base.nets["colour"][2](x).clamp(0, 1))
-        assert torch.equal(prior._forward(x, 8), up2(srmd(x).clamp(0, 1)).clamp(0, 1))
-        for kind in ("data", "normal"):
-            assert set(prior.nets[kind]) == {2}
-            assert torch.equal(
-                prior.for_kind(kind)._forward(x, 4), base.for_kind(kind)._forward(x, 4)
-            )
+        for kind in ("colour", "normal"):
+            srmd, up2 = prior.nets[kind][4], prior.nets[kind][2]
+            assert isinstance(srmd, SRMD) and srmd.stride == 4
+            run = prior.for_kind(kind)._forward
+            assert torch.equal(run(x, 4), srmd(x).clamp(0, 1))
+            assert torch.equal(run(x, 2), base.for_kind(kind)._forward(x, 2))
+            assert torch.equal(run(x, 8), up2(srmd(x).clamp(0, 1)).clamp(0, 1))
+        assert torch.equal(prior._forward(x, 4), prior.for_kind("colour")._forward(x, 4))
+        assert set(prior.nets["data"]) == {2}
+        assert torch.equal(
+            prior.for_kind("data")._forward(x, 4), base.for_kind("data")._forward(x, 4)
+        )
     code, err = run_cli(["priors", "install", "pbr-srmd"], capfd)
     assert code == 0, err
 
