@@ -37,7 +37,7 @@ SHIPPED: dict[str, tuple[str, ...]] = {
         *(f"pbr-upconv7-fast/pbr-upconv7-fast-{k}.safetensors" for k in ("colour", "normal")),
     ),
     # pbr-upconv7's x2 networks, and for colour and normal maps SRMD networks fine-tuned from
-    # srmdnf_x4 that make x4 in one pass (x8: it, then the x2 network)
+    # srmdnf_x4 that make x4 in one pass (x8: the kind's SRMD network, then its x2 one)
     "pbr-srmd": (
         *(f"pbr-upconv7/pbr-upconv7-{k}.safetensors" for k in ("colour", "data", "normal")),
         *(f"pbr-srmd/pbr-srmd-{k}.safetensors" for k in ("colour", "normal")),
