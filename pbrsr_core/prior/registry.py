@@ -65,9 +65,11 @@ def _build(name: str, device: torch.device) -> Prior:
 
         return Waifu2xPrior(device)
     if name in SHIPPED:
-        from .texture import TexturePrior, shipped_files
+        from .texture import X4_ONLY, TexturePrior, shipped_files
 
-        return TexturePrior(shipped_files(name), device, name=name)
+        return TexturePrior(
+            shipped_files(name), device, name=name, x4_only=X4_ONLY.get(name, frozenset())
+        )
     if name.startswith("texture:"):
         from .texture import TexturePrior
 

@@ -37,7 +37,8 @@ SHIPPED: dict[str, tuple[str, ...]] = {
         *(f"pbr-upconv7-fast/pbr-upconv7-fast-{k}.safetensors" for k in ("colour", "normal")),
     ),
     # pbr-upconv7's x2 networks, and for colour and normal maps SRMD networks fine-tuned from
-    # srmdnf_x4 that make x4 in one pass (x8: the kind's SRMD network, then its x2 one)
+    # srmdnf_x4 that make x4 in one pass (x8: colour's SRMD network, then its x2 one; normal
+    # maps: three x2 passes, see X4_ONLY)
     "pbr-srmd": (
         *(f"pbr-upconv7/pbr-upconv7-{k}.safetensors" for k in ("colour", "data", "normal")),
         *(f"pbr-srmd/pbr-srmd-{k}.safetensors" for k in ("colour", "normal")),
@@ -45,6 +46,14 @@ SHIPPED: dict[str, tuple[str, ...]] = {
 }
 """Shipped set name -> its weights files under :data:`WEIGHTS_ROOT` (one per kind and
 stride; a kind without one uses the fallback)."""
+
+
+X4_ONLY: dict[str, frozenset[str]] = {
+    # at x8 the SRMD normal network then the x2 one scores below three x2 passes on 128² JPEG
+    # normal maps (docs/BENCHMARKS.md, x8)
+    "pbr-srmd": frozenset({"normal"}),
+}
+"""Shipped set name -> kinds whose x4 network runs for x4 only (their x8: x2 passes)."""
 
 
 def shipped_files(name: str) -> list[Path]:
@@ -133,7 +142,8 @@ def installed_stats(name: str) -> tuple[int | None, int | None]:
 
 class TexturePrior(Prior):
     """Networks trained on texture maps: per kind an x2 network, an x4 network or both; a
-    scale runs as the fewest passes whose strides multiply to it (x8: x4 then x2)."""
+    scale runs as the fewest passes whose strides multiply to it (x8: x4 then x2), but for
+    the ``x4_only`` kinds, whose x4 network runs only for x4 (x8: three x2 passes)."""
 
     bytes_per_pixel = 8192.0  # as waifu2x-photo: the same network shape
     default_overlap = 32
@@ -145,6 +155,7 @@ class TexturePrior(Prior):
         *,
         name: str | None = None,
         fallback: str = "waifu2x-photo",
+        x4_only: frozenset[str] = frozenset(),
     ) -> None:
         super().__init__()
         self.device = torch.device(device)
@@ -163,6 +174,8 @@ class TexturePrior(Prior):
             else:
                 self.nets.setdefault(kind, {})[stride] = loaded[f]
         self.fallback = fallback
+        self.x4_only = x4_only
+        """Kinds whose x4 network makes x4 only; their other scales are x2 passes."""
         self._views: dict[str, Prior] = {}
         self._lock = threading.Lock()
         # images of no stated kind (the optimiser's renders) are colour images: the colour
@@ -172,7 +185,7 @@ class TexturePrior(Prior):
             self.scales = self.for_kind("colour").scales
             self.one_pass_scales = self.for_kind("colour").one_pass_scales
         else:
-            self.scales = _scales(self.nets[self.kind])
+            self.scales = self._scales(self.kind)
             self.one_pass_scales = tuple(sorted(self.nets[self.kind]))
             self._views[self.kind] = self
 
@@ -205,10 +218,19 @@ class TexturePrior(Prior):
             return self.for_kind("colour").num_parameters()
         return _parameters(self.nets[self.kind], self.later.get(self.kind))
 
+    def _passes(self, kind: str, scale: int) -> list[int] | None:
+        strides = set(self.nets[kind])
+        if kind in self.x4_only and scale != 4:
+            strides.discard(4)
+        return passes(strides, scale)
+
+    def _scales(self, kind: str) -> tuple[int, ...]:
+        return tuple(s for s in (2, 4, 8) if self._passes(kind, s))
+
     def _run(self, kind: str, x: torch.Tensor, scale: int) -> torch.Tensor:
         nets, later = self.nets[kind], self.later.get(kind)
         with self._lock:
-            for i, stride in enumerate(passes(set(nets), scale) or []):
+            for i, stride in enumerate(self._passes(kind, scale) or []):
                 net = later if i and stride == 2 and later is not None else nets[stride]
                 x = net(x).clamp_(0.0, 1.0)
         return x
@@ -225,6 +247,8 @@ class TexturePrior(Prior):
             or self.fallback
             for k in KINDS
         }
+        if self.x4_only:
+            info["x4_only"] = sorted(self.x4_only)
         return info
 
 
@@ -235,7 +259,7 @@ class _KindView(Prior):
         super().__init__()
         self.parent, self.kind = parent, kind
         self.name = f"{parent.name}[{kind}]"
-        self.scales, self.device = _scales(parent.nets[kind]), parent.device
+        self.scales, self.device = parent._scales(kind), parent.device
         self.one_pass_scales = tuple(sorted(parent.nets[kind]))
         self.bytes_per_pixel = parent.bytes_per_pixel
         self.default_overlap = parent.default_overlap
@@ -245,10 +269,6 @@ class _KindView(Prior):
 
     def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
         return self.parent._run(self.kind, x, scale)
-
-
-def _scales(nets: dict[int, Network]) -> tuple[int, ...]:
-    return tuple(s for s in (2, 4, 8) if passes(set(nets), s))
 
 
 def _parameters(nets: dict[int, Network], later: Network | None = None) -> int:

@@ -377,8 +377,9 @@ def test_shipped_fast_prior_runs_narrow_later_passes_behind_pbr_upconv7(capfd):
 
 def test_shipped_srmd_prior_makes_colour_and_normal_x4_in_one_srmd_pass(capfd):
     """pbr-srmd, the default prior: pbr-upconv7's x2 networks, and for colour and normal maps
-    SRMD networks (float16 on disk, under 4 MiB) that make x4 in one pass and the first pass
-    of x8 (MODEL_CARD.md in its folder); data maps are pbr-upconv7's at every scale."""
+    SRMD networks (float16 on disk, under 4 MiB) that make x4 in one pass (MODEL_CARD.md in its
+    folder); x8 colour is the SRMD network then the x2 one, x8 normal maps are three x2 passes
+    (the set's ``x4_only``); data maps are pbr-upconv7's at every scale."""
     from pbrsr_core.options import DEFAULT_PRIOR
     from pbrsr_core.prior.srmd import SRMD
     from pbrsr_core.prior.texture import shipped_files
@@ -395,9 +396,14 @@ def test_shipped_srmd_prior_makes_colour_and_normal_x4_in_one_srmd_pass(capfd):
             run = prior.for_kind(kind)._forward
             assert torch.equal(run(x, 4), srmd(x).clamp(0, 1))
             assert torch.equal(run(x, 2), base.for_kind(kind)._forward(x, 2))
-            assert torch.equal(run(x, 8), up2(srmd(x).clamp(0, 1)).clamp(0, 1))
+            if kind == "colour":
+                assert torch.equal(run(x, 8), up2(srmd(x).clamp(0, 1)).clamp(0, 1))
+            else:
+                assert torch.equal(run(x, 8), base.for_kind(kind)._forward(x, 8))
         assert torch.equal(prior._forward(x, 4), prior.for_kind("colour")._forward(x, 4))
         assert set(prior.nets["data"]) == {2}
+        assert prior.for_kind("normal").scales == (2, 4, 8)
+        assert prior.describe()["x4_only"] == ["normal"]
         assert torch.equal(
             prior.for_kind("data")._forward(x, 4), base.for_kind("data")._forward(x, 4)
         )
@@ -511,6 +517,13 @@ def test_stride_four_network_runs_x4_in_one_pass_and_mixes_with_x2(tmp_path):
     with torch.no_grad():
         expect = both.nets["colour"][2](both.nets["colour"][4](x).clamp(0, 1)).clamp(0, 1)
         assert torch.equal(both._forward(x, 8), expect)
+        # a kind whose x4 network makes x4 only runs x8 as three x2 passes
+        x4_only = TexturePrior(tmp_path, x4_only=frozenset({"colour"}))
+        assert x4_only.scales == (2, 4, 8)
+        assert torch.equal(x4_only._forward(x, 4), both._forward(x, 4))
+        net2 = both.nets["colour"][2]
+        expect = net2(net2(net2(x).clamp(0, 1)).clamp(0, 1)).clamp(0, 1)
+        assert torch.equal(x4_only._forward(x, 8), expect)
     with pytest.raises(InvalidOptions, match="stride 4"):
         TrainConfig(stride=4, scale=2).check()
 
