@@ -216,7 +216,7 @@ def run(
             row.s_per_256, peak = _timed(prior, 256, s, dev)
             if s in large:
                 row.s_per_1024, peak = _timed(prior, 1024, s, dev)
-                tile = prior.effective_tile()
+                tile = prior.effective_tile(s)
                 overlap = (
                     prior.default_overlap if prior.tile_overlap is None else prior.tile_overlap
                 )

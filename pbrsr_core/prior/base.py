@@ -56,6 +56,9 @@ class Prior(ABC):
     back_project: bool = True
     """Whether :meth:`upscale` back-projects the output onto the input (prior/backproject.py);
     False for interpolation, whose output already is what it is meant to be."""
+    cpu_tile_max: int = 512
+    """Largest tile side (LR pixels) on the CPU: UpConv7's tiles at x4 are no faster past it
+    (its second pass, at twice the size, is bound by memory traffic)."""
     bf16_validated: bool = False
     """True when bfloat16 output was measured close to float32's (then ``auto`` uses it)."""
 
@@ -105,11 +108,18 @@ class Prior(ABC):
             return False
         return choice == "bf16" or (self.bf16_validated and native_bf16(self.device))
 
-    def effective_tile(self, tile_size: int | None = None) -> int:
-        """The tile side used for a run (argument, attribute, or from free memory)."""
+    def tile_limits(self, scale: int) -> tuple[float, int]:
+        """(estimated peak memory per LR input pixel, largest tile side on the CPU) of a run
+        at ``scale``: ``bytes_per_pixel`` and ``cpu_tile_max``."""
+        return self.bytes_per_pixel, self.cpu_tile_max
+
+    def effective_tile(self, scale: int, tile_size: int | None = None) -> int:
+        """The tile side of a run at ``scale`` (argument, attribute, or from free memory and
+        :meth:`tile_limits`)."""
         tile = tile_size or self.tile_size
         if tile is None:
-            tile = default_tile_size(self.device, self.bytes_per_pixel)
+            bytes_per_pixel, cpu_max = self.tile_limits(scale)
+            tile = default_tile_size(self.device, bytes_per_pixel, cpu_max=cpu_max)
         return max(int(tile), self.min_size, 8)
 
     def upscale(
@@ -134,7 +144,7 @@ class Prior(ABC):
             raise ValueError(f"images must not be empty, got {tuple(images.shape)}")
         self.check_scale(scale)
         bf16 = self.uses_bf16()
-        tile = self.effective_tile(tile_size)
+        tile = self.effective_tile(scale, tile_size)
         overlap = self.default_overlap if tile_overlap is None else int(tile_overlap)
         if self.tile_overlap is not None and tile_overlap is None:
             overlap = self.tile_overlap

@@ -137,16 +137,17 @@ def free_memory_bytes(device: torch.device) -> int:
 
 
 def default_tile_size(
-    device: torch.device, bytes_per_pixel: float, *, fraction: float = 0.25
+    device: torch.device, bytes_per_pixel: float, *, fraction: float = 0.25, cpu_max: int = 512
 ) -> int:
-    """Largest tile side (LR pixels, a multiple of 32 in [64, 1024]; at most 512 on CPU where
-    larger tiles are not faster) whose estimated peak memory ``tile**2 * bytes_per_pixel``
-    fits in ``fraction`` of the free memory. The runtime's ``prior_tile`` overrides it."""
+    """Largest tile side (LR pixels, a multiple of 32 in [64, 1024]; at most ``cpu_max`` on
+    the CPU, past which the prior's tiles are not faster) whose estimated peak memory
+    ``tile**2 * bytes_per_pixel`` fits in ``fraction`` of the free memory. The runtime's
+    ``prior_tile`` overrides it."""
     tile = runtime.current().prior_tile
     if tile:
         return max(16, tile)
     budget = free_memory_bytes(device) * fraction
     side = int(math.sqrt(max(budget, 1.0) / max(bytes_per_pixel, 1.0)))
     side = side // 32 * 32
-    upper = 1024 if device.type == "cuda" else 512
+    upper = 1024 if device.type == "cuda" else min(cpu_max, 1024)
     return int(min(max(side, 64), upper))

@@ -48,6 +48,9 @@ def test_tile_arguments_are_checked():
     assert count_tiles(100, 10, 32, 8) == 4
     assert tile_layout(1024, 512, 32) == (363, [0, 330, 661])  # 3 fitted tiles, not 3 x 512
     assert 64 <= default_tile_size(torch.device("cpu"), 4096.0) <= 512
+    # memory does not bind at one byte a pixel: the CPU cap does (512 unless the prior says)
+    assert default_tile_size(torch.device("cpu"), 1.0) == 512
+    assert default_tile_size(torch.device("cpu"), 1.0, cpu_max=1024) == 1024
 
 
 class LocalNet(Prior):

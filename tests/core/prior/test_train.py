@@ -404,6 +404,14 @@ def test_shipped_srmd_prior_makes_colour_and_normal_x4_in_one_srmd_pass(capfd):
         assert set(prior.nets["data"]) == {2}
         assert prior.for_kind("normal").scales == (2, 4, 8)
         assert prior.describe()["x4_only"] == ["normal"]
+        # one SRMD pass runs in tiles of up to 1024² on the CPU, the x2 networks' passes 512²
+        one_pass = (prior.one_pass_bytes_per_pixel, 1024)
+        assert prior.tile_limits(4) == prior.for_kind("colour").tile_limits(4) == one_pass
+        assert prior.for_kind("normal").tile_limits(4) == one_pass
+        assert prior.for_kind("colour").tile_limits(8)[1] == 512
+        assert prior.for_kind("normal").tile_limits(8)[1] == 512
+        assert prior.for_kind("data").tile_limits(4) == (prior.bytes_per_pixel, 512)
+        assert prior.for_kind("colour").tile_limits(2) == (prior.bytes_per_pixel, 512)
         assert torch.equal(
             prior.for_kind("data")._forward(x, 4), base.for_kind("data")._forward(x, 4)
         )
