@@ -362,13 +362,18 @@ def finetune_cmd(
     first: str | None = _FIRST,
     distill: bool = _DISTILL,
     graphics: float = _GRAPHICS,
+    widths: str = typer.Option(
+        None,
+        help="SRMD start weights only: narrower widths (as many as the start's, all equal); "
+        "each convolution keeps its filters of largest L1 norm. Default: the start's.",
+    ),
     resume: bool = _RESUME,
     quiet: bool = _QUIET,
 ) -> None:
     """Fine-tune an existing prior's weights on a CC0 texture folder, then write the report
     and model card."""
     opts = dict(locals())
-    _run_training(init=opts.pop("from_"), widths=None, **opts)
+    _run_training(init=opts.pop("from_"), **opts)
 
 
 @priors_app.command("report")

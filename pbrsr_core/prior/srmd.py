@@ -108,6 +108,28 @@ class SRMD(nn.Module):
         return y.contiguous()
 
 
+def pruned(net: SRMD, feat: int) -> SRMD:
+    """``net`` cut to ``feat`` features: each body convolution keeps its ``feat`` filters of
+    largest L1 norm, the next convolution (or the head) the input channels they feed (Li et
+    al., "Pruning Filters for Efficient ConvNets", ICLR 2017). The start of a narrower,
+    faster network, to be fine-tuned."""
+    if not 1 <= feat <= net.feat:
+        raise ValueError(f"cannot prune {net.feat} features to {feat}")
+    out = SRMD(feat, net.convs, net.stride)
+    keep = torch.arange(3 + CODE_SIZE)
+    with torch.no_grad():
+        out.code.copy_(net.code)
+        for src, dst in zip([*net.body, net.head], [*out.body, out.head], strict=True):
+            rows = torch.arange(src.weight.shape[0])
+            if dst is not out.head:
+                norms = src.weight.abs().sum(dim=(1, 2, 3))
+                rows = torch.sort(norms.topk(feat).indices).values
+            dst.weight.copy_(src.weight[rows][:, keep])
+            dst.bias.copy_(src.bias[rows])
+            keep = rows
+    return out
+
+
 def model_files(stride: int) -> tuple[Path, Path] | None:
     """The installed ``.param`` and ``.bin`` of the start model of ``stride``, or None when
     the package (at the pinned version) is not installed."""

@@ -188,6 +188,13 @@ def build_network(config: TrainConfig) -> weights.Network:
     if config.init == "random":
         return net
     start = start_network(config.init, config.stride)
+    if (
+        isinstance(start, srmd.SRMD)
+        and config.arch == "srmd"
+        and len(config.widths) == start.convs
+        and config.widths[0] < start.feat
+    ):
+        start = srmd.pruned(start, config.widths[0])
     residual = getattr(start, "residual", False)  # compact networks have no bicubic branch
     if (
         weights.arch_of(start) != config.arch

