@@ -130,7 +130,8 @@ def _run_training(
     17 or the SPAN network's 48 x 6). ``first``: a set (or file) whose x2 network for each
     kind makes the first pass, frozen, while the trained network learns the passes after it
     (from a set's later-pass network where ``init`` has one); ``distill``: it learns the first
-    network's own second pass instead of the HR crop; ``graphics``: the share of colour and
+    network's own second pass (without ``first``: the start weights' output) instead of the HR
+    crop; ``graphics``: the share of colour and
     normal crops drawn procedurally."""
     from tqdm import tqdm
 
@@ -284,8 +285,10 @@ _FIRST = typer.Option(
 _DISTILL = typer.Option(
     False,
     "--distill",
-    help="With --first: learn the first network's own second pass (its x4 output) instead of "
-    "the HR crop: a narrow later network learns what the wide one does, at its own cost.",
+    help="Learn a network's output instead of the HR crop: with --first, the first network's "
+    "own second pass (a narrow later network learns what the wide one does, at its own cost); "
+    "without, the start weights' (--from) output, as a network pruned by --widths learns what "
+    "the full one does.",
 )
 _GRAPHICS = typer.Option(
     0.0,

@@ -68,7 +68,9 @@ class TrainConfig:
     its first pass's output, clamped), not the HR crop, so a narrow later network learns to do
     what the wide one does at x4, edges of drawn textures included, which the HR crops of
     natural materials seldom show. Validation then scores agreement with that second pass on
-    the held-out crops (the HR crops hardly tell later passes apart)."""
+    the held-out crops (the HR crops hardly tell later passes apart). Without ``first``: the
+    target is the start weights' own output at the run's scale (clamped), so a network pruned
+    narrower (``widths``) learns what the full one does; validation scores the HR crops."""
     init: str = "waifu2x-photo"
     """Start weights: ``waifu2x-photo`` (UpConv7), ``realesr-animevideov3`` (compact), ``srmdnf``
     (SRMD, of the run's stride), a weights file, or ``random`` (seeded). Start weights of
@@ -133,7 +135,16 @@ class TrainConfig:
             if first_network(self).stride != 2:
                 raise InvalidOptions(f"the first-pass network '{self.first}' is not an x2 network")
         elif self.distill:
-            raise InvalidOptions("distilling needs a first-pass network (--first) to learn from")
+            if self.init == "random":
+                raise InvalidOptions(
+                    "distilling needs a network to learn from: start weights (--from) or a "
+                    "first-pass network (--first)"
+                )
+            if teacher_network(self).stride != self.stride:
+                raise InvalidOptions(
+                    f"the start weights '{self.init}' are not a stride-{self.stride} network to "
+                    "distil"
+                )
 
 
 @dataclass
@@ -179,6 +190,14 @@ def first_network(config: TrainConfig) -> weights.Network:
     except PriorUnavailable as exc:
         raise InvalidOptions(f"first-pass network: {exc}") from exc
     return net.eval().requires_grad_(False)
+
+
+def teacher_network(config: TrainConfig) -> weights.Network:
+    """The frozen network whose output a distilling run learns: the first-pass network (its
+    second pass) or, without one, the start weights as they are (before any pruning)."""
+    if config.first is not None:
+        return first_network(config)
+    return start_network(config.init, config.stride).eval().requires_grad_(False)
 
 
 def build_network(config: TrainConfig) -> weights.Network:
@@ -351,6 +370,9 @@ def train(
         if Path(config.first).resolve() != copy.resolve():
             shutil.copyfile(config.first, copy)
         meta["first_sha256"] = weights.file_sha256(copy)
+    teacher = None
+    if config.distill:
+        teacher = first if first is not None else teacher_network(config)
     net = build_network(config).train()
     ema = weights.new_network(config.arch, config.widths, config.stride, config.residual)
     ema.load_state_dict(net.state_dict())
@@ -401,6 +423,10 @@ def train(
                 mid = first(lr_img).clamp(0.0, 1.0)
                 hr_img = first(mid).clamp(0.0, 1.0)
             loss = interior_l1(net(mid), hr_img, shave)
+        elif teacher is not None:
+            with torch.no_grad():
+                hr_img = upscale_net(teacher, lr_img, config.scale).clamp(0.0, 1.0)
+            loss = interior_l1(upscale_net(net, lr_img, config.scale), hr_img, shave)
         else:
             loss = interior_l1(upscale_net(net, lr_img, config.scale, first), hr_img, shave)
         opt.zero_grad(set_to_none=True)

