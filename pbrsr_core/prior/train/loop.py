@@ -200,8 +200,14 @@ def teacher_network(config: TrainConfig) -> weights.Network:
     return start_network(config.init, config.stride).eval().requires_grad_(False)
 
 
-def build_network(config: TrainConfig) -> weights.Network:
-    """The network at its start weights."""
+CALIBRATION_BATCHES = 4
+"""Training batches whose LR crops refit a pruned network's convolutions (:func:`srmd.pruned`)."""
+
+
+def build_network(config: TrainConfig, materials: list[Material] | None = None) -> weights.Network:
+    """The network at its start weights; an SRMD start asked for narrower widths is pruned to
+    them, its convolutions refit on LR crops of ``materials`` where given (drawn as the run
+    draws its batches, with another seed)."""
     torch.manual_seed(config.seed)
     net = weights.new_network(config.arch, config.widths, config.stride, config.residual)
     if config.init == "random":
@@ -213,7 +219,21 @@ def build_network(config: TrainConfig) -> weights.Network:
         and len(config.widths) == start.convs
         and config.widths[0] < start.feat
     ):
-        start = srmd.pruned(start, config.widths[0])
+        calibration = None
+        if materials:
+            sampler = CropSampler(
+                materials,
+                config.kinds,
+                config.scale,
+                config.patch,
+                config.batch_size,
+                config.seed + 1,
+                config.jpeg,
+                config.jpeg_share,
+                config.graphics,
+            )
+            calibration = torch.cat([sampler.batch(i)[0] for i in range(CALIBRATION_BATCHES)])
+        start = srmd.pruned(start, config.widths[0], calibration)
     residual = getattr(start, "residual", False)  # compact networks have no bicubic branch
     if (
         weights.arch_of(start) != config.arch
@@ -373,7 +393,11 @@ def train(
     teacher = None
     if config.distill:
         teacher = first if first is not None else teacher_network(config)
-    net = build_network(config).train()
+    history, start = History(), 0
+    ckpt = out_dir / CHECKPOINT
+    resuming = resume and ckpt.is_file()
+    # resuming, the checkpoint holds the weights: no refit of a pruned start
+    net = build_network(config, None if resuming else train_materials).train()
     ema = weights.new_network(config.arch, config.widths, config.stride, config.residual)
     ema.load_state_dict(net.state_dict())
     ema.eval().requires_grad_(False)
@@ -394,10 +418,8 @@ def train(
     validator = Validator(
         val_materials, config.kinds, config.scale, config.val_patch, first, config.distill
     )
-    history, start = History(), 0
-    ckpt = out_dir / CHECKPOINT
     best_file = out_dir / f"{name}.safetensors"
-    if resume and ckpt.is_file():
+    if resuming:
         state = torch.load(ckpt, map_location="cpu", weights_only=False)
         if state["config"] != asdict(config):
             raise InvalidOptions(
