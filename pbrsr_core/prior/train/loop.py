@@ -70,7 +70,10 @@ class TrainConfig:
     natural materials seldom show. Validation then scores agreement with that second pass on
     the held-out crops (the HR crops hardly tell later passes apart). Without ``first``: the
     target is the start weights' own output at the run's scale (clamped), so a network pruned
-    narrower (``widths``) learns what the full one does; validation scores the HR crops."""
+    narrower (``widths``) learns what the full one does; the loss compares both outputs
+    back-projected onto the LR crop, as the prior runs them (a pruned network's error is
+    mostly of low frequency, which that step removes: on raw outputs its detail got worse
+    while that error was learnt away); validation scores the HR crops."""
     init: str = "waifu2x-photo"
     """Start weights: ``waifu2x-photo`` (UpConv7), ``realesr-animevideov3`` (compact), ``srmdnf``
     (SRMD, of the run's stride), a weights file, or ``random`` (seeded). Start weights of
@@ -445,10 +448,12 @@ def train(
                 mid = first(lr_img).clamp(0.0, 1.0)
                 hr_img = first(mid).clamp(0.0, 1.0)
             loss = interior_l1(net(mid), hr_img, shave)
-        elif teacher is not None:
+        elif teacher is not None:  # both back-projected, as the prior runs them
             with torch.no_grad():
                 hr_img = upscale_net(teacher, lr_img, config.scale).clamp(0.0, 1.0)
-            loss = interior_l1(upscale_net(net, lr_img, config.scale), hr_img, shave)
+                hr_img = back_project(hr_img, lr_img, config.scale)
+            up = back_project(upscale_net(net, lr_img, config.scale), lr_img, config.scale)
+            loss = interior_l1(up, hr_img, shave)
         else:
             loss = interior_l1(upscale_net(net, lr_img, config.scale, first), hr_img, shave)
         opt.zero_grad(set_to_none=True)

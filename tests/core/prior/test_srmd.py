@@ -15,6 +15,7 @@ import torch.nn.functional as F
 from pbrsr_core.degrade import degrade_tensor
 from pbrsr_core.errors import InvalidOptions, PriorUnavailable
 from pbrsr_core.prior import ncnn, srmd
+from pbrsr_core.prior.backproject import back_project
 from pbrsr_core.prior.bicubic import bicubic_upscale
 from pbrsr_core.prior.texture import TexturePrior
 from pbrsr_core.prior.train.weights import load_network, read_metadata
@@ -197,9 +198,10 @@ def test_cli_finetunes_a_pruned_network(tmp_path, capfd):
 
 
 def test_a_pruned_network_distils_the_full_one(tmp_path, one_thread):
-    """--distill without --first: the target is the start weights' own output, so a network
-    pruned from them moves towards what the full network does, more than one trained on the
-    HR crops; the teacher must have the run's stride."""
+    """--distill without --first: the target is the start weights' own output (both
+    back-projected onto the LR crop, as the prior runs them), so a network pruned from them
+    moves towards what the full network does, more than one trained on the HR crops; the
+    teacher must have the run's stride."""
     from pbrsr_core.prior.train.data import load_materials, read_manifest, split_materials
     from pbrsr_core.prior.train.loop import TrainConfig, train
     from pbrsr_core.prior.train.weights import save_network
@@ -232,11 +234,16 @@ def test_a_pruned_network_distils_the_full_one(tmp_path, one_thread):
         ckpt_every=40,
         val_patch=64,
     )
-    x = torch.stack([torch.from_numpy(m.maps["basecolor"][:32, :32]) for m in val_m[:4]])
+    x = torch.stack([torch.from_numpy(m.maps["basecolor"][:64, :64]) for m in val_m[:4]])
     x = x.permute(0, 3, 1, 2).float() / 255
+    lr = degrade_tensor(x, 4)
+
+    def run(net):
+        return back_project(net.eval()(lr).clamp(0, 1), lr, 4)
+
     with torch.no_grad():
-        target = full(x).clamp(0, 1)
-        start_gap = float((srmd.pruned(full, 5)(x) - target).abs().mean())
+        target = run(full)
+        start_gap = float((run(srmd.pruned(full, 5)) - target).abs().mean())
     gaps = {}
     for distill in (True, False):
         out = tmp_path / str(distill)
@@ -247,7 +254,7 @@ def test_a_pruned_network_distils_the_full_one(tmp_path, one_thread):
         net = srmd.SRMD(5, 3, 4)
         net.load_state_dict(torch.load(out / "checkpoint.pt", weights_only=False)["net"])
         with torch.no_grad():
-            gaps[distill] = float((net.eval()(x) - target).abs().mean())
+            gaps[distill] = float((run(net) - target).abs().mean())
     assert gaps[True] < 0.8 * start_gap and gaps[True] < gaps[False], (start_gap, gaps)
     with pytest.raises(InvalidOptions, match="not a stride-2 network to distil"):
         TrainConfig(**{**cfg.__dict__, "distill": True, "stride": 2, "scale": 4}).check()
