@@ -393,9 +393,8 @@ def train(
         if Path(config.first).resolve() != copy.resolve():
             shutil.copyfile(config.first, copy)
         meta["first_sha256"] = weights.file_sha256(copy)
-    teacher = None
-    if config.distill:
-        teacher = first if first is not None else teacher_network(config)
+    # a later-pass run distils its first network's second pass (below); any other, its start
+    teacher = teacher_network(config) if config.distill and first is None else None
     history, start = History(), 0
     ckpt = out_dir / CHECKPOINT
     resuming = resume and ckpt.is_file()
