@@ -152,17 +152,22 @@ def pruned(net: SRMD, feat: int, calibration: torch.Tensor | None = None) -> SRM
 
 
 def _least_squares_conv(
-    x: torch.Tensor, target: torch.Tensor, ridge: float = 1e-4
+    x: torch.Tensor, target: torch.Tensor, ridge: float = 1e-4, chunk: int = 4
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The 3x3 convolution (weight, bias) that maps ``x`` closest to ``target`` in the least
-    squares sense (a ridge of ``ridge`` times the mean diagonal keeps it well posed),
-    solved in float64 from the normal equations."""
-    cols = F.unfold(x, 3, padding=1).transpose(1, 2).reshape(-1, x.shape[1] * 9).double()
-    cols = torch.cat([cols, torch.ones(len(cols), 1, dtype=cols.dtype)], 1)
-    y = target.permute(0, 2, 3, 1).reshape(-1, target.shape[1]).double()
-    gram = cols.T @ cols
-    gram += ridge * gram.diagonal().mean() * torch.eye(len(gram), dtype=gram.dtype)
-    w = torch.linalg.solve(gram, cols.T @ y)
+    squares sense (a ridge of ``ridge`` times the mean diagonal keeps it well posed), solved
+    in float64 from the normal equations, summed over ``chunk`` images at a time."""
+    n = x.shape[1] * 9 + 1
+    gram = torch.zeros(n, n, dtype=torch.float64)
+    rhs = torch.zeros(n, target.shape[1], dtype=torch.float64)
+    for i in range(0, len(x), chunk):
+        cols = F.unfold(x[i : i + chunk], 3, padding=1).transpose(1, 2).reshape(-1, n - 1)
+        cols = torch.cat([cols.double(), torch.ones(len(cols), 1, dtype=torch.float64)], 1)
+        y = target[i : i + chunk].permute(0, 2, 3, 1).reshape(-1, target.shape[1]).double()
+        gram += cols.T @ cols
+        rhs += cols.T @ y
+    gram += ridge * gram.diagonal().mean() * torch.eye(n, dtype=torch.float64)
+    w = torch.linalg.solve(gram, rhs)
     weight = w[:-1].T.reshape(target.shape[1], x.shape[1], 3, 3)
     return weight.float(), w[-1].float()
 
