@@ -368,7 +368,9 @@ def finetune_cmd(
     widths: str = typer.Option(
         None,
         help="SRMD start weights only: narrower widths (as many as the start's, all equal); "
-        "each convolution keeps its filters of largest L1 norm. Default: the start's.",
+        "each convolution keeps its filters of largest L1 norm, and those after the first are "
+        "refit by least squares on the run's LR crops (with --distill the full network is then "
+        "the target). Default: the start's.",
     ),
     resume: bool = _RESUME,
     quiet: bool = _QUIET,
