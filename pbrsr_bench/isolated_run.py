@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pbrsr_core.cli.environment import configure_from_env
 from pbrsr_core.optim.presets import get_preset
 from pbrsr_core.options import UpscaleOptions
 from pbrsr_core.pipeline import upscale_asset
@@ -36,6 +37,7 @@ def peak_rss_mib() -> float:
 
 
 def main(spec_path: str) -> None:
+    configure_from_env()  # the PBRSR_* settings, as the pbrsr command that started the bench has
     spec = json.loads(Path(spec_path).read_text())
     work = Path(spec["work"])
     snaps: list[dict] = []

@@ -42,6 +42,21 @@ def test_bench_upscale_small_run(tmp_path: Path):
     assert "| procedural | fast |" in (tmp_path / "out" / "results.md").read_text()
 
 
+def test_each_run_takes_the_pbrsr_settings_of_the_bench(tmp_path: Path, monkeypatch):
+    monkeypatch.setenv("PBRSR_PRIOR_PRECISION", "half")  # read in the run's own process
+    with pytest.raises(RuntimeError, match="PBRSR_PRIOR_PRECISION='half' is not one of"):
+        run(
+            out_dir=tmp_path / "out",
+            methods=("direct",),
+            prior="bicubic",
+            eval_res=32,
+            eval_views=1,
+            procedural_size=32,
+            shared=tmp_path / "no-shared-assets",
+            log=lambda m: None,
+        )
+
+
 def _row(asset, method, render, albedo, run_s):
     return {
         "asset": asset,
