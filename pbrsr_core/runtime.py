@@ -16,7 +16,7 @@ from pathlib import Path
 
 from .errors import InvalidOptions
 
-PRECISIONS = ("auto", "fp32", "bf16")
+PRECISIONS = ("auto", "fp32", "bf16", "int8")
 
 
 @dataclass(frozen=True)
@@ -29,7 +29,8 @@ class Runtime:
     prior_tile: int | None = None
     """Tile side (LR pixels) for prior inference; None: chosen from free memory."""
     prior_precision: str = "auto"
-    """auto (bfloat16 for validated priors on native-bf16 hardware), fp32 or bf16."""
+    """auto (bfloat16 for validated priors on native-bf16 hardware), fp32, bf16 or int8
+    (calibrated networks in int8 on CPUs with VNNI or AMX)."""
     pseudo_gt_cache_mb: int = 512
     """In-memory cache of pseudo-GT targets per process (MiB)."""
     shade_reference: bool = False

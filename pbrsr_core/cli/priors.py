@@ -1,4 +1,4 @@
-"""``pbrsr priors list`` and ``pbrsr priors install NAME``."""
+"""``pbrsr priors``: list, install, train, finetune, report and calibrate priors."""
 
 from __future__ import annotations
 
@@ -123,6 +123,7 @@ def _run_training(
     residual: bool | None = None,
     distill: bool = False,
     graphics: float = 0.0,
+    int8: bool = False,
 ) -> None:
     """Train one network per kind (or one for all with ``joint``) from ``init`` (see
     :func:`~pbrsr_core.prior.train.weights.resolve_start`); ``arch``, ``widths`` and
@@ -131,8 +132,8 @@ def _run_training(
     kind makes the first pass, frozen, while the trained network learns the passes after it
     (from a set's later-pass network where ``init`` has one); ``distill``: it learns the first
     network's own second pass (without ``first``: the start weights' output) instead of the HR
-    crop; ``graphics``: the share of colour and
-    normal crops drawn procedurally."""
+    crop; ``graphics``: the share of colour and normal crops drawn procedurally; ``int8``: an
+    SRMD network trained through its int8 rounding."""
     from tqdm import tqdm
 
     from ..errors import InvalidOptions
@@ -190,6 +191,7 @@ def _run_training(
                 first=None if first is None else resolve_start(first, g[0], 2),
                 distill=distill,
                 graphics=graphics if DRAWN_KINDS & set(g) else 0.0,
+                int8=int8,
             )
         )
     for c in configs:
@@ -235,6 +237,12 @@ def _run_training(
         finally:
             if bar is not None:
                 bar.close()
+    if any(c.arch == "srmd" for c in configs):  # int8 where the precision allows
+        from ..prior.train.calibrate import calibrate_set
+
+        done = calibrate_set(out, mats, val, patch=patch, command=command)
+        if not quiet:
+            _print_calibration(done)
     from ..prior.train.report import write_report
 
     report = write_report(out, val, scale_list=(2, 4, 8))
@@ -372,6 +380,13 @@ def finetune_cmd(
         "refit by least squares on the run's LR crops (with --distill the full network is then "
         "the target). Default: the start's.",
     ),
+    int8: bool = typer.Option(
+        False,
+        "--int8",
+        help="SRMD only: train through the int8 network's rounding (activation ranges measured "
+        "on the start weights) and keep the step that is best in int8, for "
+        "PBRSR_PRIOR_PRECISION=int8.",
+    ),
     resume: bool = _RESUME,
     quiet: bool = _QUIET,
 ) -> None:
@@ -413,6 +428,50 @@ def report_cmd(
     held = split_materials(manifest)[1]
     md = write_report(out, load_materials(root, held, manifest), scale_t, folders=folders)
     typer.echo(md.read_text())
+
+
+@priors_app.command("calibrate")
+def calibrate_cmd(
+    weights: Path = typer.Argument(
+        ..., help="A weights file or set folder (pbrsr priors train/finetune -o, or a shipped one)."
+    ),
+    textures: Path | None = _TEXTURES,
+    crops: int = typer.Option(128, help="Training crops per network (half of them drawn)."),
+    patch: int = typer.Option(256, help="HR crop side (training and held-out crops)."),
+) -> None:
+    """Measure the int8 activation ranges of the set's SRMD networks on training crops, store
+    them in each weights file (then int8 precision runs them in int8) and print held-out PSNR
+    in float32 and in int8."""
+    from ..prior.train.calibrate import calibrate_set, srmd_files
+    from ..prior.train.data import (
+        load_materials,
+        read_manifest,
+        split_materials,
+        texture_folder,
+    )
+
+    srmd_files(weights)  # a clear error before the textures load
+    root = texture_folder(textures)
+    manifest = read_manifest(root)
+    train_names, held = split_materials(manifest)
+    done = calibrate_set(
+        weights,
+        load_materials(root, train_names, manifest),
+        load_materials(root, held, manifest),
+        crops=crops,
+        patch=patch,
+        command="pbrsr " + " ".join(sys.argv[1:]),
+    )
+    _print_calibration(done)
+
+
+def _print_calibration(done) -> None:
+    table = Table(title="int8 calibration (held-out PSNR, dB)")
+    for col in ("file", "kind", "fp32", "int8"):
+        table.add_column(col)
+    for c in done:
+        table.add_row(c.file.name, c.kind, f"{c.fp32:.3f}", f"{c.int8:.3f}")
+    Console().print(table)
 
 
 def register(app: typer.Typer) -> None:

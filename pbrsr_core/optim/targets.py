@@ -116,7 +116,7 @@ def make_targets(
             scene.materials,
             scene.light,
             getattr(prior, "name", type(prior)),
-            prior.uses_bf16() if hasattr(prior, "uses_bf16") else False,
+            prior.precision_in_use() if hasattr(prior, "precision_in_use") else "fp32",
             scale,
             BACKGROUND,
             config.lr_render,

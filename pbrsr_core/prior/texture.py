@@ -10,7 +10,9 @@ A kind may also have a ``later`` network (``pbrsr priors train --first``): train
 first-pass network, it runs every x2 pass after the first (x4: first, later; x8: first,
 later, later).
 The prior itself, called on images of no stated kind (the optimiser's renders), runs the colour
-network, or the fallback where the set has no colour network.
+network, or the fallback where the set has no colour network. An SRMD network whose file holds
+an int8 calibration (``pbrsr priors calibrate``) runs in int8 where the prior's precision is
+int8 (:mod:`pbrsr_core.prior.int8`).
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ import torch
 
 from ..errors import PriorUnavailable
 from .base import Prior
+from .int8 import METADATA_KEY, Calibration, Int8SRMD
+from .srmd import SRMD
 from .train.weights import Network, file_sha256, load_network, read_metadata
 
 WEIGHTS_ROOT = Path(__file__).resolve().parent / "weights"
@@ -169,10 +173,19 @@ class TexturePrior(Prior):
         self.nets: dict[str, dict[int, Network]] = {}
         self.later: dict[str, Network] = {}
         """Per kind, the network of the x2 passes after the first (where the set has one)."""
+        self.calibrations: dict[Network, Calibration] = {}
+        """SRMD networks with an int8 calibration in their file -> it."""
+        self._int8: dict[Network, Int8SRMD] = {}
         for (kind, stride, step), f in self.files.items():
             if f not in loaded:
                 net = load_network(f).to(self.device)
                 loaded[f] = net.to(memory_format=torch.channels_last)  # type: ignore[call-overload]  # torch's stubs omit memory_format
+                text = read_metadata(f).get(METADATA_KEY)
+                if text is not None and isinstance(net, SRMD):
+                    try:
+                        self.calibrations[net] = Calibration.from_json(text, net.convs)
+                    except PriorUnavailable as exc:
+                        raise PriorUnavailable(f"'{f.name}': {exc}") from exc
             if step == "later":
                 self.later[kind] = loaded[f]
             else:
@@ -244,18 +257,32 @@ class TexturePrior(Prior):
             return self.for_kind("colour").tile_limits(scale)
         return self._tile_limits(self.kind, scale)
 
-    def _run(self, kind: str, x: torch.Tensor, scale: int) -> torch.Tensor:
+    def _int8_ready(self, kind: str) -> bool:
+        nets = [*self.nets[kind].values(), self.later.get(kind)]
+        return any(net in self.calibrations for net in nets if net is not None)
+
+    def int8_ready(self) -> bool:
+        if self.kind is None:
+            return self.for_kind("colour").int8_ready()
+        return self._int8_ready(self.kind)
+
+    def _run(self, kind: str, x: torch.Tensor, scale: int, int8: bool = False) -> torch.Tensor:
         nets, later = self.nets[kind], self.later.get(kind)
         with self._lock:
             for i, stride in enumerate(self._passes(kind, scale) or []):
                 net = later if i and stride == 2 and later is not None else nets[stride]
-                x = net(x).clamp_(0.0, 1.0)
+                if int8 and net in self.calibrations:
+                    if net not in self._int8:
+                        self._int8[net] = Int8SRMD(net, self.calibrations[net])  # type: ignore[arg-type]  # calibrated networks are SRMD
+                    x = self._int8[net](x).clamp_(0.0, 1.0)
+                else:
+                    x = net(x).clamp_(0.0, 1.0)
         return x
 
     def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
         if self.kind is None:
             return self.for_kind("colour")._forward(x, scale)
-        return self._run(self.kind, x, scale)
+        return self._run(self.kind, x, scale, self.precision_in_use() == "int8")
 
     def describe(self) -> dict:
         info = super().describe()
@@ -287,8 +314,11 @@ class _KindView(Prior):
     def tile_limits(self, scale: int) -> tuple[float, int]:
         return self.parent._tile_limits(self.kind, scale)
 
+    def int8_ready(self) -> bool:
+        return self.parent._int8_ready(self.kind)
+
     def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
-        return self.parent._run(self.kind, x, scale)
+        return self.parent._run(self.kind, x, scale, self.precision_in_use() == "int8")
 
 
 def _parameters(nets: dict[int, Network], later: Network | None = None) -> int:

@@ -102,6 +102,19 @@ def save_network(net: Network, path: Path, config: TrainConfig, extra: dict[str,
     tmp.replace(path)
 
 
+def update_metadata(path: Path, changes: dict[str, str]) -> None:
+    """Rewrite ``path`` with ``changes`` merged into its metadata, its tensors as they are
+    (written beside it, then moved over it)."""
+    from safetensors.torch import load_file, save_file
+
+    path = Path(path)
+    meta = {**read_metadata(path), **changes}
+    tensors = load_file(str(path))
+    tmp = path.with_suffix(".tmp")
+    save_file(tensors, str(tmp), metadata=meta)
+    tmp.replace(path)
+
+
 def file_sha256(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 

@@ -169,17 +169,17 @@ def test_bfloat16_stays_close_to_float32(cache, set_runtime):
     x, _ = _fixture_crop(4)
     prior = load_prior("rrdn-thick", "cpu")
     set_runtime(prior_precision="fp32")
-    assert not prior.uses_bf16() and prior.describe()["precision"] == "fp32"
+    assert prior.precision_in_use() != "bf16" and prior.describe()["precision"] == "fp32"
     full = prior.upscale(x, 4, tile_size=512)
     set_runtime(prior_precision="bf16")
-    assert prior.uses_bf16()
+    assert prior.precision_in_use() == "bf16"
     half = prior.upscale(x, 4, tile_size=512)
     assert half.dtype == torch.float32 and torch.isfinite(half).all()
     assert 45.0 <= _psnr(half, full) < 100.0  # bfloat16 really ran, and stayed close
     set_runtime(prior_precision="auto")
-    assert prior.uses_bf16() == native_bf16(torch.device("cpu"))
+    assert (prior.precision_in_use() == "bf16") == native_bf16(torch.device("cpu"))
     set_runtime(prior_precision="bf16")
-    assert not load_prior("bicubic", "cpu").uses_bf16()  # interpolation: never
+    assert load_prior("bicubic", "cpu").precision_in_use() == "fp32"  # interpolation: never
     prior.precision = "half"
     with pytest.raises(InvalidOptions, match="'half' is not one of auto, fp32, bf16"):
         prior.upscale(x, 4)
@@ -197,6 +197,6 @@ def test_auto_precision_follows_the_cpus_bf16_units_not_onednns_emulation(
     set_runtime(prior_precision="auto")
     # an AVX512 CPU without BF16 (oneDNN emulates bfloat16 there, 3.7x slower): float32
     monkeypatch.setattr(torch.cpu, "get_capabilities", lambda: {"avx512_f": True})
-    assert not prior.uses_bf16() and prior.describe()["precision"] == "fp32"
+    assert prior.precision_in_use() != "bf16" and prior.describe()["precision"] == "fp32"
     monkeypatch.setattr(torch.cpu, "get_capabilities", lambda: {"avx512_bf16": True})
-    assert prior.uses_bf16() and prior.describe()["precision"] == "bf16"
+    assert prior.precision_in_use() == "bf16" and prior.describe()["precision"] == "bf16"

@@ -25,7 +25,9 @@ from pbrsr_core.prior.train.data import (
     split_materials,
 )
 from pbrsr_core.prior.train.graphics import graphics_crop, height_normals, normal_graphics_crop
-from pbrsr_core.prior.train.loop import TrainConfig, build_network, train
+from pbrsr_core.prior.int8 import Calibration, FakeInt8
+from pbrsr_core.prior.srmd import SRMD
+from pbrsr_core.prior.train.loop import TrainConfig, Validator, build_network, train
 from pbrsr_core.prior.train.weights import load_network, save_network
 from pbrsr_core.prior.waifu2x import UpConv7
 from tests.clirun import run_cli
@@ -300,6 +302,46 @@ def test_tiny_network_learns_and_resumes_exactly(materials, tmp_path, one_thread
     other = TrainConfig(**{**cfg.__dict__, "lr": 1e-3})
     with pytest.raises(InvalidOptions, match="other settings"):
         train(other, train_m, val_m, tmp_path / "b", name="tiny")
+
+
+def test_srmd_trained_through_int8_rounding_learns_validates_in_int8_and_resumes_exactly(
+    materials, tmp_path, one_thread
+):
+    train_m, val_m = materials
+    cfg = TrainConfig(
+        kinds=("colour",),
+        scale=4,
+        stride=4,
+        steps=40,
+        batch_size=4,
+        patch=48,
+        val_patch=64,
+        lr=2e-3,
+        arch="srmd",
+        widths=(8,) * 3,
+        init="random",
+        int8=True,
+        val_every=20,
+        ckpt_every=20,
+    )
+    _, hist = train(cfg, train_m, val_m, tmp_path / "a", name="q", resume=False)
+    assert hist.loss[-1] < 0.7 * hist.loss[0], hist.loss
+    state = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
+    calibration = Calibration.from_json(state["int8"], 3)
+    ema = load_network(tmp_path / "a" / "q.safetensors")
+    assert isinstance(ema, SRMD)
+    # validation scored the network through the int8 rounding, not in float32
+    plain = TrainConfig(**{**cfg.__dict__, "int8": False})
+    validator = Validator(val_m, ("colour",), 4, 64)
+    ema_state = {k: v.float() for k, v in state["ema"].items()}
+    ema.load_state_dict(ema_state)
+    assert validator(FakeInt8(ema, calibration))["colour"] == hist.val_psnr["colour"][-1]
+    assert validator(ema)["colour"] != hist.val_psnr["colour"][-1]
+    assert_resume_is_exact(cfg, materials, tmp_path / "a", tmp_path / "b", "q", hist, 20)
+    with pytest.raises(InvalidOptions, match="other settings"):
+        train(plain, train_m, val_m, tmp_path / "b", name="q")
+    with pytest.raises(InvalidOptions, match="--int8 trains an SRMD network"):
+        TrainConfig(kinds=("colour",), int8=True).check()
 
 
 def test_weights_file_round_trip_and_texture_prior(tmp_path):
