@@ -61,6 +61,11 @@ def prior_cmd(
     device: str = typer.Option("auto", help="auto, cpu, cuda or cuda:N."),
     crop: int = typer.Option(256, help="HR crop side for the PSNR images."),
     threads: int = typer.Option(0, help="torch intra-op threads (0: torch's default)."),
+    precision: list[str] = typer.Option(  # noqa: B006
+        ["auto"],
+        help="Prior precision (repeatable): auto, fp32, bf16, int8; each prior runs once per "
+        "precision it actually takes.",
+    ),
 ) -> None:
     """Prior speed (256² and tiled 1024² inputs), peak memory and PSNR gain over bicubic on
     skimage photos and on albedo crops of the shared assets (when present)."""
@@ -78,6 +83,7 @@ def prior_cmd(
         device=device,
         crop=crop,
         threads=threads or None,
+        precisions=tuple(precision),
     )
 
 

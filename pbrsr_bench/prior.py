@@ -40,6 +40,7 @@ class PriorRow:
     prior: str
     scale: int
     parameters: int
+    precision: str = "fp32"
     s_per_256: float | None = None
     s_per_1024: float | None = None
     tiles_1024: int | None = None
@@ -190,13 +191,16 @@ def run(
     device: str = "auto",
     crop: int = 256,
     threads: int | None = None,
+    precisions: tuple[str, ...] = ("auto",),
     assets_root: Path = SHARED_ASSETS,
     log=print,
 ) -> dict:
     """Run the benchmark; returns the JSON-able result (also written to ``out_dir``).
 
     ``large_scales``: scales timed on a 1024x1024 input (default: all ``scales``; an empty
-    tuple skips them). ``threads`` sets torch's intra-op threads for the run."""
+    tuple skips them). ``threads`` sets torch's intra-op threads for the run. Each prior runs
+    at each of ``precisions`` (auto, fp32, bf16, int8) that gives it a precision of its own
+    (a prior with no int8 network runs once for ``fp32`` and ``int8``)."""
     if threads:
         torch.set_num_threads(threads)
     dev = resolve_device(device)
@@ -208,11 +212,25 @@ def run(
         log(f"note: {assets_root} not found or has no albedo images: texture column skipped")
     bicubic = load_prior("bicubic", dev)
     rows: list[PriorRow] = []
+    runs = []
     for name in names:
         prior = load_prior(name, dev)
+        seen = set()
+        for choice in precisions:
+            prior.precision = choice
+            if prior.precision_in_use() not in seen:
+                seen.add(prior.precision_in_use())
+                runs.append((name, prior, choice))
+    for name, prior, choice in runs:
+        prior.precision = choice
         for s in [s for s in scales if s in prior.scales]:
-            log(f"{name} x{s} ...")
-            row = PriorRow(prior=name, scale=s, parameters=prior.num_parameters())
+            log(f"{name} ({prior.precision_in_use()}) x{s} ...")
+            row = PriorRow(
+                prior=name,
+                scale=s,
+                parameters=prior.num_parameters(),
+                precision=prior.precision_in_use(),
+            )
             row.s_per_256, peak = _timed(prior, 256, s, dev)
             if s in large:
                 row.s_per_1024, peak = _timed(prior, 1024, s, dev)
@@ -254,7 +272,7 @@ def run(
 def _plot(rows: list[PriorRow], path: Path) -> None:
     plt = pyplot()
 
-    labels = [f"{r.prior}\nx{r.scale}" for r in rows]
+    labels = [f"{r.prior}\n{r.precision} x{r.scale}" for r in rows]
     xs = np.arange(len(rows))
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(max(8, 1.6 * len(rows)), 4.5))
     for off, key, lab in ((-0.2, "gain_natural", "natural"), (0.2, "gain_texture", "texture")):
@@ -282,6 +300,7 @@ def print_table(result: dict) -> None:
     t = Table(title=f"pbrsr bench prior ({result['device']}, {result['torch_threads']} threads)")
     cols = (
         "prior",
+        "precision",
         "scale",
         "params",
         "s/256²",
@@ -293,7 +312,7 @@ def print_table(result: dict) -> None:
         "gain tex",
     )
     for c in cols:
-        t.add_column(c, justify="right" if c not in ("prior",) else "left")
+        t.add_column(c, justify="right" if c not in ("prior", "precision") else "left")
 
     def f(v, fmt):
         return "-" if v is None else format(v, fmt)
@@ -302,6 +321,7 @@ def print_table(result: dict) -> None:
         big = "-" if r["s_per_1024"] is None else f"{r['s_per_1024']:.1f} ({r['tiles_1024']})"
         t.add_row(
             r["prior"],
+            r.get("precision", "fp32"),
             f"x{r['scale']}",
             f"{r['parameters']:,}",
             f(r["s_per_256"], ".2f"),

@@ -1,4 +1,5 @@
-"""`pbrsr bench prior` on the bicubic prior with a procedural texture folder (fast)."""
+"""`pbrsr bench prior` on the bicubic prior with a procedural texture folder (fast), and
+pbr-srmd at each precision it takes."""
 
 from __future__ import annotations
 
@@ -6,9 +7,12 @@ import json
 
 import numpy as np
 import OpenImageIO as oiio
+import pytest
+import torch
 from skimage.metrics import peak_signal_noise_ratio
 
 from pbrsr_bench.prior import psnr, run, texture_crops
+from pbrsr_core.prior.base import native_int8
 
 
 def _write_png(path, img):
@@ -68,3 +72,22 @@ def test_bench_says_when_assets_are_missing(tmp_path):
     )
     assert not result["assets_root_found"] and any("not found" in m for m in logs)
     assert result["rows"][0]["psnr_texture"] is None
+
+
+@pytest.mark.skipif(not native_int8(torch.device("cpu")), reason="no VNNI or AMX on this CPU")
+def test_bench_runs_each_prior_once_per_precision_it_takes(tmp_path):
+    result = run(
+        out_dir=tmp_path / "out",
+        priors=["bicubic", "pbr-srmd"],
+        scales=(4,),
+        large_scales=(),
+        crop=32,
+        assets_root=tmp_path / "nothing",
+        precisions=("auto", "fp32", "int8"),
+        log=lambda m: None,
+    )
+    rows = {(r["prior"], r["precision"]): r for r in result["rows"]}
+    assert set(rows) == {("bicubic", "fp32"), ("pbr-srmd", "fp32"), ("pbr-srmd", "int8")}
+    fp32, q = rows["pbr-srmd", "fp32"], rows["pbr-srmd", "int8"]
+    assert fp32["psnr_natural"] != q["psnr_natural"]  # int8 really ran
+    assert abs(fp32["psnr_natural"] - q["psnr_natural"]) < 0.3
