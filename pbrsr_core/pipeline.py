@@ -77,7 +77,9 @@ from .scene import make_scene, procedural_light
 from .uvmask import coverage_masks
 
 if TYPE_CHECKING:
+    from .asset.model import ImageData
     from .optim.presets import PbrsrConfig
+    from .prior.base import Prior
 
 
 def _resolve_input(input_path: Path, work_dir: Path, limits: Limits) -> Path:
@@ -161,7 +163,11 @@ def _upscale_maps(
                 )  # fmt: skip
         names = {img.index: img.name for img in images}
         picked = {names[i]: [p.name for p in ps] for i, ps in picks.items()}
-        return out, {"jpeg_deblocked": deblocked, **({"prior_picks": picked} if picks else {})}
+        return out, {
+            "prior_precision": _precisions(prior, images),
+            "jpeg_deblocked": deblocked,
+            **({"prior_picks": picked} if picks else {}),
+        }
 
     from .optim.presets import get_preset
 
@@ -191,9 +197,16 @@ def _upscale_maps(
         **report,
         "prior_check": checks,
         "prior_used": prior.name,
+        "prior_precision": _precisions(prior, images),
         "prior_init": sorted(img.name for img in images if any(channels[img.index])),
         "jpeg_deblocked": deblocked,
     }
+
+
+def _precisions(prior: Prior, images: list[ImageData]) -> dict[str, str]:
+    """Per map kind of the asset, the precision its prior ran in (fp32, bf16, int8)."""
+    kinds = sorted({kind_of(img.roles) for img in images})
+    return {kind: prior.for_kind(kind).precision_in_use() for kind in kinds}
 
 
 def _optimise(asset, images, init_encoded, init, lr, lr_pixels, channels, prior, options, config,

@@ -97,6 +97,30 @@ def test_gltf_keeps_form_and_direct_with_bicubic_prior(tmp_path: Path):
     assert [i["hr_size"] for i in rb["images"]] == [i["hr_size"] for i in rd["images"]]
 
 
+def test_the_report_names_the_precision_each_map_kind_ran_in(tmp_path: Path, set_runtime):
+    from pbrsr_core.prior.base import native_int8
+
+    src = make_test_asset(tmp_path / "in" / "a.gltf", size=16, kind="gltf")
+    options = UpscaleOptions(method="direct", prior="pbr-srmd", scale=4)
+    set_runtime(prior_precision="fp32")
+    full = upscale_asset(src, tmp_path / "fp32", options)
+    kinds = set(full["prior_precision"])
+    assert kinds >= {"colour", "normal"} and set(full["prior_precision"].values()) == {"fp32"}
+    if not native_int8(torch.device("cpu")):
+        return  # int8 runs on CPUs with VNNI or AMX only
+    set_runtime(prior_precision="int8")
+    report = upscale_asset(src, tmp_path / "int8", options)
+    # pbr-srmd's SRMD networks (colour and normal maps at x4) are calibrated; its data network
+    # is UpConv7, which stays float32
+    want = {k: "int8" if k in ("colour", "normal") else "fp32" for k in kinds}
+    assert report["prior_precision"] == want
+    a, b = load_asset(tmp_path / "fp32" / "a.gltf"), load_asset(tmp_path / "int8" / "a.gltf")
+    for x, y in zip(a.images, b.images, strict=True):
+        top = 2**x.bit_depth - 1
+        diff = np.abs(x.pixels.astype(np.float64) - y.pixels.astype(np.float64)) / top
+        assert diff.max() <= 0.1 and diff.mean() < 0.01
+
+
 @pytest.mark.parametrize("preset", ["fast", "balanced", "quality"])
 def test_pbrsr_method_runs_and_reports(demo: Path, tmp_path: Path, preset: str):
     report = upscale_asset(
