@@ -58,15 +58,24 @@ class Calibration:
             source = str(data.get("source", ""))
         except (ValueError, TypeError, KeyError) as exc:
             raise PriorUnavailable(f"the int8 calibration is not readable: {exc}") from exc
-        if len(scales) != convs or len(zero_points) != convs:
+        if len(zero_points) != len(scales):
             raise PriorUnavailable(
-                f"the int8 calibration has {len(scales)} scales for {convs} convolutions"
+                f"the int8 calibration has {len(scales)} scales but {len(zero_points)} zero points"
             )
+        out = cls(scales, zero_points, source)
+        out.check(convs)
         if not all(math.isfinite(s) and s > 0 for s in scales):
             raise PriorUnavailable("the int8 calibration has a scale that is not positive")
         if not all(0 <= z <= 255 for z in zero_points):
             raise PriorUnavailable("the int8 calibration has a zero point outside 0-255")
-        return cls(scales, zero_points, source)
+        return out
+
+    def check(self, convs: int) -> None:
+        """:class:`PriorUnavailable` unless this fits a network of ``convs`` convolutions."""
+        if len(self.scales) != convs:
+            raise PriorUnavailable(
+                f"the int8 calibration has {len(self.scales)} scales for {convs} convolutions"
+            )
 
 
 @contextmanager
@@ -123,11 +132,7 @@ class Int8SRMD(nn.Module):
         name = engine()
         if name is None:
             raise PriorUnavailable("this torch build has no x86 quantized engine for int8")
-        if len(calibration.scales) != net.convs:
-            raise PriorUnavailable(
-                f"the int8 calibration has {len(calibration.scales)} scales for "
-                f"{net.convs} convolutions"
-            )
+        calibration.check(net.convs)
         self.engine, self.stride = name, net.stride
         torch.backends.quantized.engine = name  # weights are packed for the engine in use
         self.net = net.eval()
@@ -156,7 +161,7 @@ class Int8SRMD(nn.Module):
     @torch.no_grad()
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         torch.backends.quantized.engine = self.engine
-        net, s = self.net, self.net.stride
+        net = self.net
         y, p = net._input(x.float())
         y = F.relu_(net.body[0](y))
         with _quantized_tensors():
@@ -164,10 +169,7 @@ class Int8SRMD(nn.Module):
             for conv in self.body:
                 y = conv(y)
             y = y.dequantize()
-        y = F.pixel_shuffle(net.head(y), s)
-        if p > 0:
-            y = y[..., p * s : -p * s, p * s : -p * s]
-        return y.contiguous()
+        return net._output(y, p)
 
 
 class FakeInt8(nn.Module):
@@ -178,11 +180,7 @@ class FakeInt8(nn.Module):
 
     def __init__(self, net: SRMD, calibration: Calibration) -> None:
         super().__init__()
-        if len(calibration.scales) != net.convs:
-            raise PriorUnavailable(
-                f"the int8 calibration has {len(calibration.scales)} scales for "
-                f"{net.convs} convolutions"
-            )
+        calibration.check(net.convs)
         self.net, self.calibration, self.stride = net, calibration, net.stride
 
     def _activation(self, y: torch.Tensor, i: int) -> torch.Tensor:
@@ -190,7 +188,7 @@ class FakeInt8(nn.Module):
         return torch.fake_quantize_per_tensor_affine(y, c.scales[i], c.zero_points[i], 0, 255)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        net, s = self.net, self.net.stride
+        net = self.net
         y, p = net._input(x)
         y = self._activation(F.relu(net.body[0](y)), 0)
         for i, conv in enumerate(net.body[1:], 1):
@@ -200,7 +198,4 @@ class FakeInt8(nn.Module):
                 conv.weight, scale.float(), zero.int(), 0, -128, 127
             )
             y = self._activation(F.relu(F.conv2d(y, w, conv.bias, padding=1)), i)
-        y = F.pixel_shuffle(net.head(y), s)
-        if p > 0:
-            y = y[..., p * s : -p * s, p * s : -p * s]
-        return y.contiguous()
+        return net._output(y, p)

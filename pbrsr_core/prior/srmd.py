@@ -103,15 +103,20 @@ class SRMD(nn.Module):
         code = self.code.to(y.dtype).view(1, -1, 1, 1).expand(y.shape[0], -1, *y.shape[-2:])
         return torch.cat([y, code], 1).contiguous(memory_format=torch.channels_last), p
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        y, p = self._input(x)
+    def _output(self, y: torch.Tensor, p: int) -> torch.Tensor:
+        """The head on the last body convolution's output ``y``, pixel-shuffled, the
+        padding ``p`` of :meth:`_input` cropped off."""
         s = self.stride
-        for conv in self.body:
-            y = F.relu_(conv(y))
         y = F.pixel_shuffle(self.head(y), s)
         if p > 0:
             y = y[..., p * s : -p * s, p * s : -p * s]
         return y.contiguous()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y, p = self._input(x)
+        for conv in self.body:
+            y = F.relu_(conv(y))
+        return self._output(y, p)
 
 
 @torch.no_grad()

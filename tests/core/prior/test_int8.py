@@ -99,6 +99,7 @@ def test_calibration_round_trips_and_refuses_what_does_not_fit():
         ('{"scales": [0.1, -1], "zero_points": [0, 0]}', 2, "not positive"),
         ('{"scales": [0.1, NaN], "zero_points": [0, 0]}', 2, "not positive"),
         ('{"scales": [0.1, 0.1], "zero_points": [0, 300]}', 2, "outside 0-255"),
+        ('{"scales": [0.1, 0.1], "zero_points": [0]}', 2, "2 scales but 1 zero points"),
     ):
         with pytest.raises(PriorUnavailable, match=message):
             int8.Calibration.from_json(text, convs)
