@@ -103,8 +103,8 @@ def save_network(net: Network, path: Path, config: TrainConfig, extra: dict[str,
 
 
 def update_metadata(path: Path, changes: dict[str, str]) -> None:
-    """Rewrite ``path`` with ``changes`` merged into its metadata, its tensors as they are
-    (written beside it, then moved over it)."""
+    """Rewrite ``path`` with ``changes`` merged into its metadata, its tensors and permissions
+    as they are (written beside it, then moved over it)."""
     from safetensors.torch import load_file, save_file
 
     path = Path(path)
@@ -112,6 +112,7 @@ def update_metadata(path: Path, changes: dict[str, str]) -> None:
     tensors = load_file(str(path))
     tmp = path.with_suffix(".tmp")
     save_file(tensors, str(tmp), metadata=meta)
+    tmp.chmod(path.stat().st_mode)
     tmp.replace(path)
 
 

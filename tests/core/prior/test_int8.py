@@ -155,7 +155,9 @@ def test_a_texture_prior_takes_int8_where_asked_and_the_cpu_sums_in_32_bits(
 
 def test_an_unreadable_calibration_names_its_file(tmp_path):
     folder, file = _set(tmp_path, calibrated=False)
+    file.chmod(0o640)
     update_metadata(file, {int8.METADATA_KEY: '{"scales": [1.0], "zero_points": [0]}'})
+    assert file.stat().st_mode & 0o777 == 0o640  # rewritten with its permissions
     with pytest.raises(PriorUnavailable, match="net-colour.safetensors.*1 scales for 4"):
         TexturePrior(folder)
 
