@@ -14,7 +14,9 @@ import torch
 
 import pbrsr_core.prior.train.data as data_mod
 from pbrsr_core.errors import InvalidOptions, PriorUnavailable
+from pbrsr_core.prior.int8 import Calibration, FakeInt8
 from pbrsr_core.prior.registry import check_name, load_prior
+from pbrsr_core.prior.srmd import SRMD
 from pbrsr_core.prior.texture import TexturePrior
 from pbrsr_core.prior.train.data import (
     CropSampler,
@@ -25,8 +27,6 @@ from pbrsr_core.prior.train.data import (
     split_materials,
 )
 from pbrsr_core.prior.train.graphics import graphics_crop, height_normals, normal_graphics_crop
-from pbrsr_core.prior.int8 import Calibration, FakeInt8
-from pbrsr_core.prior.srmd import SRMD
 from pbrsr_core.prior.train.loop import TrainConfig, Validator, build_network, train
 from pbrsr_core.prior.train.weights import load_network, save_network
 from pbrsr_core.prior.waifu2x import UpConv7
