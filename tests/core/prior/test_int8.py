@@ -162,7 +162,6 @@ def test_an_unreadable_calibration_names_its_file(tmp_path):
         TexturePrior(folder)
 
 
-@pytest.mark.skipif(not native_int8(torch.device("cpu")), reason="no VNNI or AMX on this CPU")
 @pytest.mark.parametrize("kind", ["colour", "normal"])
 def test_shipped_srmd_networks_in_int8_stay_close_to_float32(kind, set_runtime):
     prior = load_prior("pbr-srmd", "cpu").for_kind(kind)
@@ -172,6 +171,10 @@ def test_shipped_srmd_networks_in_int8_stay_close_to_float32(kind, set_runtime):
     ref = prior.upscale(x, 4)
     set_runtime(prior_precision="int8")
     y = prior.upscale(x, 4)
+    if not native_int8(torch.device("cpu")):  # no VNNI or AMX: int8 asked for, float32 run
+        assert prior.precision_in_use() == "fp32" and torch.equal(y, ref)
+        return
+    assert prior.precision_in_use() == "int8"
     assert torch.isfinite(y).all() and 40.0 < _psnr(y, ref) < 90.0  # int8 ran, and stayed close
 
 
