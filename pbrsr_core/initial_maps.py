@@ -217,7 +217,8 @@ def _blend_map(bicubic, px, how, init_encoded, lr_pixels, s, kind, wrap, config,
     it); the guide's HR map is in ``init_encoded``."""
     sources, weights, g = how
     priors = [p for p in sources if not isinstance(p, str)]
-    ups = upscale_each(priors, px, kind, s, max_prior_scale=config.max_prior_scale,
+    used = [[c for c, w in enumerate(weights) if w[sources.index(p)]] for p in priors]
+    ups = upscale_each(priors, px, kind, s, used, max_prior_scale=config.max_prior_scale,
                        progress=progress, wrap=wrap)  # fmt: skip
     by_source = dict(zip(priors, ups, strict=True))
     guided = {}
@@ -234,14 +235,13 @@ def _blend_map(bicubic, px, how, init_encoded, lr_pixels, s, kind, wrap, config,
     return bicubic
 
 
-def unread_channels_follow(picks: list, read: list[bool]) -> list:
-    """``picks`` per channel with a channel no material reads (the R of a metallic-roughness
-    image without occlusion) given the prior of the first channel that is read, so that it
-    runs no prior of its own."""
+def read_channels_only(picks: list, read: list[bool]) -> list:
+    """``picks`` per channel with None (bicubic) for a channel no material reads (the R of a
+    metallic-roughness image without occlusion): a data map's prior runs on the channels it
+    is picked for only. Unchanged when no channel is read (a map of one entry)."""
     if len(picks) != len(read) or not any(read):
         return picks
-    first = picks[read.index(True)]
-    return [p if r else first for p, r in zip(picks, read, strict=True)]
+    return [p if r else None for p, r in zip(picks, read, strict=True)]
 
 
 def prior_channels(img, config) -> list[bool]:

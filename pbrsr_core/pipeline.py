@@ -42,8 +42,8 @@ from .initial_maps import (
     initial_maps,
     prior_channels,
     prior_channels_checked,
+    read_channels_only,
     self_checks,
-    unread_channels_follow,
 )
 from .limits import Limits, check_output_size
 from .maps import (
@@ -144,25 +144,20 @@ def _upscale_maps(
         offered = [img for img in images if len(prior.candidates(kind_of(img.roles))) > 1]
         found = self_checks(asset, offered, prior, lr_pixels, s, CHECK_PRIOR_CPU, None, timer,
                             progress)  # fmt: skip
-        picks = {
-            img.index: unread_channels_follow(
-                chosen(prior, kind_of(img.roles), found.get(img.index), 1),
-                prior_channels(img, BALANCED),
-            )
-            for img in offered
-        }
+        picks = {img.index: _direct_picks(prior, img, found.get(img.index)) for img in offered}
         out = {}
         with timer("prior"):
             tiles = MapProgress(progress, "prior", images)
             for img in images:
                 kind = kind_of(img.roles)
+                sources = picks.get(img.index, [prior])
+                px, wrap, cutout = lr_pixels[img.index], wraps[img.index], cutouts[img.index]
+                base = None if any(sources) else bicubic_map(px, kind, s, wrap, cutout)
                 out[img.index] = upscale_channels(
-                    picks.get(img.index, [prior]), lr_pixels[img.index], kind, s,
-                    progress=tiles.on(img),
-                    wrap=wraps[img.index], cutout=cutouts[img.index],
-                )  # fmt: skip
+                    sources, px, kind, s, base, wrap=wrap, cutout=cutout, progress=tiles.on(img)
+                )
         names = {img.index: img.name for img in images}
-        picked = {names[i]: [p.name for p in ps] for i, ps in picks.items()}
+        picked = {names[i]: [p.name if p else "bicubic" for p in ps] for i, ps in picks.items()}
         return out, {
             "prior_precision": _precisions(prior, images),
             "jpeg_deblocked": deblocked,
@@ -201,6 +196,19 @@ def _upscale_maps(
         "prior_init": sorted(img.name for img in images if any(channels[img.index])),
         "jpeg_deblocked": deblocked,
     }
+
+
+def _direct_picks(prior: Prior, img: ImageData, check: dict | None) -> list[Prior | None]:
+    """Per channel entry of a map (prior/selfcheck.py counts them), the candidate of
+    ``prior`` direct upscales it with: the one its self-check found closest one scale down,
+    or None (bicubic) where bicubic was closer or no material reads the channel."""
+    kind = kind_of(img.roles)
+    picks: list[Prior | None] = list(chosen(prior, kind, check, 1))
+    if check is not None:
+        picks = [p if use else None for p, use in zip(picks, check["channels"], strict=True)]
+    from .optim.presets import BALANCED
+
+    return read_channels_only(picks, prior_channels(img, BALANCED))
 
 
 def _precisions(prior: Prior, images: list[ImageData]) -> dict[str, str]:

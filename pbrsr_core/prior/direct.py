@@ -5,7 +5,11 @@ Maps are numpy (H, W, C) float32 in [0, 1] as stored (sRGB for colour maps, enco
 The prior sees three channels at a time:
 
 - colour maps (``base_color``, ``emissive``, kind ``colour``) as the sRGB images they are;
-- data maps (``metallic_roughness``/ORM, ``occlusion``, kind ``data``) as an RGB image;
+- data maps (``metallic_roughness``/ORM, ``occlusion``, kind ``data``) channel by channel,
+  each as a greyscale image (its value in R, G and B; the mean of the result is taken
+  back): an ORM image's occlusion, roughness and metallic are unrelated images, and run
+  together through a network's colour channels they bleed into each other (pbr-srmd's data
+  network on the ToyCar's roughness at x4: +2.85 dB over bicubic packed, +8.87 on its own);
 - normal maps (``normal``): the encoded RGB image is upscaled, then decoded (n = 2t - 1),
   z clamped positive; the direction is the upscaled one, the length the input's (|n| of the
   LR map, bicubic-upscaled: :func:`normal_length`), then re-encoded. Shaders normalise after
@@ -20,6 +24,8 @@ The prior sees three channels at a time:
 """
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -254,6 +260,7 @@ def upscale_map(
     progress: TileProgress | None = None,
     wrap: Wrap | None = None,
     cutout: float | None = None,
+    channels: Sequence[int] | None = None,
 ) -> np.ndarray:
     """Apply ``prior`` to one stored map. pixels (H, W, C) float32 in [0, 1], C in 1..4;
     ``role`` a material role or kind (see :func:`map_kind`). Returns (s*H, s*W, C) float32
@@ -264,21 +271,33 @@ def upscale_map(
     once more onto the map at the full scale. A network's cost grows with its output's
     pixels: waifu2x-photo's x2 pass on a 512² map costs a sixth of its x4 (two passes).
     ``wrap``: a tiling map's continuation past its edges (:func:`with_wrap`); ``cutout``: a
-    cutout's transparent texels filled first (:func:`with_cutout`)."""
+    cutout's transparent texels filled first (:func:`with_cutout`). ``channels``: of a data
+    map, the colour channels the prior runs on (all when None); the others are bicubic's."""
 
     def run(a: np.ndarray) -> np.ndarray:
-        return _upscale_map(prior, a, role, scale, max_prior_scale, progress)
+        return _upscale_map(prior, a, role, scale, max_prior_scale, progress, channels)
 
     return with_cutout(lambda a: with_wrap(run, a, scale, wrap), pixels, scale, cutout)
 
 
-def _upscale_map(prior, pixels, role, scale, max_prior_scale, progress) -> np.ndarray:
+def _upscale_map(prior, pixels, role, scale, max_prior_scale, progress, channels) -> np.ndarray:
     kind = map_kind(role)
     a = _as_hwc(pixels)
     colour, alpha, n_colour = _split(a)
-    rgb = upscale_rgb(
-        prior.for_kind(kind), colour, scale, max_prior_scale=max_prior_scale, progress=progress
-    )
+    if kind == "data" and n_colour == 3:  # each channel its own greyscale image
+        run = sorted(set(range(3) if channels is None else channels))
+        with torch.inference_mode():
+            rgb = bicubic_upscale(colour, scale).clamp(0.0, 1.0)
+        if run:
+            grey = colour[0, run][:, None].expand(-1, 3, -1, -1)
+            up = upscale_rgb(prior.for_kind(kind), grey, scale, max_prior_scale=max_prior_scale,
+                             progress=progress)  # fmt: skip
+            with torch.inference_mode():
+                rgb[0, run] = up.mean(1)
+    else:
+        rgb = upscale_rgb(
+            prior.for_kind(kind), colour, scale, max_prior_scale=max_prior_scale, progress=progress
+        )
     with torch.inference_mode():
         up_alpha = None if alpha is None else bicubic_upscale(alpha, scale)
         length = normal_length(colour, scale) if kind == "normal" else None

@@ -186,16 +186,24 @@ def merge_channels(prior_map: np.ndarray, bicubic: np.ndarray, channels: list[bo
     return out
 
 
-def upscale_each(priors: Sequence[Prior], pixels: np.ndarray, kind: str, scale: int, **kw):
-    """The map upscaled by each of ``priors`` (:func:`~.direct.upscale_map` with ``kw``); a
-    ``progress`` callback in ``kw`` sees the runs as one: ``(tiles done, tiles)`` over all
-    of them."""
+def upscale_each(
+    priors: Sequence[Prior],
+    pixels: np.ndarray,
+    kind: str,
+    scale: int,
+    channels: Sequence[Sequence[int] | None] | None = None,
+    **kw,
+) -> list[np.ndarray]:
+    """The map upscaled by each of ``priors`` (:func:`~.direct.upscale_map` with ``kw``; a data
+    map on the ``channels`` given for that prior, all when None); a ``progress`` callback in
+    ``kw`` sees the runs as one: ``(tiles done, tiles)`` over all of them."""
     progress = kw.pop("progress", None)
     n, out = len(priors), []
     for k, p in enumerate(priors):
         if progress is not None:
             kw["progress"] = lambda done, total, k=k: progress(k * total + done, n * total)
-        out.append(upscale_map(p, pixels, kind, scale, **kw))
+        only = None if channels is None else channels[k]
+        out.append(upscale_map(p, pixels, kind, scale, channels=only, **kw))
     return out
 
 
@@ -209,10 +217,14 @@ def upscale_channels(
 ) -> np.ndarray:
     """A map upscaled channel entry by channel entry (as ``channels`` counts them): each
     entry of ``sources`` names the prior for it (:func:`upscale_each` with ``kw``: each prior
-    runs once, on the whole map), None keeps ``base``'s (bicubic)."""
+    runs once, on a data map's channels it is named for), None keeps ``base``'s (bicubic;
+    without ``base``, the channels no prior is named for come out as bicubic's)."""
     out = base
     priors = list(dict.fromkeys(q for q in sources if q is not None))
-    for p, up in zip(priors, upscale_each(priors, pixels, kind, scale, **kw), strict=True):
+    each = len(sources) > 1 and kind == "data"
+    only = [[c for c, q in enumerate(sources) if q is p] for p in priors] if each else None
+    ups = upscale_each(priors, pixels, kind, scale, only, **kw)
+    for p, up in zip(priors, ups, strict=True):
         out = up if out is None else merge_channels(up, out, [q is p for q in sources])
     if out is None:
         raise ValueError("no prior and no base map to upscale with")

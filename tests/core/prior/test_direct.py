@@ -196,3 +196,48 @@ def test_max_prior_scale_runs_the_prior_at_part_of_the_scale():
     prior.calls.clear()
     assert upscale_map(prior, px, "base_color", 4).shape == (64, 64, 3)
     assert prior.calls == [4]  # no limit: the whole scale
+
+
+class MixingNearest(Prior):
+    """Nearest x2 whose every output channel is the mean of the input's channels: a network
+    that lets colour channels bleed into each other, at its worst. Records the images it sees."""
+
+    name = "mixing-nearest"
+    scales = (2,)
+    back_project = False
+
+    def __init__(self):
+        super().__init__()
+        self.images = 0
+
+    def _forward(self, x, scale):
+        self.images += x.shape[0]
+        up = F.interpolate(x.mean(1, keepdim=True), scale_factor=scale, mode="nearest")
+        return up.expand(-1, 3, -1, -1)
+
+
+def test_data_maps_run_channel_by_channel_as_greyscale_images():
+    """An ORM image's channels are unrelated maps: each goes through the prior on its own, so
+    a prior that mixes colour channels leaves them apart; a colour map goes through whole."""
+    rng = np.random.default_rng(4)
+    px = rng.random((6, 7, 3), dtype=np.float32)
+    out = upscale_map(MixingNearest(), px, "metallic_roughness", 2)
+    np.testing.assert_allclose(out[::2, ::2], px, atol=1e-6)
+    np.testing.assert_allclose(out[1::2, 1::2], px, atol=1e-6)
+    mixed = upscale_map(MixingNearest(), px, "base_color", 2)
+    np.testing.assert_allclose(mixed[::2, ::2], px.mean(2, keepdims=True).repeat(3, 2), atol=1e-6)
+
+
+def test_a_data_maps_prior_runs_on_the_channels_named_only():
+    """``channels``: the prior sees those channels alone; the others are bicubic's."""
+    rng = np.random.default_rng(5)
+    px = rng.random((6, 7, 3), dtype=np.float32)
+    prior = MixingNearest()
+    out = upscale_map(prior, px, "data", 2, channels=[2])
+    assert prior.images == 1
+    np.testing.assert_allclose(out[::2, ::2, 2], px[..., 2], atol=1e-6)
+    np.testing.assert_allclose(out[..., :2], bicubic_map(px, "data", 2)[..., :2], atol=1e-6)
+    prior.images = 0
+    np.testing.assert_allclose(upscale_map(prior, px, "data", 2, channels=[]),
+                               bicubic_map(px, "data", 2), atol=1e-6)  # fmt: skip
+    assert prior.images == 0

@@ -221,19 +221,25 @@ def test_a_map_too_small_to_check_is_initialised_by_the_prior(tmp_path, monkeypa
 
 
 class FirstChannelOracle(BlurringPrior):
-    """Perfect on the first channel of the one image it was given, the blurring prior on the
-    others."""
+    """Perfect on the first channel of the one image it was given, upscaled from one scale
+    down (which reaches it as a greyscale image, as a data map's channels do), the blurring
+    prior on everything else."""
 
     name = "first-channel"
 
     def __init__(self, hr: np.ndarray):
         super().__init__()
-        self.hr = torch.from_numpy(np.ascontiguousarray(hr[..., :3])).permute(2, 0, 1)[None]
+        self.full = np.ascontiguousarray(hr[..., :3])
+        self.hr = torch.from_numpy(self.full[..., 0].copy())
 
     def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
         out = super()._forward(x, scale)
-        h, w = out.shape[-2:]
-        out[:, 0] = self.hr[:, 0, :h, :w]
+        small = torch.from_numpy(np.clip(degrade_image(self.full, scale)[..., 0], 0, 1))
+        for i, img in enumerate(x):
+            if img.shape[-2:] == small.shape and torch.allclose(
+                img, small.expand_as(img), atol=1e-6
+            ):
+                out[i] = self.hr
         return out
 
 
@@ -335,6 +341,7 @@ def test_direct_and_the_presets_upscale_each_map_with_the_candidate_the_check_ch
         "offering": Offering(BlurringPrior(), sharp),
         "selective": sharp,
         "blurring": BlurringPrior(),
+        "blurs": Offering(BlurringPrior(), BlurringPrior()),
     }
     real = pipeline.load_prior
     monkeypatch.setattr(pipeline, "load_prior", lambda n, d: priors.get(n) or real(n, d))
@@ -350,6 +357,10 @@ def test_direct_and_the_presets_upscale_each_map_with_the_candidate_the_check_ch
     assert report["prior_picks"] == {"base_color.png": ["selective"]}
     assert np.array_equal(picked, albedo_out("selective", method="direct")[0])
     assert not np.array_equal(picked, albedo_out("blurring", method="direct")[0])
+    # where no candidate beats bicubic one scale down, direct keeps bicubic's upscale
+    kept, report = albedo_out("blurs", method="direct")
+    assert report["prior_picks"] == {"base_color.png": ["bicubic"]}
+    assert np.array_equal(kept, albedo_out("blurs", method="bicubic")[0])
     # a single-candidate prior is not checked by direct
     assert "prior_picks" not in albedo_out("selective", method="direct")[1]
     monkeypatch.setitem(presets.PRESETS, "fast", presets.FAST.with_(max_prior_scale=None))
@@ -361,8 +372,9 @@ def test_direct_and_the_presets_upscale_each_map_with_the_candidate_the_check_ch
 
 class ChannelOracle(BlurringPrior):
     """Perfect on channel ``c`` of the check's crop of one map (it knows the HR crop that
-    check degraded), the blurring prior elsewhere; off the check, channel ``c`` is ``c / 4``
-    everywhere, so its output shows which prior made which channel."""
+    check degraded; a data map reaches a prior channel by channel, each a greyscale image),
+    the blurring prior on the check's other channels; off the check, ``c / 4`` everywhere, so
+    its output shows which prior made which channel."""
 
     scales = (4,)  # knows the x4 check's crop, as SelectivePrior
 
@@ -374,17 +386,18 @@ class ChannelOracle(BlurringPrior):
 
     def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
         out = super()._forward(x, scale)
-        if x.shape[1:] == self.small.shape and torch.allclose(x[0], self.small, atol=1e-6):
-            out[:, self.c] = self.hr[self.c]
-        else:
-            out[:, self.c] = self.c / 4
+        for i, img in enumerate(x):
+            if img.shape != self.small.shape:  # off the check
+                out[i] = self.c / 4
+            elif torch.allclose(img, self.small[self.c].expand_as(img), atol=1e-6):
+                out[i] = self.hr[self.c]
         return out
 
 
 def test_each_channel_of_a_packed_map_comes_from_the_candidate_that_won_it(tmp_path, monkeypatch):
     """Roughness (G) and metallic (B) in one image: the check gives G to one candidate and B
-    to the other, and the init (PBR-SR's and direct's) takes each channel from its own; direct
-    gives R, which no material reads, G's prior rather than run a network for it alone."""
+    to the other, and the init (PBR-SR's and direct's) takes each channel from its own; R,
+    which no material reads, runs no prior: bicubic's."""
     import pbrsr_core.pipeline as pipeline
 
     mr = _texture(64, seed=5)
@@ -403,13 +416,14 @@ def test_each_channel_of_a_packed_map_comes_from_the_candidate_that_won_it(tmp_p
         inner = load_asset(next(out.glob("*.gltf"))).images[0].pixels[8:-8, 8:-8]
         assert np.allclose(inner[..., 1], 0.25, atol=1 / 255)  # channel-1's off-check output
         assert np.allclose(inner[..., 2], 0.5, atol=1 / 255)  # channel-2's
+        assert not np.allclose(inner[..., 0], 0.25, atol=0.05)  # no prior's
+        assert not np.allclose(inner[..., 0], 0.5, atol=0.05)
         if method == "pbrsr":
             (c,) = report["prior_check"]
             assert c["channels"] == [False, True, True]
         else:
-            # R, which no material reads, follows G: channel-1 (the tie on R went to channel-2)
             assert report["prior_picks"]["metallic_roughness.png"] == [
-                "channel-1",
+                "bicubic",
                 "channel-1",
                 "channel-2",
             ]
