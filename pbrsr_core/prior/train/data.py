@@ -6,9 +6,8 @@ listing each material's map files (the layout of ``shared/textures``). Map types
 signals, each trained as a 3-channel image as the direct prior sees it (prior/direct.py):
 
 - ``colour``: the basecolor map, sRGB as stored;
-- ``data``: three scalar maps of one material (roughness, metallic, ao, height) packed as
-  R, G, B, each channel drawn from the material's scalar maps (a quarter of the samples
-  repeat one map in all three, as a greyscale map is fed);
+- ``data``: one scalar map of a material (roughness, metallic, ao or height) in all three
+  channels, as the direct prior runs a data map: channel by channel, each a greyscale image;
 - ``normal``: the tangent-space normal map, encoded (OpenGL, +Y up).
 
 Each sample is an HR crop, one of the eight flips/rotations of the square applied so that
@@ -257,11 +256,7 @@ class CropSampler:
         if kind == "normal":
             return mat.maps["normal"][win]
         have = [m for m in SCALAR_MAPS if m in mat.maps]
-        if rng.random() < 0.25:
-            picks = [have[rng.integers(len(have))]] * 3
-        else:
-            picks = [have[i] for i in rng.integers(len(have), size=3)]
-        return np.concatenate([mat.maps[m][win] for m in picks], axis=2)
+        return np.repeat(mat.maps[have[rng.integers(len(have))]][win], 3, axis=2)
 
     def batch(self, step: int) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
         rng = np.random.default_rng([self.seed, step])
@@ -284,15 +279,17 @@ def validation_crops(
 ) -> list[tuple[str, np.ndarray]]:
     """Fixed HR crops (name, (patch, patch, 3) uint8) of held-out materials for ``kind``:
     ``per_material`` crops at positions set by the material's name, so every run and every
-    prior is scored on the same pixels. Data maps are packed as (roughness or the first scalar
-    map, metallic or the second, ao/height or the third), each scalar map at least once."""
+    prior is scored on the same pixels. A data crop is one scalar map in all three channels,
+    the crops of a material taking its scalar maps in turn (each at least once)."""
     out = []
     for mat in materials:
         if not mat.has(kind) or min(mat.size(kind)) < patch:
             continue
         rng = np.random.default_rng(int(_rank(mat.name)[:8], 16))
         h, w = mat.size(kind)
-        for i in range(per_material):
+        have = [m for m in SCALAR_MAPS if m in mat.maps]
+        n = max(per_material, len(have)) if kind == "data" else per_material
+        for i in range(n):
             y = int(rng.integers(h - patch + 1))
             x = int(rng.integers(w - patch + 1))
             win = (slice(y, y + patch), slice(x, x + patch))
@@ -301,8 +298,6 @@ def validation_crops(
             elif kind == "normal":
                 crop = mat.maps["normal"][win]
             else:
-                have = [m for m in SCALAR_MAPS if m in mat.maps]
-                picks = [have[(i + c) % len(have)] for c in range(3)]
-                crop = np.concatenate([mat.maps[m][win] for m in picks], axis=2)
+                crop = np.repeat(mat.maps[have[i % len(have)]][win], 3, axis=2)
             out.append((f"{mat.name}#{i}", np.ascontiguousarray(crop)))
     return out
