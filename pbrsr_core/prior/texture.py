@@ -40,12 +40,13 @@ SHIPPED: dict[str, tuple[str, ...]] = {
         *(f"pbr-upconv7/pbr-upconv7-{k}.safetensors" for k in ("colour", "data", "normal")),
         *(f"pbr-upconv7-fast/pbr-upconv7-fast-{k}.safetensors" for k in ("colour", "normal")),
     ),
-    # pbr-upconv7's x2 networks, and for colour and normal maps SRMD networks fine-tuned from
-    # srmdnf_x4 that make x4 in one pass (x8: colour's SRMD network, then its x2 one; normal
-    # maps: three x2 passes, see X4_ONLY)
+    # pbr-upconv7's x2 colour and normal networks, SRMD networks fine-tuned from srmdnf_x4
+    # that make x4 of colour and normal maps in one pass (x8: colour's SRMD network, then its
+    # x2 one; normal maps: three x2 passes, see X4_ONLY), and pbr-upconv7's data network
+    # fine-tuned on single scalar maps, half of them JPEG-compressed
     "pbr-srmd": (
-        *(f"pbr-upconv7/pbr-upconv7-{k}.safetensors" for k in ("colour", "data", "normal")),
-        *(f"pbr-srmd/pbr-srmd-{k}.safetensors" for k in ("colour", "normal")),
+        *(f"pbr-upconv7/pbr-upconv7-{k}.safetensors" for k in ("colour", "normal")),
+        *(f"pbr-srmd/pbr-srmd-{k}.safetensors" for k in ("colour", "data", "normal")),
     ),
 }
 """Shipped set name -> its weights files under :data:`WEIGHTS_ROOT` (one per kind and

@@ -25,6 +25,7 @@ from pbrsr_core.prior.train.data import (
     load_materials,
     read_manifest,
     split_materials,
+    validation_crops,
 )
 from pbrsr_core.prior.train.graphics import graphics_crop, height_normals, normal_graphics_crop
 from pbrsr_core.prior.train.loop import TrainConfig, Validator, build_network, train
@@ -131,6 +132,23 @@ def test_sampler_batches_are_a_function_of_seed_and_step(materials):
     assert not torch.equal(s.batch(8)[1], hr1)
     normals = hr1[[i for i, k in enumerate(k1) if k == "normal"]] * 2 - 1
     assert (normals[:, 2] > 0).all()
+
+
+def test_data_crops_are_one_scalar_map_each_as_the_prior_runs_them(materials):
+    """The direct prior runs a data map channel by channel, each a greyscale image: a data
+    crop is one scalar map in all three channels, in training and in validation, and the
+    validation crops take each of a material's scalar maps at least once."""
+    train_m, held_m = materials
+    _, hr, kinds = CropSampler(train_m, ("data",), 2, 32, 6, seed=5).batch(3)
+    assert set(kinds) == {"data"}
+    assert torch.equal(hr[:, 0], hr[:, 1]) and torch.equal(hr[:, 0], hr[:, 2])
+    crops = validation_crops(held_m + train_m, "data", 32)
+    assert crops and all((c == c[..., :1]).all() for _, c in crops)
+    mat = next(m for m in held_m + train_m if m.has("data"))
+    mine = [c for n, c in crops if n.split("#")[0] == mat.name]
+    assert len(mine) == 2  # roughness and metallic, one crop each
+    binary = sorted(len(np.unique(c)) <= 2 for c in mine)  # the metallic map is a mask
+    assert binary == [False, True]
 
 
 def test_jpeg_stage_compresses_half_the_lr_crops_and_stays_deterministic(materials):
@@ -418,13 +436,14 @@ def test_shipped_fast_prior_runs_narrow_later_passes_behind_pbr_upconv7(capfd):
 
 
 def test_shipped_srmd_prior_makes_colour_and_normal_x4_in_one_srmd_pass(capfd):
-    """pbr-srmd, the default prior: pbr-upconv7's x2 networks, and for colour and normal maps
-    SRMD networks (float16 on disk, under 4 MiB) that make x4 in one pass (MODEL_CARD.md in its
-    folder); x8 colour is the SRMD network then the x2 one, x8 normal maps are three x2 passes
-    (the set's ``x4_only``); data maps are pbr-upconv7's at every scale."""
+    """pbr-srmd, the default prior: pbr-upconv7's x2 colour and normal networks, SRMD networks
+    (float16 on disk, under 4 MiB) that make colour and normal maps x4 in one pass, and an x2
+    data network of its own, pbr-upconv7's fine-tuned (MODEL_CARD.md in its folder); x8 colour
+    is the SRMD network then the x2 one, x8 normal maps are three x2 passes (the set's
+    ``x4_only``)."""
     from pbrsr_core.options import DEFAULT_PRIOR
     from pbrsr_core.prior.srmd import SRMD
-    from pbrsr_core.prior.texture import shipped_files
+    from pbrsr_core.prior.texture import WEIGHTS_ROOT, shipped_files
 
     assert DEFAULT_PRIOR == "pbr-srmd"
     base, prior = load_prior("pbr-upconv7"), load_prior("pbr-srmd")
@@ -454,8 +473,12 @@ def test_shipped_srmd_prior_makes_colour_and_normal_x4_in_one_srmd_pass(capfd):
         assert prior.for_kind("normal").tile_limits(8)[1] == 512
         assert prior.for_kind("data").tile_limits(4) == (prior.bytes_per_pixel, 512)
         assert prior.for_kind("colour").tile_limits(2) == (prior.bytes_per_pixel, 512)
+        data, base_data = prior.nets["data"][2], base.nets["data"][2]
+        assert type(data) is type(base_data) and data.widths == base_data.widths
+        assert not torch.equal(data(x), base_data(x))
+        alone = load_prior(f"texture:{WEIGHTS_ROOT / 'pbr-srmd' / 'pbr-srmd-data.safetensors'}")
         assert torch.equal(
-            prior.for_kind("data")._forward(x, 4), base.for_kind("data")._forward(x, 4)
+            prior.for_kind("data")._forward(x, 4), alone.for_kind("data")._forward(x, 4)
         )
     code, err = run_cli(["priors", "install", "pbr-srmd"], capfd)
     assert code == 0, err
