@@ -202,12 +202,11 @@ def _direct_picks(prior: Prior, img: ImageData, check: dict | None) -> list[Prio
     """Per channel entry of a map (prior/selfcheck.py counts them), the candidate of
     ``prior`` direct upscales it with: the one its self-check found closest one scale down,
     or None (bicubic) where bicubic was closer or no material reads the channel."""
-    kind = kind_of(img.roles)
-    picks: list[Prior | None] = list(chosen(prior, kind, check, 1))
-    if check is not None:
-        picks = [p if use else None for p, use in zip(picks, check["channels"], strict=True)]
     from .optim.presets import BALANCED
 
+    picks: list[Prior | None] = list(chosen(prior, kind_of(img.roles), check, 1))
+    if check is not None:
+        picks = [p if use else None for p, use in zip(picks, check["channels"], strict=True)]
     return read_channels_only(picks, prior_channels(img, BALANCED))
 
 

@@ -284,16 +284,10 @@ def _upscale_map(prior, pixels, role, scale, max_prior_scale, progress, channels
     kind = map_kind(role)
     a = _as_hwc(pixels)
     colour, alpha, n_colour = _split(a)
-    if kind == "data" and n_colour == 3:  # each channel its own greyscale image
+    if kind == "data" and n_colour == 3:
         run = sorted(set(range(3) if channels is None else channels))
-        with torch.inference_mode():
-            rgb = bicubic_upscale(colour, scale).clamp(0.0, 1.0)
-        if run:
-            grey = colour[0, run][:, None].expand(-1, 3, -1, -1)
-            up = upscale_rgb(prior.for_kind(kind), grey, scale, max_prior_scale=max_prior_scale,
-                             progress=progress)  # fmt: skip
-            with torch.inference_mode():  # the mean, exact where the three agree
-                rgb[0, run] = up[:, 0] + (up[:, 1] - up[:, 0]) / 3 + (up[:, 2] - up[:, 0]) / 3
+        rgb = _channel_by_channel(prior.for_kind(kind), colour, scale, run, max_prior_scale,
+                                  progress)  # fmt: skip
     else:
         rgb = upscale_rgb(
             prior.for_kind(kind), colour, scale, max_prior_scale=max_prior_scale, progress=progress
@@ -302,6 +296,27 @@ def _upscale_map(prior, pixels, role, scale, max_prior_scale, progress, channels
         up_alpha = None if alpha is None else bicubic_upscale(alpha, scale)
         length = normal_length(colour, scale) if kind == "normal" else None
         return _merge(rgb.cpu(), up_alpha, n_colour, kind, length)
+
+
+def _channel_by_channel(prior, colour, scale, run, max_prior_scale, progress) -> torch.Tensor:
+    """A data map's colour channels (1, 3, H, W) -> (1, 3, sH, sW): each channel of ``run``
+    through ``prior`` as a greyscale image, one at a time (a run's output is one image's, as
+    for a colour map), the others bicubic's; ``progress`` sees the runs as one."""
+    h, w = colour.shape[-2:]
+    with torch.inference_mode():
+        if len(run) == 3:
+            out = torch.empty(1, 3, h * scale, w * scale)
+        else:
+            out = bicubic_upscale(colour, scale).clamp_(0.0, 1.0)
+    for k, c in enumerate(run):
+        tick = None
+        if progress is not None:
+            tick = lambda done, total, k=k: progress(k * total + done, len(run) * total)  # noqa: E731
+        up = upscale_rgb(prior, colour[:, c : c + 1].expand(-1, 3, -1, -1), scale,
+                         max_prior_scale=max_prior_scale, progress=tick)[0]  # fmt: skip
+        with torch.inference_mode():  # the mean of the three, exact where they agree
+            out[0, c] = (up[0] + (up[1] - up[0]) / 3 + (up[2] - up[0]) / 3).cpu()
+    return out
 
 
 def upscale_rgb(
