@@ -140,7 +140,10 @@ def blended_channels(asset, images, prior, channels, checks, sources, kept, lr_p
             if i not in entries or not k:
                 continue
             n = len(channels[i])
-            todo = [c for c, ok in enumerate(prior_channels(by_index[i], config)) if ok]
+            flat = entries[i]["flat"]  # nothing for a network to sharpen: bicubic's
+            todo = [
+                c for c, ok in enumerate(prior_channels(by_index[i], config)) if ok and not flat[c]
+            ]
             guided, g = {}, pairs.get(i)
             gc = [c for c in GUIDED_CHANNELS if c in todo]
             if g is not None and gc:

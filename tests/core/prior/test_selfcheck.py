@@ -161,7 +161,7 @@ def test_pipeline_reports_the_check_and_uses_bicubic_when_the_prior_loses(tmp_pa
     monkeypatch.setitem(presets.PRESETS, "fast", every_kind)
     report = upscale_asset(asset, out, UpscaleOptions(preset="fast", prior="blurring"))
     keys = {"image", "index", "priors", "prior_db", "bicubic_db", "candidates", "texels"}
-    keys |= {"use_prior", "channels", "margins", "scale"}
+    keys |= {"use_prior", "channels", "margins", "flat", "scale"}
     assert all(set(c) == keys and not c["use_prior"] for c in report["prior_check"])
     check = next(c for c in report["prior_check"] if c["image"] == "bricks_albedo")
     assert check["channels"] == [False]
@@ -394,12 +394,24 @@ class ChannelOracle(BlurringPrior):
         return out
 
 
+def _pbrsr_and_direct(asset, offering, tmp_path, monkeypatch):
+    """(method, (report, the output's only image inside an 8-texel border)) for PBR-SR's fast
+    preset at the full scale and for direct, each run with ``offering`` as its prior."""
+    import pbrsr_core.pipeline as pipeline
+
+    real = pipeline.load_prior
+    monkeypatch.setattr(pipeline, "load_prior", lambda n, d: offering if n == "o" else real(n, d))
+    monkeypatch.setitem(presets.PRESETS, "fast", presets.FAST.with_(max_prior_scale=None))
+    for method in ("pbrsr", "direct"):
+        out = tmp_path / method
+        report = upscale_asset(asset, out, UpscaleOptions(prior="o", preset="fast", method=method))
+        yield method, (report, load_asset(next(out.glob("*.gltf"))).images[0].pixels[8:-8, 8:-8])
+
+
 def test_each_channel_of_a_packed_map_comes_from_the_candidate_that_won_it(tmp_path, monkeypatch):
     """Roughness (G) and metallic (B) in one image: the check gives G to one candidate and B
     to the other, and the init (PBR-SR's and direct's) takes each channel from its own; R,
     which no material reads, runs no prior: bicubic's."""
-    import pbrsr_core.pipeline as pipeline
-
     mr = _texture(64, seed=5)
     asset = make_quad_asset(tmp_path / "q.gltf", {"metallic_roughness": mr})
     lr = np.asarray(load_asset(asset).images[0].pixels, np.float32)
@@ -407,13 +419,7 @@ def test_each_channel_of_a_packed_map_comes_from_the_candidate_that_won_it(tmp_p
     check = prior_self_check(offering, lr, 4, "data")
     assert check["priors"][1:] == ["channel-1", "channel-2"]
     assert check["channels"][1:] == [True, True]
-    real = pipeline.load_prior
-    monkeypatch.setattr(pipeline, "load_prior", lambda n, d: offering if n == "o" else real(n, d))
-    monkeypatch.setitem(presets.PRESETS, "fast", presets.FAST.with_(max_prior_scale=None))
-    for method in ("pbrsr", "direct"):
-        out = tmp_path / method
-        report = upscale_asset(asset, out, UpscaleOptions(prior="o", preset="fast", method=method))
-        inner = load_asset(next(out.glob("*.gltf"))).images[0].pixels[8:-8, 8:-8]
+    for method, (report, inner) in _pbrsr_and_direct(asset, offering, tmp_path, monkeypatch):
         assert np.allclose(inner[..., 1], 0.25, atol=1 / 255)  # channel-1's off-check output
         assert np.allclose(inner[..., 2], 0.5, atol=1 / 255)  # channel-2's
         assert not np.allclose(inner[..., 0], 0.25, atol=0.05)  # no prior's
@@ -427,3 +433,32 @@ def test_each_channel_of_a_packed_map_comes_from_the_candidate_that_won_it(tmp_p
                 "channel-1",
                 "channel-2",
             ]
+
+
+def test_a_flat_channel_keeps_bicubic_even_where_a_network_wins_the_check(tmp_path, monkeypatch):
+    """Metallic (B) that is one value plus 8-bit noise: a candidate perfect on it one scale
+    down still leaves it to bicubic (nothing to sharpen); roughness (G) keeps its
+    candidate. PBR-SR's blend and direct alike."""
+    from pbrsr_core.prior.selfcheck import FLAT_STD
+
+    mr = _texture(64, seed=5)
+    noise = np.random.default_rng(0).normal(0.0, 0.4 / 255, mr.shape[:2])
+    mr[..., 2] = (0.3 + noise).astype(np.float32)
+    asset = make_quad_asset(tmp_path / "q.gltf", {"metallic_roughness": mr})
+    lr = np.asarray(load_asset(asset).images[0].pixels, np.float32)
+    assert lr[..., 2].std() < FLAT_STD < lr[..., 1].std()
+    offering = Offering(ChannelOracle(lr, 2), ChannelOracle(lr, 1))
+    check = prior_self_check(offering, lr, 4, "data")
+    assert check["priors"][1:] == ["channel-1", "channel-2"] and check["margins"][2] > 10
+    assert check["flat"] == [False, False, True]
+    assert check["channels"][1:] == [True, False]
+    for method, (report, inner) in _pbrsr_and_direct(asset, offering, tmp_path, monkeypatch):
+        assert np.allclose(inner[..., 1], 0.25, atol=1 / 255)  # channel-1's off-check output
+        assert np.allclose(inner[..., 2], 0.3, atol=4 / 255)  # bicubic's, not channel-2's 0.5
+        if method == "pbrsr":
+            (c,) = report["prior_check"]
+            assert c["channels"] == [False, True, False] and "blend" in c
+            assert c["blend"]["margins"][2] is None  # not blended
+        else:
+            picks = report["prior_picks"]["metallic_roughness.png"]
+            assert picks == ["bicubic", "channel-1", "bicubic"]
