@@ -45,11 +45,11 @@ FLAT_STD = 1 / 255
 """Standard deviation (encoded values) below which a map entry's compared texels are flat:
 their variation is an 8-bit level's quantisation, nothing for a network to sharpen, and the
 init keeps bicubic's upscale there without running a network. On the Avocado's roughness
-(0.73 levels) a network's x4 was 0.12 dB ahead of bicubic one scale down and 0.5-0.9 dB
-behind at the real scale (covered texels); on the 11 of the CC0 texture set's 74 roughness,
-metallic and occlusion maps under a level (centre crops of 512², x4) it gained 0.00 to
-+0.24 dB. The least varied map of either set with a signal above that: 1.15 levels (a CC0
-metal's sparse metallic mask, +0.84 dB)."""
+(0.73 levels) the data network's x4 was 0.12 dB ahead of bicubic one scale down and 0.53 dB
+behind at the real scale (covered texels; waifu2x-photo 0.12 behind); on the 11 of the CC0
+texture set's 74 roughness, metallic and occlusion maps under a level (centre crops of 512²,
+x4) it gained 0.00 to +0.24 dB. The least varied map of either set with a signal above
+that: 1.15 levels (a CC0 metal's sparse metallic mask, +0.84 dB)."""
 
 
 def check_factor(side: int, scale: int, priors: Sequence[Prior] = ()) -> int:
