@@ -158,10 +158,11 @@ def _upscale_maps(
                 )
         names = {img.index: img.name for img in images}
         picked = {names[i]: [p.name if p else "bicubic" for p in ps] for i, ps in picks.items()}
+        checked = [{"image": names[i], "index": i, **c} for i, c in found.items() if c]
         return out, {
             "prior_precision": _precisions(prior, images),
             "jpeg_deblocked": deblocked,
-            **({"prior_picks": picked} if picks else {}),
+            **({"prior_picks": picked, "prior_check": checked} if picks else {}),
         }
 
     from .optim.presets import get_preset

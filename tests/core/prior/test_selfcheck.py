@@ -433,6 +433,9 @@ def test_each_channel_of_a_packed_map_comes_from_the_candidate_that_won_it(tmp_p
                 "channel-1",
                 "channel-2",
             ]
+            (c,) = report["prior_check"]  # what direct decided on, as the presets report it
+            assert c["image"] == "metallic_roughness.png" and c["margins"] == check["margins"]
+            assert c["priors"] == check["priors"] and c["channels"] == check["channels"]
 
 
 def test_a_flat_channel_keeps_bicubic_even_where_a_network_wins_the_check(tmp_path, monkeypatch):
