@@ -121,6 +121,52 @@ def check_cmd(
     )
 
 
+def _floats(text: str) -> tuple[float, ...]:
+    return tuple(float(v) for v in text.split(",") if v.strip())
+
+
+@bench_app.command("blend")
+def blend_cmd(
+    out: Path = typer.Option(Path("bench-out/blend"), "--out", "-o", help="Output directory."),
+    textures: Path | None = typer.Option(
+        None, help="Texture folder with manifest.json ($PBRSR_TEXTURES)."
+    ),
+    prior: str = typer.Option(DEFAULT_PRIOR, help="Prior whose data upscales are blended."),
+    scale: int = typer.Option(4, help="Upscaling factor: 2, 4 or 8."),
+    size: int = typer.Option(512, help="HR crop side (crops on a grid over each material)."),
+    margins: str = typer.Option(
+        "0,0.1", help="dB a channel's blend must beat bicubic by one scale down, comma-separated."
+    ),
+    network_db: str = typer.Option(
+        "0,0.1", help="dB a network must add to a map's blends to run, comma-separated."
+    ),
+    max_prior_scale: int | None = typer.Option(
+        None, help="Largest factor the prior runs at (fast: 2; default: the prior's own)."
+    ),
+) -> None:
+    """The presets' blend of data channels on held-out texture materials, rule by rule: the
+    gain over bicubic per channel and the networks run per map, with direct's choice."""
+    from pbrsr_bench.blend import markdown_table, run
+
+    try:
+        margin_values, network_values = _floats(margins), _floats(network_db)
+    except ValueError:
+        _bad_input(ValueError("--margins and --network-db take comma-separated numbers"))
+    _report(
+        run,
+        lambda result: typer.echo(markdown_table(result)),
+        [out / "blend.json", out / "blend.png"],
+        out_dir=out,
+        textures=textures,
+        prior=prior,
+        scale=scale,
+        size=size,
+        margins=margin_values,
+        network_dbs=network_values,
+        max_prior_scale=max_prior_scale,
+    )
+
+
 @bench_app.command("fuzz")
 def fuzz_cmd(
     cases: int = typer.Option(3000, "--cases", "-n", help="Number of mutated assets."),

@@ -14,7 +14,7 @@ import torch
 
 from .asset.model import MAP_ROLES
 from .maps import encoded_to_param, image_cutout, kind_of
-from .prior.blend import MARGIN, blend, blend_check
+from .prior.blend import blend, blend_check, blend_plan
 from .prior.direct import bicubic_map, upscale_map
 from .prior.guided import CHANNELS as GUIDED_CHANNELS
 from .prior.guided import guide_pairs, guided_check_upscale, guided_upscale
@@ -125,7 +125,7 @@ def blended_channels(asset, images, prior, channels, checks, sources, kept, lr_p
     initialise) as a blend of the prior's candidates, bicubic and, for the roughness and
     metallic of a metallic-roughness map, the upscale guided by its colour map
     (prior/blend.py, prior/guided.py), weighted one scale down from the upscales its check
-    compared (``kept``); a channel whose blend beats bicubic by less than ``MARGIN`` stays
+    compared (``kept``); a channel whose blend beats bicubic by less than ``blend_margin`` stays
     bicubic's. Updates ``channels``, ``sources`` (None: blended or bicubic) and the ``checks``
     entries (``blend``); returns {image: (the blend's sources, a candidate or "guided"; per
     channel their weights; the guide image or None)}."""
@@ -157,17 +157,10 @@ def blended_channels(asset, images, prior, channels, checks, sources, kept, lr_p
                 size = lr_pixels[i].shape[:2]
                 up = guided_check_upscale(k, size, lr_pixels[g], upscale_guide, gc)
                 guided = {c: up[..., m] for m, c in enumerate(gc)}
-            fits = blend_check(k, todo, guided)
+            fits = blend_check(k, todo, guided, network_db=config.blend_network_db,
+                               margin=config.blend_margin)  # fmt: skip
             names = list(k["ups"]) + (["guided"] if guided else [])
-            weights = [[0.0] * len(names) for _ in range(n)]
-            use = [False] * n
-            for c, (fit_names, w, gain) in fits.items():
-                if gain > MARGIN:
-                    use[c] = True
-                    for name, wk in zip(fit_names, w, strict=True):
-                        weights[c][names.index(name)] = wk
-            kept_at = [m for m in range(len(names)) if any(w[m] for w in weights)]
-            names, weights = [names[m] for m in kept_at], [[w[m] for m in kept_at] for w in weights]
+            names, weights, use = blend_plan(fits, names, n, config.blend_margin)
             guide = g if "guided" in names else None
             entry = entries[i]
             entry["blend"] = {  # the upscales the run blends (each network runs once)

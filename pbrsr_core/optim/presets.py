@@ -77,6 +77,13 @@ class PbrsrConfig:
     colour map (prior/guided.py), weighted by a least-squares fit one scale down
     (prior/blend.py); only when the check covers data maps (``check_prior``). Off: each
     channel takes the check's pick. The paper upscales each map on its own."""
+    blend_margin: float = 0.1
+    """With ``blend_data``: dB (one scale down) by which a data channel's blend must beat
+    bicubic to be used; below it the channel keeps bicubic's upscale (prior/blend.py)."""
+    blend_network_db: float = 0.1
+    """With ``blend_data``: dB (one scale down, summed over a map's blended channels) a
+    candidate network must add to the blends to run on the map at all: the work follows what
+    the map gains from it (prior/blend.py)."""
     deblock_jpeg: bool = False
     """LR maps stored as JPEG have their block artefacts reduced with the file's own
     quantisation tables (every component of 4:4:4 files, the luma of chroma-subsampled ones)
@@ -154,6 +161,10 @@ class PbrsrConfig:
             (
                 self.max_prior_scale is None or self.max_prior_scale >= 2,
                 "max_prior_scale must be None or >= 2",
+            ),
+            (
+                self.blend_margin >= 0 and self.blend_network_db >= 0,
+                "blend_margin and blend_network_db must be >= 0",
             ),
         ]
         for ok, msg in checks:

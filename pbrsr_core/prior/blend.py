@@ -23,15 +23,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-MARGIN = 0.1
-"""dB by which the blend must beat bicubic one scale down; below it the channel stays
-bicubic's (a channel the upscales barely change is left as the LR map has it)."""
 MIN_WEIGHT = 0.05
 """An upscale weighted less than this is dropped and the rest refitted: a run does not call a
 network for a sliver of a channel."""
-NETWORK_DB = 0.1
-"""dB (one scale down, summed over a map's channels) a candidate network must add to the
-blends to run on the map at all: the work follows what the map gains from it."""
 RIDGE = 1e-6
 """Regularisation of the normal equations (upscales that agree everywhere)."""
 
@@ -81,14 +75,16 @@ def blend_check(
     kept: dict,
     channels: Sequence[int],
     guided: dict[int, np.ndarray] | None = None,
-    network_db: float = NETWORK_DB,
+    *,
+    network_db: float,
+    margin: float,
 ) -> dict[int, tuple[list[str], list[float], float]]:
     """Per channel of ``channels`` of a data map: (the upscales' names, their weights, the
     blend's dB over bicubic), one scale down, from what its self-check compared (``kept``,
     :func:`~.selfcheck.prior_self_check`): each candidate's upscale, and ``guided[c]`` where
     given (named ``"guided"``). A candidate is left out of every channel while that costs the
     map's channels less than ``network_db`` in all (counting only channels that gain more
-    than :data:`MARGIN`): its network then does not run on the map."""
+    than ``margin``): its network then does not run on the map."""
     db, ref, bic = kept["db"], kept["crop"], kept["bicubic"]
     guided = guided or {}
 
@@ -103,7 +99,7 @@ def blend_check(
         return out
 
     def worth(fits: dict) -> float:
-        return sum(g for _, _, g in fits.values() if g > MARGIN)
+        return sum(g for _, _, g in fits.values() if g > margin)
 
     nets = list(kept["ups"])
     fits = fit(nets)
@@ -118,3 +114,25 @@ def blend_check(
             break
         nets, fits = [m for m in nets if m != n], dropped[n]
     return fits
+
+
+def blend_plan(
+    fits: dict[int, tuple[list[str], list[float], float]],
+    names: list[str],
+    n: int,
+    margin: float,
+) -> tuple[list[str], list[list[float]], list[bool]]:
+    """What a run blends from :func:`blend_check`'s ``fits`` for a map of ``n`` channels
+    whose upscales are ``names`` (every candidate, then ``"guided"`` where offered): the
+    sources some channel weighs, per channel their weights (all 0: bicubic's), and per
+    channel whether it is blended (its blend beats bicubic by more than ``margin`` one
+    scale down)."""
+    weights = [[0.0] * len(names) for _ in range(n)]
+    use = [False] * n
+    for c, (fit_names, w, gain) in fits.items():
+        if gain > margin:
+            use[c] = True
+            for name, wk in zip(fit_names, w, strict=True):
+                weights[c][names.index(name)] = wk
+    kept_at = [m for m in range(len(names)) if any(w[m] for w in weights)]
+    return [names[m] for m in kept_at], [[w[m] for m in kept_at] for w in weights], use

@@ -67,7 +67,7 @@ def test_the_check_scores_each_channel_and_names_the_guided_upscale():
         return psnr(up[mask], r[mask])
 
     kept = {"db": db, "crop": ref, "bicubic": bic, "mask": mask, "ups": {"a": u1, "b": u2}}
-    fits = blend_check(kept, [0, 2], {2: paint[..., 2]})
+    fits = blend_check(kept, [0, 2], {2: paint[..., 2]}, network_db=0.1, margin=0.1)
     assert set(fits) == {0, 2}
     names, w, gain = fits[0]
     # b, weighed by no channel, is left out (its network would not run)
@@ -88,9 +88,12 @@ def test_a_network_that_adds_little_is_not_run():
         "mask": mask,
         "ups": {"a": u1[..., None], "b": u2[..., None]},
     }
-    names, w, both = blend_check(kept, [0], network_db=0.0)[0]
+    names, w, both = blend_check(kept, [0], network_db=0.0, margin=0.0)[0]
     assert names == ["a", "b"] and w[1] > MIN_WEIGHT
-    names, w, one = blend_check(kept, [0], network_db=1.0)[0]  # b adds under 1 dB: left out
+    # b adds under 1 dB: left out
+    names, w, one = blend_check(kept, [0], network_db=1.0, margin=0.0)[0]
     assert names == ["a"] and abs(w[0] - 0.5) < 0.06 and 0 < both - one < 1.0
-    assert blend_check(kept, [0])[0][0] == ["a", "b"]  # it adds more than NETWORK_DB
-    assert blend_check(kept, [0], network_db=1e3)[0] == ([], [], 0.0)
+    assert blend_check(kept, [0], network_db=0.1, margin=0.0)[0][0] == ["a", "b"]
+    assert blend_check(kept, [0], network_db=1e3, margin=0.0)[0] == ([], [], 0.0)
+    # a blend counts towards a network's worth only where it passes the margin
+    assert blend_check(kept, [0], network_db=0.1, margin=1e3)[0] == ([], [], 0.0)

@@ -1,0 +1,87 @@
+"""`pbrsr bench blend` on a procedural texture folder (no shared textures)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pbrsr_bench.blend import PACKED, markdown_table, packed_crops, run
+from pbrsr_core.prior.train.data import Material
+from tests.clirun import run_cli
+from tests.core.prior.test_train import make_texture_folder
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    return make_texture_folder(tmp_path_factory.mktemp("textures"), n=10, size=256)
+
+
+def test_a_material_is_packed_as_an_exporter_writes_it():
+    rng = np.random.default_rng(0)
+    maps = {k: rng.integers(0, 256, (64, 64, c), dtype=np.uint8)
+            for k, c in (("basecolor", 3), ("roughness", 1))}  # fmt: skip
+    crops = packed_crops(Material("m", maps), 32)
+    assert [n for n, _, _ in crops] == ["m@0,0", "m@0,32", "m@32,0", "m@32,32"]
+    name, colour, packed = crops[3]
+    assert colour.dtype == packed.dtype == np.float32 and packed.shape == (32, 32, 3)
+    assert (colour == maps["basecolor"][32:, 32:] / np.float32(255)).all()
+    assert (packed[..., 1] == maps["roughness"][32:, 32:, 0] / np.float32(255)).all()
+    assert (packed[..., 0] == 1.0).all() and (packed[..., 2] == 0.0).all()  # glTF's defaults
+    assert packed_crops(Material("m", {"basecolor": maps["basecolor"]}), 32) == []
+    assert packed_crops(Material("m", maps), 128) == []
+
+
+def test_each_rule_is_scored_against_the_real_scale(folder, tmp_path: Path):
+    said: list[str] = []
+    result = run(said.append, tmp_path / "out", folder, "waifu2x-photo", 4, 128,
+                 margins=(0.0, 0.5), network_dbs=(0.0, 1e3))  # fmt: skip
+    rows, rules = result["rows"], result["rules"]
+    assert said and rows and len(rules) == 4
+    # the procedural metallic is a step (checked, not flat); roughness follows the colour
+    assert {r["channel"] for r in rows} <= set(PACKED[1:]) and "roughness" in {
+        r["channel"] for r in rows
+    }
+    for r in rows:
+        assert set(r["gain"]) == {"waifu2x-photo", "guided"}
+        assert all(math.isfinite(v) for v in (*r["gain"].values(), *r["rules"].values()))
+        assert r["oracle"] == max(0.0, *r["gain"].values())
+        assert r["direct"] == (r["gain"]["waifu2x-photo"] if r["margin_db"] > 0 else 0.0)
+        for key in rules:  # a channel is blended exactly where its fit beats the margin
+            margin = float(key.split(",")[0].split()[1])
+            assert (r["rules"][key] != 0.0) <= (r["fit_db"][key] > margin)
+            if r["fit_db"][key] <= margin:
+                assert r["rules"][key] == 0.0
+    for c in result["crops"]:  # no network adds 1000 dB: only the guided fit is blended
+        assert c["networks"]["margin 0, networks 1000"] == 0
+        assert c["networks"]["margin 0, networks 0"] <= 1 and c["networks"]["direct"] <= 1
+    by_rule = {s["rule"]: s for s in result["summary"]}
+    assert set(by_rule) == {*rules, "direct"}
+    for s in by_rule.values():
+        gains = [r["direct"] if s["rule"] == "direct" else r["rules"][s["rule"]] for r in rows]
+        assert s["channels"] == len(rows) and s["mean"] == pytest.approx(np.mean(gains))
+        assert s["worst"] == min(gains) and s["below"] == sum(g < 0 for g in gains)
+    assert by_rule["margin 0, networks 0"]["mean"] > 0  # roughness is the colour's
+    saved = json.loads((tmp_path / "out" / "blend.json").read_text())
+    assert saved["summary"] == result["summary"]
+    assert (tmp_path / "out" / "blend.png").stat().st_size > 0
+    assert "| margin 0.5, networks 0 | " in markdown_table(result)
+
+
+def test_cli_refuses_what_it_cannot_score(folder, tmp_path: Path, capfd):
+    base = ["bench", "blend", "-o", str(tmp_path), "--textures", str(folder)]
+    code, err = run_cli(["bench", "blend", "--textures", str(tmp_path / "none")], capfd)
+    assert code == 2 and "texture folder" in err
+    code, err = run_cli(base + ["--scale", "3"], capfd)
+    assert code == 2 and "scale must be 2, 4 or 8" in err
+    code, err = run_cli(base + ["--size", "32"], capfd)
+    assert code == 2 and "at least 64 px" in err
+    code, err = run_cli(base + ["--margins", "a"], capfd)
+    assert code == 2 and "comma-separated numbers" in err
+    code, err = run_cli(base + ["--network-db", "-1"], capfd)
+    assert code == 2 and "not negative" in err
+    code, err = run_cli(base + ["--size", "512"], capfd)
+    assert code == 2 and "no held-out material" in err
