@@ -16,7 +16,10 @@ metallic), the data map's self-check, the guided upscale, :func:`blend_check` an
 over bicubic against the HR crop of each rule's blend (and its gain one scale down), of
 direct's choice (the check's pick where it beats bicubic), of each upscale alone and of the
 oracle; per rule, the networks it runs per map. The plot puts each rule's mean gain against
-its networks per map.
+its networks per map. With ``jpeg`` both LR crops are stored as JPEG files of that quality
+hold them (4:4:4, as ``pbrsr degrade`` writes JPEG maps) and deblocked with those tables, as
+the presets deblock a JPEG map before they check it; the gains are then over bicubic of the
+deblocked crop, the presets' own bicubic.
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pbrsr_core.degrade import degrade_image
+from pbrsr_core.asset.jpeg import deblock, standard_quant
 from pbrsr_core.prior import load_prior
 from pbrsr_core.prior.blend import blend, blend_check, blend_plan
 from pbrsr_core.prior.direct import bicubic_map, upscale_map
@@ -41,7 +44,7 @@ from pbrsr_core.prior.train.data import (
     texture_folder,
 )
 
-from .check import _psnr
+from .check import _psnr, low_res
 from .results import pyplot, write_result
 
 PACKED = ("ao", "roughness", "metallic")
@@ -85,11 +88,15 @@ def score_crop(
     scale: int,
     rules: list[tuple[float, float]],
     max_prior_scale: int | None = None,
+    jpeg: int | None = None,
 ) -> tuple[list[dict], dict[str, int]]:
     """One material crop: per channel of ``present`` that its check does not find flat, the
     gains over bicubic at the real scale (rows); per rule the networks the blend runs."""
     kw = {"max_prior_scale": max_prior_scale}
-    lr_c, lr_d = degrade_image(colour, scale), degrade_image(packed, scale)
+    lr_c, lr_d = low_res(colour, scale, jpeg), low_res(packed, scale, jpeg)
+    if jpeg is not None:
+        quant = standard_quant(jpeg)
+        lr_c, lr_d = deblock(lr_c, quant), deblock(lr_d, quant)
     c_check = prior_self_check(prior, lr_c, scale, "colour", **kw)
     by_name = {p.name: p for p in prior.candidates("colour")}
     src = None
@@ -194,10 +201,11 @@ def run(
     margins: tuple[float, ...] = (0.0, 0.1),
     network_dbs: tuple[float, ...] = (0.0, 0.1),
     max_prior_scale: int | None = None,
+    jpeg: int | None = None,
 ) -> dict:
     """Score the blend of ``prior``'s data upscales at ``scale`` for every pair of
     ``margins`` and ``network_dbs`` on packed crops of ``size`` HR pixels of the held-out
-    materials."""
+    materials, the LR crops stored as JPEG of quality ``jpeg`` when given."""
     if scale not in (2, 4, 8):
         raise ValueError(f"scale must be 2, 4 or 8, not {scale}")
     if size < 16 * scale:
@@ -216,7 +224,7 @@ def run(
         for name, colour, packed in packed_crops(mat, size):
             log(f"{name}: {', '.join(PACKED[c] for c in present)}")
             crop_rows, networks = score_crop(p, colour, packed, present, scale, rules,
-                                             max_prior_scale)  # fmt: skip
+                                             max_prior_scale, jpeg)  # fmt: skip
             if not crop_rows:
                 continue
             rows += [{"map": f"{name}[{r['channel']}]", **r} for r in crop_rows]
@@ -232,8 +240,10 @@ def run(
         "scale": scale,
         "size": size,
         "max_prior_scale": max_prior_scale,
+        "jpeg": jpeg,
         "materials": held,
         "rules": [rule_name(m, n) for m, n in rules],
+        "rule_values": rules,
         "rows": rows,
         "crops": crops,
     }
@@ -247,7 +257,9 @@ def markdown_table(result: dict) -> str:
             for n in dict.fromkeys(n for r in rows for n in r["gain"])}  # fmt: skip
     lines = [
         f"x{result['scale']}, prior {result['prior']}, {len(result['crops'])} packed crops of "
-        f"{result['size']}² from the held-out materials; mean PSNR gain over bicubic per "
+        f"{result['size']}² from the held-out materials"
+        + (f", LR stored as JPEG quality {result['jpeg']}, deblocked" if result.get("jpeg") else "")
+        + "; mean PSNR gain over bicubic per "
         "channel at the real scale (dB); each upscale alone: "
         + ", ".join(f"{n} {v:+.3f}" for n, v in each.items())
         + f"; oracle {np.mean([r['oracle'] for r in rows]):+.3f}",
@@ -266,16 +278,23 @@ def markdown_table(result: dict) -> str:
 def plot(result: dict, path: Path) -> None:
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
-    for s in result["summary"]:
-        ax.scatter(s["networks"], s["mean"], s=30)
-        ax.annotate(s["rule"], (s["networks"], s["mean"]), fontsize=8,
-                    xytext=(4, 4), textcoords="offset points")  # fmt: skip
+    rules = dict(zip(result["rules"], result["rule_values"], strict=True))
+    by_rule = {s["rule"]: s for s in result["summary"]}
+    for margin in dict.fromkeys(m for m, _ in rules.values()):
+        pts = sorted((by_rule[k]["networks"], by_rule[k]["mean"], n)
+                     for k, (m, n) in rules.items() if m == margin)  # fmt: skip
+        ax.plot([x for x, _, _ in pts], [y for _, y, _ in pts], "o-", label=f"margin {margin:g} dB")
+        for x, y, n in pts:
+            ax.annotate(f"{n:g}", (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
+    d = by_rule["direct"]
+    ax.plot([d["networks"]], [d["mean"]], "k*", ms=10, label="direct's choice")
     ax.set(
-        xlabel="networks run per map",
+        xlabel="networks run per map (labels: dB a network must add)",
         ylabel="mean gain over bicubic, real scale (dB)",
         title=f"data-channel blend of {result['prior']} at x{result['scale']}",
     )
     ax.grid(alpha=0.3)
+    ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -143,6 +143,13 @@ def blend_cmd(
     max_prior_scale: int | None = typer.Option(
         None, help="Largest factor the prior runs at (fast: 2; default: the prior's own)."
     ),
+    jpeg: int | None = typer.Option(
+        None,
+        min=1,
+        max=100,
+        help="Store the LR crops as JPEG at this quality (4:4:4) and deblock them, as the "
+        "presets do.",
+    ),
 ) -> None:
     """The presets' blend of data channels on held-out texture materials, rule by rule: the
     gain over bicubic per channel and the networks run per map, with direct's choice."""
@@ -164,6 +171,7 @@ def blend_cmd(
         margins=margin_values,
         network_dbs=network_values,
         max_prior_scale=max_prior_scale,
+        jpeg=jpeg,
     )
 
 

@@ -79,7 +79,7 @@ class PbrsrConfig:
     channel takes the check's pick. The paper upscales each map on its own."""
     blend_margin: float = 0.1
     """With ``blend_data``: dB (one scale down) by which a data channel's blend must beat
-    bicubic to be used; below it the channel keeps bicubic's upscale (prior/blend.py)."""
+    bicubic to be used; otherwise the channel keeps bicubic's upscale (prior/blend.py)."""
     blend_network_db: float = 0.1
     """With ``blend_data``: dB (one scale down, summed over a map's blended channels) a
     candidate network must add to the blends to run on the map at all: the work follows what
@@ -267,8 +267,13 @@ CHECK_PRIOR_CPU = ("colour", "data")
 #   candidates, bicubic and (roughness, metallic) the colour-guided upscale (prior/blend.py).
 #   x4, 40 evaluation views, mean render gain over bicubic without / with: balanced +1.96 /
 #   +2.08 dB, fast +1.79 / +1.89 (BoomBox +0.41, WaterBottle +0.28, ToyCar +0.16 with
-#   balanced); fast's Avocado roughness 0.12 dB below bicubic with it; run times the same or
-#   shorter (docs/BENCHMARKS.md, "Data channels blended").
+#   balanced; pbr-upconv7); run times the same or shorter (docs/BENCHMARKS.md, "Data
+#   channels blended"). blend_margin and blend_network_db 0.1 dB (`pbrsr bench blend`,
+#   held-out materials' packed maps, x4, pbr-srmd: +0.896 dB over bicubic, 0.62 networks per
+#   map; margin 0 +0.958, a fabric's roughness; every network +0.904 with 0.92). On the
+#   shared assets the margin keeps the wooden table's metallic, JPEG noise around a constant,
+#   bicubic's (0.49 dB lower blended, renders the same; docs/METHOD.md, "Data channels
+#   blended").
 # * fast: PBR-SR's init and export with no optimisation steps, the prior at x2 of the scale
 #   (max_prior_scale 2; bicubic the rest, then the back-projection step). waifu2x-photo's x2
 #   pass on a 512² map costs 2.1 s against 13.0 s for its x4 (two passes), and on the shared

@@ -85,3 +85,46 @@ def test_cli_refuses_what_it_cannot_score(folder, tmp_path: Path, capfd):
     assert code == 2 and "not negative" in err
     code, err = run_cli(base + ["--size", "512"], capfd)
     assert code == 2 and "no held-out material" in err
+
+
+def test_jpeg_lr_crops_are_deblocked_as_the_presets_deblock_them(
+    folder, tmp_path: Path, capfd, monkeypatch
+):
+    import pbrsr_bench.blend as bench_blend
+    from pbrsr_bench.check import low_res
+    from pbrsr_core.asset.jpeg import deblock, standard_quant
+    from pbrsr_core.prior import load_prior
+
+    mat = Material("m", {"basecolor": np.full((128, 128, 3), 90, np.uint8)})
+    rng = np.random.default_rng(1)
+    mat.maps["roughness"] = (rng.random((128, 128, 1)) * 255).astype(np.uint8)
+    (_, colour, packed), *_ = packed_crops(mat, 128)
+    seen = []
+
+    def recorded(pixels, quant):
+        seen.append((pixels, quant))
+        return deblock(pixels, quant)
+
+    monkeypatch.setattr(bench_blend, "deblock", recorded)
+    prior = load_prior("bicubic", "cpu")
+    clean, _ = bench_blend.score_crop(prior, colour, packed, [1], 4, [(0.0, 0.0)])
+    assert not seen
+    jpeg, _ = bench_blend.score_crop(prior, colour, packed, [1], 4, [(0.0, 0.0)], jpeg=50)
+    # both LR crops as a quality-50 file holds them, deblocked with its tables
+    want = standard_quant(50)
+    assert len(seen) == 2 and all(
+        all((a == b).all() for a, b in zip(q.tables, want.tables, strict=True)) for _, q in seen
+    )
+    assert (seen[0][0] == low_res(colour, 4, 50)).all() and (
+        seen[1][0] == low_res(packed, 4, 50)
+    ).all()
+    assert clean[0]["gain"]["guided"] != jpeg[0]["gain"]["guided"]
+    code, err = run_cli(
+        ["bench", "blend", "-o", str(tmp_path), "--textures", str(folder), "--prior", "bicubic"]
+        + ["--scale", "2", "--size", "128", "--jpeg", "60", "--network-db", "0.1"],
+        capfd,
+    )
+    assert code == 0, err
+    saved = json.loads((tmp_path / "blend.json").read_text())
+    assert saved["jpeg"] == 60 and "JPEG quality 60, deblocked" in markdown_table(saved)
+    assert saved["rules"] == ["margin 0, networks 0.1", "margin 0.1, networks 0.1"]

@@ -103,6 +103,8 @@ def test_presets_paper_numbers_exact():
         get_preset("nope")
     with pytest.raises(InvalidOptions):
         p.with_(iterations=-1)
+    with pytest.raises(InvalidOptions, match="blend_margin and blend_network_db"):
+        p.with_(blend_network_db=-0.1)
 
 
 def test_pseudo_gt_cache_roundtrip(tmp_path):

@@ -194,6 +194,14 @@ def test_balanced_blends_roughness_and_metallic_with_the_guided_upscale(tmp_path
         got, plain = psnr(orm[..., c], hr_data[..., c - 1]), psnr(bic[..., c], hr_data[..., c - 1])
         assert got > plain + 10.0, (c, got, plain)
     assert np.abs(orm[..., 0] - bic[..., 0]).max() <= 1 / 255  # occlusion: bicubic's
+    # the preset's margin decides: no blend beats bicubic by 1000 dB one scale down
+    monkeypatch.setitem(
+        presets.PRESETS, "balanced", presets.BALANCED.with_(project_lr=(), blend_margin=1e3)
+    )
+    orm, report = run("margin")
+    (entry,) = [c for c in report["prior_check"] if c["index"] == mat.metallic_roughness.image]
+    assert entry["channels"] == [False, False, False] and entry["blend"]["sources"] == []
+    assert np.abs(orm[..., :3] - bic[..., :3]).max() <= 1 / 255
     # without blend_data the check picks per channel: bicubic (the prior loses on them)
     monkeypatch.setitem(
         presets.PRESETS, "balanced", presets.BALANCED.with_(project_lr=(), blend_data=False)
