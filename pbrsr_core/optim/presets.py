@@ -270,10 +270,10 @@ CHECK_PRIOR_CPU = ("colour", "data")
 #   balanced; pbr-upconv7); run times the same or shorter (docs/BENCHMARKS.md, "Data
 #   channels blended"). blend_margin and blend_network_db 0.1 dB (`pbrsr bench blend`,
 #   held-out materials' packed maps, x4, pbr-srmd: +0.896 dB over bicubic, 0.62 networks per
-#   map; margin 0 +0.958, a fabric's roughness; every network +0.904 with 0.92). On the
-#   shared assets the margin keeps the wooden table's metallic, JPEG noise around a constant,
-#   bicubic's (0.49 dB lower blended, renders the same; docs/METHOD.md, "Data channels
-#   blended").
+#   map; margin 0 +0.958, a fabric's roughness; every network +0.904 with 0.92). With
+#   pbr-srmd the margin decides no map of the shared assets (the wooden table's metallic, the
+#   one it changed, is flat by the check's JPEG floor); kept until measured with pbr-upconv7
+#   (docs/METHOD.md, "Data channels blended").
 # * fast: PBR-SR's init and export with no optimisation steps, the prior at x2 of the scale
 #   (max_prior_scale 2; bicubic the rest, then the back-projection step). waifu2x-photo's x2
 #   pass on a 512² map costs 2.1 s against 13.0 s for its x4 (two passes), and on the shared

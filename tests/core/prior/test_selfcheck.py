@@ -465,3 +465,33 @@ def test_a_flat_channel_keeps_bicubic_even_where_a_network_wins_the_check(tmp_pa
         else:
             picks = report["prior_picks"]["metallic_roughness.png"]
             assert picks == ["bicubic", "channel-1", "bicubic"]
+
+
+def test_a_jpeg_maps_noise_raises_the_flat_floor(tmp_path):
+    """A metallic that varies by 1.5 levels is not flat; stored as a JPEG whose deblocking
+    takes out 1.2 levels of noise, variation of that size is the file's: flat. The pipeline's
+    checks see the stored map less the deblocked one; a map that was not deblocked none."""
+    from pbrsr_core.initial_maps import self_checks
+    from pbrsr_core.prior import load_prior
+    from pbrsr_core.progress import StageTimer
+
+    rng = np.random.default_rng(3)
+    mr = _texture(64, seed=5)
+    mr[..., 2] = 0.3 + rng.normal(0.0, 1.5 / 255, mr.shape[:2])
+    asset = load_asset(make_quad_asset(tmp_path / "q.gltf", {"metallic_roughness": mr}))
+    stored = asset.images[0].pixels
+    jpeg_noise = np.zeros_like(stored)
+    jpeg_noise[..., 2] = rng.normal(0.0, 1.2 / 255, stored.shape[:2])
+    deblocked = stored - jpeg_noise
+    prior = load_prior("bicubic", "cpu")
+    assert prior_self_check(prior, deblocked, 4, "data")["flat"] == [False, False, False]
+    check = prior_self_check(prior, deblocked, 4, "data", noise=jpeg_noise)
+    assert check["flat"] == [False, False, True]
+
+    def checks(lr_pixels):
+        found = self_checks(asset, asset.images, prior, lr_pixels, 4, ("data",), None,
+                            StageTimer(), None)  # fmt: skip
+        return found[0]["flat"]
+
+    assert checks({0: deblocked}) == [False, False, True]
+    assert checks({0: stored}) == [False, False, False]  # not deblocked: the 8-bit floor
