@@ -57,9 +57,9 @@ variation of that size is the file's, which a network sharpens and bicubic avera
 On the held-out CC0 materials' packed maps stored as JPEG and deblocked (``pbrsr bench
 blend --jpeg 95`` / ``--jpeg 85``, x4, pbr-srmd) direct's choices gain +0.251 / +0.098 dB over
 bicubic with it against +0.240 / +0.091 without, 3 / 3 channels below bicubic against 8 / 10
-(near-flat metals' roughness and metallic); on the wooden table (x4) its metallic, 1.9 levels
-RMS after deblocking and 1.0 taken out, goes from 0.21 dB below bicubic in direct to 0.14
-above. Maps without JPEG storage are decided as before."""
+(near-flat metals' roughness and metallic); the wooden table's metallic (x4), 1.9 levels RMS
+after deblocking and 1.0 taken out, scores 0.14 dB above bicubic in direct with the floor and
+0.21 below without. A map stored without loss keeps the 8-bit floor."""
 
 
 def check_factor(side: int, scale: int, priors: Sequence[Prior] = ()) -> int:
