@@ -73,9 +73,7 @@ def self_checks(asset, images, prior, lr_pixels, s, kinds, max_prior_scale, time
                 keep=kept.setdefault(img.index, {})
                 if kept is not None and kind_of(img.roles) == "data"
                 else None,
-                noise=None
-                if lr_pixels[img.index] is img.pixels
-                else img.pixels - lr_pixels[img.index],
+                stored=None if lr_pixels[img.index] is img.pixels else img.pixels,
             )
     return checks
 

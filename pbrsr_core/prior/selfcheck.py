@@ -51,7 +51,7 @@ texture set's 74 roughness, metallic and occlusion maps under a level (centre cr
 x4) it gained 0.00 to +0.24 dB. The least varied map of either set with a signal above
 that: 1.15 levels (a CC0 metal's sparse metallic mask, +0.84 dB).
 
-A JPEG map's floor is higher by the noise its deblocking took out (``noise`` of
+A JPEG map's floor is higher by the noise its deblocking took out (``stored`` of
 :func:`prior_self_check`: the RMS per channel of the stored pixels less the deblocked ones):
 variation of that size is the file's, which a network sharpens and bicubic averages away.
 On the held-out CC0 materials' packed maps stored as JPEG and deblocked (``pbrsr bench
@@ -110,7 +110,7 @@ def prior_self_check(
     covered: np.ndarray | None = None,
     cutout: float | None = None,
     keep: dict | None = None,
-    noise: np.ndarray | None = None,
+    stored: np.ndarray | None = None,
 ) -> dict | None:
     """``{"priors", "prior_db", "bicubic_db", "candidates", "texels", "use_prior",
     "channels", "margins", "flat", "scale"}`` for one map (H, W, C) as stored, or None when it
@@ -135,9 +135,10 @@ def prior_self_check(
     a cutout's colour (:func:`~.direct.with_cutout`), as the init will. ``keep``: filled
     with what the check compared (``crop``, ``small``, ``factor``, ``mask``, the scorer
     ``db``, the candidates' upscales ``ups`` by name, ``bicubic``; each cut to the mask's
-    shape), for a decision made from the same upscales (prior/blend.py). ``noise`` (the
-    map's shape): the stored map less ``lr_map`` where that is the stored map deblocked; its
-    RMS per channel over the compared texels raises the flat floor (:data:`FLAT_STD`)."""
+    shape), for a decision made from the same upscales (prior/blend.py). ``stored`` (the
+    map's shape): the map as stored where ``lr_map`` is it deblocked; what the deblocking
+    took out, its RMS per channel over the compared texels, raises the flat floor
+    (:data:`FLAT_STD`)."""
     a = np.asarray(lr_map, dtype=np.float32)
     n_colour = 3 if a.shape[2] >= 3 else 1
     crop = _centre(a, CROP)
@@ -170,8 +171,8 @@ def prior_self_check(
     h, w = mask.shape
     seen = crop[:h, :w][mask]
     floor = np.full(a.shape[2], FLAT_STD)
-    if noise is not None:  # the stored file's noise the deblocking took out, per channel
-        floor = floor + _centre(np.asarray(noise, np.float32), CROP)[:h, :w][mask].std(axis=0)
+    if stored is not None:  # the stored file's noise the deblocking took out, per channel
+        floor = floor + (_centre(np.asarray(stored, np.float32), CROP)[:h, :w][mask] - seen).std(0)
     best, channels, margins, flat = [], [], [], []
     for part in parts:
         scores = [db(up, part) for up in ups]

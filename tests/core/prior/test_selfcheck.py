@@ -485,7 +485,7 @@ def test_a_jpeg_maps_noise_raises_the_flat_floor(tmp_path):
     deblocked = stored - jpeg_noise
     prior = load_prior("bicubic", "cpu")
     assert prior_self_check(prior, deblocked, 4, "data")["flat"] == [False, False, False]
-    check = prior_self_check(prior, deblocked, 4, "data", noise=jpeg_noise)
+    check = prior_self_check(prior, deblocked, 4, "data", stored=stored)
     assert check["flat"] == [False, False, True]
 
     def checks(lr_pixels):
