@@ -17,9 +17,8 @@ over bicubic against the HR crop of each rule's blend (and its gain one scale do
 direct's choice (the check's pick where it beats bicubic), of each upscale alone and of the
 oracle; per rule, the networks it runs per map. The plot puts each rule's mean gain against
 its networks per map. With ``jpeg`` both LR crops are stored as JPEG files of that quality
-hold them (4:4:4, as ``pbrsr degrade`` writes JPEG maps) and deblocked with those tables, as
-the presets deblock a JPEG map before they check it; the gains are then over bicubic of the
-deblocked crop, the presets' own bicubic.
+hold them (4:4:4, as ``pbrsr degrade`` writes JPEG maps) and checked and upscaled as the
+presets do (``check.presets_low_res``).
 """
 
 from __future__ import annotations
@@ -29,7 +28,6 @@ from pathlib import Path
 
 import numpy as np
 
-from pbrsr_core.asset.jpeg import deblock, standard_quant
 from pbrsr_core.prior import load_prior
 from pbrsr_core.prior.blend import blend, blend_check, blend_plan
 from pbrsr_core.prior.direct import bicubic_map, upscale_map
@@ -44,7 +42,7 @@ from pbrsr_core.prior.train.data import (
     texture_folder,
 )
 
-from .check import _psnr, low_res
+from .check import _psnr, presets_low_res
 from .results import pyplot, write_result
 
 PACKED = ("ao", "roughness", "metallic")
@@ -93,11 +91,11 @@ def score_crop(
     """One material crop: per channel of ``present`` that its check does not find flat, the
     gains over bicubic at the real scale (rows); per rule the networks the blend runs."""
     kw = {"max_prior_scale": max_prior_scale}
-    lr_c, lr_d = low_res(colour, scale, jpeg), low_res(packed, scale, jpeg)
-    if jpeg is not None:
-        quant = standard_quant(jpeg)
-        lr_c, lr_d = deblock(lr_c, quant), deblock(lr_d, quant)
-    c_check = prior_self_check(prior, lr_c, scale, "colour", **kw)
+    (lr_c, stored_c), (lr_d, stored_d) = (
+        presets_low_res(colour, scale, jpeg),
+        presets_low_res(packed, scale, jpeg),
+    )
+    c_check = prior_self_check(prior, lr_c, scale, "colour", stored=stored_c, **kw)
     by_name = {p.name: p for p in prior.candidates("colour")}
     src = None
     if c_check is None or c_check["channels"][0]:
@@ -109,7 +107,7 @@ def score_crop(
         return upscale_map(src, px, "colour", f, **kw)
 
     kept: dict = {}
-    check = prior_self_check(prior, lr_d, scale, "data", keep=kept, **kw)
+    check = prior_self_check(prior, lr_d, scale, "data", keep=kept, stored=stored_d, **kw)
     if check is None:
         return [], {}
     todo = [c for c in present if not check["flat"][c]]

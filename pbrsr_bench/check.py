@@ -13,7 +13,11 @@ candidates and bicubic, known only with the HR crop); how many of the check's ch
 below bicubic and by how much at worst; and how many maps the check left to bicubic where a
 candidate gains. The plot puts each map's margin one scale down against its gain at the real
 scale. With ``jpeg`` the LR crops are stored as JPEG files of that quality would hold them
-(4:4:4, as ``pbrsr degrade`` writes JPEG maps), as real assets ship their maps.
+(4:4:4, as ``pbrsr degrade`` writes JPEG maps), as real assets ship their maps, and checked
+and upscaled as the presets do: deblocked with those tables, the check told the map as
+stored (its flat floor counts the noise the deblocking took out); the gains are then over
+bicubic of the deblocked crop, the presets' own bicubic (``deblock=False``: the file's
+pixels as they are, as with ``deblock_jpeg`` off).
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pbrsr_core.asset.jpeg import compress, standard_quant
+from pbrsr_core.asset.jpeg import compress, deblock, standard_quant
 from pbrsr_core.degrade import degrade_image
 from pbrsr_core.metrics import psnr
 from pbrsr_core.prior import load_prior
@@ -59,13 +63,31 @@ def low_res(hr: np.ndarray, scale: int, jpeg: int | None = None) -> np.ndarray:
     return compress(t, standard_quant(jpeg))[0].permute(1, 2, 0).numpy()
 
 
+def presets_low_res(
+    hr: np.ndarray, scale: int, jpeg: int | None = None, deblock_jpeg: bool = True
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """(the LR map as the presets check and upscale it, the map as stored where that differs):
+    with ``jpeg`` (and ``deblock_jpeg``) the file's pixels deblocked with its tables, and those
+    pixels."""
+    lr = low_res(hr, scale, jpeg)
+    if jpeg is None or not deblock_jpeg:
+        return lr, None
+    return deblock(lr, standard_quant(jpeg)), lr
+
+
 def score_map(
-    prior, hr: np.ndarray, kind: str, scale: int, name: str, jpeg: int | None = None
+    prior,
+    hr: np.ndarray,
+    kind: str,
+    scale: int,
+    name: str,
+    jpeg: int | None = None,
+    deblock_jpeg: bool = True,
 ) -> list[dict]:
     """One HR crop (H, W, 3) in [0, 1]: the check's decision and every option's PSNR at the
     real scale, per part (the whole map for colour, each distinct channel for data)."""
-    lr = low_res(hr, scale, jpeg)
-    check = prior_self_check(prior, lr, scale, kind)
+    lr, stored = presets_low_res(hr, scale, jpeg, deblock_jpeg)
+    check = prior_self_check(prior, lr, scale, kind, stored=stored)
     candidates = prior.candidates(kind)
     ups = {c.name: upscale_map(c, lr, kind, scale) for c in candidates}
     bic = bicubic_map(lr, kind, scale)
@@ -137,10 +159,12 @@ def run(
     scale: int = 4,
     sizes: tuple[int, ...] = (1024, 512),
     jpeg: int | None = None,
+    deblock_jpeg: bool = True,
 ) -> dict:
     """Score the self-check of ``prior`` at ``scale`` on centre-placed crops of ``sizes`` HR
     pixels (one per held-out material and kind; a material smaller than a size is skipped),
-    the LR crops stored as JPEG of quality ``jpeg`` when given."""
+    the LR crops stored as JPEG of quality ``jpeg`` when given (deblocked unless
+    ``deblock_jpeg`` is off)."""
     if scale not in (2, 4, 8):
         raise ValueError(f"scale must be 2, 4 or 8, not {scale}")
     if not sizes or min(sizes) < 16 * scale:
@@ -157,7 +181,7 @@ def run(
             for name, crop in crops:
                 log(f"{kind} {size}: {name}")
                 hr = crop.astype(np.float32) / 255.0
-                rows += score_map(p, hr, kind, scale, name.split("#")[0], jpeg)
+                rows += score_map(p, hr, kind, scale, name.split("#")[0], jpeg, deblock_jpeg)
     if not rows:
         raise ValueError(f"no held-out material in {textures} has maps of {min(sizes)} px")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -165,6 +189,7 @@ def run(
         "prior": p.name,
         "scale": scale,
         "jpeg": jpeg,
+        "deblock": deblock_jpeg,
         "materials": held,
         "rows": rows,
         "summary": summarise(rows),
@@ -172,10 +197,17 @@ def run(
     return write_result(result, out_dir, "check", plot)
 
 
+def _jpeg_note(result: dict) -> str:
+    if not result.get("jpeg"):
+        return ""
+    done = "deblocked" if result.get("deblock", True) else "not deblocked"
+    return f", LR stored as JPEG quality {result['jpeg']}, {done}"
+
+
 def markdown_table(result: dict) -> str:
     lines = [
         f"x{result['scale']}, prior {result['prior']}, held-out materials"
-        + (f", LR stored as JPEG quality {result['jpeg']}" if result.get("jpeg") else "")
+        + _jpeg_note(result)
         + "; mean PSNR gain over "
         "bicubic at the real scale (dB; a near-flat map, scored at 50-60 dB, moves a mean by "
         "dB that no render shows: the medians say what is typical)",

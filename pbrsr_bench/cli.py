@@ -102,6 +102,9 @@ def check_cmd(
         max=100,
         help="Store the LR crops as JPEG at this quality (4:4:4, as pbrsr degrade writes JPEG).",
     ),
+    deblock: bool = typer.Option(
+        True, help="Deblock the JPEG crops with their tables before the check, as the presets do."
+    ),
 ) -> None:
     """The prior's self-check against the real scale on held-out texture materials: the gain
     over bicubic of the check's choices, of each candidate alone and of the oracle, and the
@@ -118,6 +121,7 @@ def check_cmd(
         scale=scale,
         sizes=_ints(sizes),
         jpeg=jpeg,
+        deblock_jpeg=deblock,
     )
 
 

@@ -91,24 +91,32 @@ def test_jpeg_lr_crops_are_deblocked_as_the_presets_deblock_them(
     folder, tmp_path: Path, capfd, monkeypatch
 ):
     import pbrsr_bench.blend as bench_blend
+    import pbrsr_bench.check as bench_check
     from pbrsr_bench.check import low_res
     from pbrsr_core.asset.jpeg import deblock, standard_quant
     from pbrsr_core.prior import load_prior
+    from pbrsr_core.prior.selfcheck import prior_self_check
 
     mat = Material("m", {"basecolor": np.full((128, 128, 3), 90, np.uint8)})
     rng = np.random.default_rng(1)
     mat.maps["roughness"] = (rng.random((128, 128, 1)) * 255).astype(np.uint8)
     (_, colour, packed), *_ = packed_crops(mat, 128)
-    seen = []
+    seen, checked = [], []
 
     def recorded(pixels, quant):
         seen.append((pixels, quant))
         return deblock(pixels, quant)
 
-    monkeypatch.setattr(bench_blend, "deblock", recorded)
+    def recorded_check(prior, lr, scale, kind, **kw):
+        checked.append((lr, kw.get("stored")))
+        return prior_self_check(prior, lr, scale, kind, **kw)
+
+    monkeypatch.setattr(bench_check, "deblock", recorded)
+    monkeypatch.setattr(bench_blend, "prior_self_check", recorded_check)
     prior = load_prior("bicubic", "cpu")
     clean, _ = bench_blend.score_crop(prior, colour, packed, [1], 4, [(0.0, 0.0)])
-    assert not seen
+    assert not seen and all(stored is None for _, stored in checked)
+    checked.clear()
     jpeg, _ = bench_blend.score_crop(prior, colour, packed, [1], 4, [(0.0, 0.0)], jpeg=50)
     # both LR crops as a quality-50 file holds them, deblocked with its tables
     want = standard_quant(50)
@@ -118,6 +126,10 @@ def test_jpeg_lr_crops_are_deblocked_as_the_presets_deblock_them(
     assert (seen[0][0] == low_res(colour, 4, 50)).all() and (
         seen[1][0] == low_res(packed, 4, 50)
     ).all()
+    # each check sees the deblocked map and is told the map as stored
+    assert len(checked) == 2
+    for (lr, stored), (pixels, quant) in zip(checked, seen, strict=True):
+        assert (stored == pixels).all() and (lr == deblock(pixels, quant)).all()
     assert clean[0]["gain"]["guided"] != jpeg[0]["gain"]["guided"]
     code, err = run_cli(
         ["bench", "blend", "-o", str(tmp_path), "--textures", str(folder), "--prior", "bicubic"]

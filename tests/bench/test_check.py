@@ -72,13 +72,20 @@ def test_cli_refuses_what_it_cannot_score(folder, tmp_path: Path, capfd):
 
 
 def test_jpeg_lr_crops_are_scored_as_a_jpeg_file_holds_them(folder, tmp_path: Path, capfd):
-    from pbrsr_bench.check import low_res
+    from pbrsr_bench.check import low_res, presets_low_res
+    from pbrsr_core.asset.jpeg import deblock, standard_quant
     from pbrsr_core.degrade import degrade_image
 
     hr = np.random.default_rng(0).random((64, 64, 3)).astype(np.float32)
     clean, jpeg = low_res(hr, 4), low_res(hr, 4, jpeg=60)
     assert (clean == degrade_image(hr, 4)).all() and jpeg.shape == clean.shape
     assert not (jpeg == clean).all() and (jpeg * 255 == (jpeg * 255).round()).all()
+    # checked as the presets check it: deblocked with the file's tables, the stored map beside
+    lr, stored = presets_low_res(hr, 4, jpeg=60)
+    assert (stored == jpeg).all() and (lr == deblock(jpeg, standard_quant(60))).all()
+    assert presets_low_res(hr, 4)[1] is None and (presets_low_res(hr, 4)[0] == clean).all()
+    raw, none = presets_low_res(hr, 4, jpeg=60, deblock_jpeg=False)
+    assert none is None and (raw == jpeg).all()
     code, err = run_cli(
         ["bench", "check", "-o", str(tmp_path), "--textures", str(folder), "--prior", "bicubic"]
         + ["--scale", "2", "--sizes", "128", "--jpeg", "60"],
@@ -86,7 +93,15 @@ def test_jpeg_lr_crops_are_scored_as_a_jpeg_file_holds_them(folder, tmp_path: Pa
     )
     assert code == 0, err
     saved = json.loads((tmp_path / "check.json").read_text())
-    assert saved["jpeg"] == 60 and "JPEG quality 60" in markdown_table(saved)
+    assert saved["jpeg"] == 60 and "JPEG quality 60, deblocked" in markdown_table(saved)
+    code, err = run_cli(
+        ["bench", "check", "-o", str(tmp_path), "--textures", str(folder), "--prior", "bicubic"]
+        + ["--scale", "2", "--sizes", "128", "--jpeg", "60", "--no-deblock"],
+        capfd,
+    )
+    assert code == 0, err
+    raw = json.loads((tmp_path / "check.json").read_text())
+    assert not raw["deblock"] and "JPEG quality 60, not deblocked" in markdown_table(raw)
     code, err = run_cli(
         ["bench", "check", "-o", str(tmp_path), "--textures", str(folder), "--jpeg", "0"], capfd
     )
