@@ -84,7 +84,7 @@ def score_crop(
     packed: np.ndarray,
     present: list[int],
     scale: int,
-    rules: list[tuple[float, float]],
+    rules: list[tuple[float, float, float | None]],
     max_prior_scale: int | None = None,
     jpeg: int | None = None,
 ) -> tuple[list[dict], dict[str, int]]:
@@ -148,10 +148,11 @@ def score_crop(
         r["oracle"] = max(0.0, *r["gain"].values())
     networks = {}
     names = list(kept["ups"]) + (["guided"] if gc else [])
-    for margin, network_db in rules:
-        key = rule_name(margin, network_db)
+    picks = {c: (check["priors"][c], check["margins"][c]) for c in todo if check["channels"][c]}
+    for margin, network_db, pick_db in rules:
+        key = rule_name(margin, network_db, pick_db)
         fits = blend_check(kept, todo, guided_small, network_db=network_db, margin=margin)
-        used, weights, use = blend_plan(fits, names, packed.shape[2], margin)
+        used, weights, use = blend_plan(fits, names, packed.shape[2], margin, picks, pick_db)
         networks[key] = sum(n != "guided" for n in used)
         for r, c in zip(rows, todo, strict=True):
             r["fit_db"][key] = fits[c][2]
@@ -165,8 +166,9 @@ def score_crop(
     return rows, networks
 
 
-def rule_name(margin: float, network_db: float) -> str:
-    return f"margin {margin:g}, networks {network_db:g}"
+def rule_name(margin: float, network_db: float, pick_db: float | None = None) -> str:
+    pick = "" if pick_db is None else f", over the pick {pick_db:g}"
+    return f"margin {margin:g}, networks {network_db:g}{pick}"
 
 
 def summarise(result: dict) -> list[dict]:
@@ -198,23 +200,28 @@ def run(
     size: int = 512,
     margins: tuple[float, ...] = (0.0, 0.1),
     network_dbs: tuple[float, ...] = (0.0, 0.1),
+    pick_dbs: tuple[float | None, ...] = (None, 0.05),
     max_prior_scale: int | None = None,
     jpeg: int | None = None,
 ) -> dict:
-    """Score the blend of ``prior``'s data upscales at ``scale`` for every pair of
-    ``margins`` and ``network_dbs`` on packed crops of ``size`` HR pixels of the held-out
-    materials, the LR crops stored as JPEG of quality ``jpeg`` when given."""
+    """Score the blend of ``prior``'s data upscales at ``scale`` for every rule of
+    ``margins``, ``network_dbs`` and ``pick_dbs`` (None: no pick rule) on packed crops of
+    ``size`` HR pixels of the held-out materials, the LR crops stored as JPEG of quality
+    ``jpeg`` when given."""
     if scale not in (2, 4, 8):
         raise ValueError(f"scale must be 2, 4 or 8, not {scale}")
     if size < 16 * scale:
         raise ValueError(f"the crop size must be at least {16 * scale} px at x{scale}")
-    if any(v < 0 for v in (*margins, *network_dbs)) or not margins or not network_dbs:
-        raise ValueError("margins and network dBs must be given and not negative")
+    picked = [v for v in pick_dbs if v is not None]
+    if any(v < 0 for v in (*margins, *network_dbs, *picked)) or not (
+        margins and network_dbs and pick_dbs
+    ):
+        raise ValueError("margins, network dBs and pick dBs must be given and not negative")
     root = texture_folder(textures)
     manifest = read_manifest(root)
     held = split_materials(manifest)[1]
     p = load_prior(prior)
-    rules = list(product(margins, network_dbs))
+    rules = list(product(margins, network_dbs, pick_dbs))
     rows: list[dict] = []
     crops: list[dict] = []
     for mat in load_materials(root, held, manifest):
@@ -240,7 +247,7 @@ def run(
         "max_prior_scale": max_prior_scale,
         "jpeg": jpeg,
         "materials": held,
-        "rules": [rule_name(m, n) for m, n in rules],
+        "rules": [rule_name(*r) for r in rules],
         "rule_values": rules,
         "rows": rows,
         "crops": crops,
@@ -278,10 +285,11 @@ def plot(result: dict, path: Path) -> None:
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     rules = dict(zip(result["rules"], result["rule_values"], strict=True))
     by_rule = {s["rule"]: s for s in result["summary"]}
-    for margin in dict.fromkeys(m for m, _ in rules.values()):
+    for margin, pick in dict.fromkeys((m, p) for m, _, p in rules.values()):
         pts = sorted((by_rule[k]["networks"], by_rule[k]["mean"], n)
-                     for k, (m, n) in rules.items() if m == margin)  # fmt: skip
-        ax.plot([x for x, _, _ in pts], [y for _, y, _ in pts], "o-", label=f"margin {margin:g} dB")
+                     for k, (m, n, p) in rules.items() if (m, p) == (margin, pick))  # fmt: skip
+        label = f"margin {margin:g} dB" + ("" if pick is None else f", over the pick {pick:g}")
+        ax.plot([x for x, _, _ in pts], [y for _, y, _ in pts], "o-", label=label)
         for x, y, n in pts:
             ax.annotate(f"{n:g}", (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
     d = by_rule["direct"]

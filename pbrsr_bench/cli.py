@@ -144,6 +144,11 @@ def blend_cmd(
     network_db: str = typer.Option(
         "0,0.1", help="dB a network must add to a map's blends to run, comma-separated."
     ),
+    pick_db: str = typer.Option(
+        "off,0.05",
+        help="dB a channel's blend must beat the check's pick by one scale down to replace "
+        "it (off: weighed against bicubic only), comma-separated.",
+    ),
     max_prior_scale: int | None = typer.Option(
         None, help="Largest factor the prior runs at (fast: 2; default: the prior's own)."
     ),
@@ -161,8 +166,11 @@ def blend_cmd(
 
     try:
         margin_values, network_values = _floats(margins), _floats(network_db)
+        pick_values = tuple(
+            None if v.strip() == "off" else float(v) for v in pick_db.split(",") if v.strip()
+        )
     except ValueError:
-        _bad_input(ValueError("--margins and --network-db take comma-separated numbers"))
+        _bad_input(ValueError("--margins, --network-db and --pick-db take comma-separated numbers"))
     _report(
         run,
         lambda result: typer.echo(markdown_table(result)),
@@ -174,6 +182,7 @@ def blend_cmd(
         size=size,
         margins=margin_values,
         network_dbs=network_values,
+        pick_dbs=pick_values,
         max_prior_scale=max_prior_scale,
         jpeg=jpeg,
     )

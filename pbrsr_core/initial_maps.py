@@ -127,9 +127,10 @@ def blended_channels(asset, images, prior, channels, checks, sources, kept, lr_p
     metallic of a metallic-roughness map, the upscale guided by its colour map
     (prior/blend.py, prior/guided.py), weighted one scale down from the upscales its check
     compared (``kept``); a channel whose blend beats bicubic by less than ``blend_margin`` stays
-    bicubic's. Updates ``channels``, ``sources`` (None: blended or bicubic) and the ``checks``
-    entries (``blend``); returns {image: (the blend's sources, a candidate or "guided"; per
-    channel their weights; the guide image or None)}."""
+    bicubic's, and one whose check's pick beats bicubic keeps the pick unless its blend beats
+    the pick by ``blend_pick_db``. Updates ``channels``, ``sources`` (None: blended or
+    bicubic) and the ``checks`` entries (``blend``); returns {image: (the blend's sources, a
+    candidate or "guided"; per channel their weights; the guide image or None)}."""
     if not config.blend_data or checks is None or not kept:
         return {}
     by_index = {img.index: img for img in images}
@@ -161,9 +162,12 @@ def blended_channels(asset, images, prior, channels, checks, sources, kept, lr_p
             fits = blend_check(k, todo, guided, network_db=config.blend_network_db,
                                margin=config.blend_margin)  # fmt: skip
             names = list(k["ups"]) + (["guided"] if guided else [])
-            names, weights, use = blend_plan(fits, names, n, config.blend_margin)
-            guide = g if "guided" in names else None
             entry = entries[i]
+            picks = {c: (entry["priors"][c], entry["margins"][c])
+                     for c in todo if entry["channels"][c]}  # fmt: skip
+            names, weights, use = blend_plan(fits, names, n, config.blend_margin, picks,
+                                             config.blend_pick_db)  # fmt: skip
+            guide = g if "guided" in names else None
             entry["blend"] = {  # the upscales the run blends (each network runs once)
                 "sources": names,
                 "guide": by_index[g].name if guide is not None and g is not None else None,

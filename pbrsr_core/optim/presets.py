@@ -84,6 +84,10 @@ class PbrsrConfig:
     """With ``blend_data``: dB (one scale down, summed over a map's blended channels) a
     candidate network must add to the blends to run on the map at all: the work follows what
     the map gains from it (prior/blend.py)."""
+    blend_pick_db: float | None = 0.05
+    """With ``blend_data``: dB (one scale down) by which a data channel's blend must beat the
+    self-check's pick, where that pick beats bicubic, to replace it; otherwise the channel
+    takes the pick (prior/blend.py). None: the blend is weighed against bicubic only."""
     deblock_jpeg: bool = False
     """LR maps stored as JPEG have their block artefacts reduced with the file's own
     quantisation tables (every component of 4:4:4 files, the luma of chroma-subsampled ones)
@@ -165,6 +169,10 @@ class PbrsrConfig:
             (
                 self.blend_margin >= 0 and self.blend_network_db >= 0,
                 "blend_margin and blend_network_db must be >= 0",
+            ),
+            (
+                self.blend_pick_db is None or self.blend_pick_db >= 0,
+                "blend_pick_db must be None or >= 0",
             ),
         ]
         for ok, msg in checks:

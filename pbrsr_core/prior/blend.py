@@ -122,16 +122,27 @@ def blend_plan(
     names: list[str],
     n: int,
     margin: float,
+    picks: dict[int, tuple[str, float]] | None = None,
+    pick_db: float | None = None,
 ) -> tuple[list[str], list[list[float]], list[bool]]:
     """What a run blends from :func:`blend_check`'s ``fits`` for a map of ``n`` channels
     whose upscales are ``names`` (every candidate, then ``"guided"`` where offered): the
     sources some channel weighs, per channel their weights (all 0: bicubic's), and per
     channel whether it is blended (its blend beats bicubic by more than ``margin`` one
-    scale down)."""
+    scale down). ``picks``: per channel whose self-check pick beats bicubic, (the pick's
+    name, its dB over bicubic one scale down); with ``pick_db`` such a channel takes its
+    pick alone (weight 1) unless its blend beats the pick by more than ``pick_db``: the
+    blend's few weights, fitted on the scale they are scored at, flatter it by about that
+    much against one upscale that is not fitted."""
     weights = [[0.0] * len(names) for _ in range(n)]
     use = [False] * n
+    picks = picks or {}
     for c, (fit_names, w, gain) in fits.items():
-        if gain > margin:
+        pick = picks.get(c)
+        if pick_db is not None and pick is not None and gain <= pick[1] + pick_db:
+            use[c] = True
+            weights[c][names.index(pick[0])] = 1.0
+        elif gain > margin:
             use[c] = True
             for name, wk in zip(fit_names, w, strict=True):
                 weights[c][names.index(name)] = wk

@@ -38,9 +38,9 @@ def test_a_material_is_packed_as_an_exporter_writes_it():
 def test_each_rule_is_scored_against_the_real_scale(folder, tmp_path: Path):
     said: list[str] = []
     result = run(said.append, tmp_path / "out", folder, "waifu2x-photo", 4, 128,
-                 margins=(0.0, 0.5), network_dbs=(0.0, 1e3))  # fmt: skip
+                 margins=(0.0, 0.5), network_dbs=(0.0, 1e3), pick_dbs=(None, 0.05))  # fmt: skip
     rows, rules = result["rows"], result["rules"]
-    assert said and rows and len(rules) == 4
+    assert said and rows and len(rules) == 8
     # the procedural metallic is a step (checked, not flat); roughness follows the colour
     assert {r["channel"] for r in rows} <= set(PACKED[1:]) and "roughness" in {
         r["channel"] for r in rows
@@ -50,8 +50,14 @@ def test_each_rule_is_scored_against_the_real_scale(folder, tmp_path: Path):
         assert all(math.isfinite(v) for v in (*r["gain"].values(), *r["rules"].values()))
         assert r["oracle"] == max(0.0, *r["gain"].values())
         assert r["direct"] == (r["gain"]["waifu2x-photo"] if r["margin_db"] > 0 else 0.0)
-        for key in rules:  # a channel is blended exactly where its fit beats the margin
+        for key in rules:
             margin = float(key.split(",")[0].split()[1])
+            if "over the pick" in key and r["margin_db"] > 0:
+                # the check's pick beats bicubic: it stays unless the blend beats it by 0.05
+                if r["fit_db"][key] <= r["margin_db"] + 0.05:
+                    assert r["rules"][key] == pytest.approx(r["direct"], abs=1e-6)
+                continue
+            # otherwise a channel is blended exactly where its fit beats the margin
             assert (r["rules"][key] != 0.0) <= (r["fit_db"][key] > margin)
             if r["fit_db"][key] <= margin:
                 assert r["rules"][key] == 0.0
@@ -69,6 +75,13 @@ def test_each_rule_is_scored_against_the_real_scale(folder, tmp_path: Path):
     assert saved["summary"] == result["summary"]
     assert (tmp_path / "out" / "blend.png").stat().st_size > 0
     assert "| margin 0.5, networks 0 | " in markdown_table(result)
+    assert "| margin 0.5, networks 0, over the pick 0.05 | " in markdown_table(result)
+    kept = [
+        r
+        for r in rows
+        if r["margin_db"] > 0 and r["fit_db"]["margin 0, networks 0"] <= r["margin_db"] + 0.05
+    ]
+    assert kept  # the rule is exercised: some pick stays
 
 
 def test_cli_refuses_what_it_cannot_score(folder, tmp_path: Path, capfd):
@@ -83,6 +96,10 @@ def test_cli_refuses_what_it_cannot_score(folder, tmp_path: Path, capfd):
     assert code == 2 and "comma-separated numbers" in err
     code, err = run_cli(base + ["--network-db", "-1"], capfd)
     assert code == 2 and "not negative" in err
+    code, err = run_cli(base + ["--pick-db", "-1"], capfd)
+    assert code == 2 and "not negative" in err
+    code, err = run_cli(base + ["--pick-db", "of"], capfd)
+    assert code == 2 and "comma-separated numbers" in err
     code, err = run_cli(base + ["--size", "512"], capfd)
     assert code == 2 and "no held-out material" in err
 
@@ -114,10 +131,10 @@ def test_jpeg_lr_crops_are_deblocked_as_the_presets_deblock_them(
     monkeypatch.setattr(bench_check, "deblock", recorded)
     monkeypatch.setattr(bench_blend, "prior_self_check", recorded_check)
     prior = load_prior("bicubic", "cpu")
-    clean, _ = bench_blend.score_crop(prior, colour, packed, [1], 4, [(0.0, 0.0)])
+    clean, _ = bench_blend.score_crop(prior, colour, packed, [1], 4, [(0.0, 0.0, None)])
     assert not seen and all(stored is None for _, stored in checked)
     checked.clear()
-    jpeg, _ = bench_blend.score_crop(prior, colour, packed, [1], 4, [(0.0, 0.0)], jpeg=50)
+    jpeg, _ = bench_blend.score_crop(prior, colour, packed, [1], 4, [(0.0, 0.0, None)], jpeg=50)
     # both LR crops as a quality-50 file holds them, deblocked with its tables
     want = standard_quant(50)
     assert len(seen) == 2 and all(
@@ -133,7 +150,18 @@ def test_jpeg_lr_crops_are_deblocked_as_the_presets_deblock_them(
     assert clean[0]["gain"]["guided"] != jpeg[0]["gain"]["guided"]
     code, err = run_cli(
         ["bench", "blend", "-o", str(tmp_path), "--textures", str(folder), "--prior", "bicubic"]
-        + ["--scale", "2", "--size", "128", "--jpeg", "60", "--network-db", "0.1"],
+        + [
+            "--scale",
+            "2",
+            "--size",
+            "128",
+            "--jpeg",
+            "60",
+            "--network-db",
+            "0.1",
+            "--pick-db",
+            "off",
+        ],
         capfd,
     )
     assert code == 0, err

@@ -105,6 +105,9 @@ def test_presets_paper_numbers_exact():
         p.with_(iterations=-1)
     with pytest.raises(InvalidOptions, match="blend_margin and blend_network_db"):
         p.with_(blend_network_db=-0.1)
+    with pytest.raises(InvalidOptions, match="blend_pick_db"):
+        p.with_(blend_pick_db=-0.1)
+    assert p.with_(blend_pick_db=None).blend_pick_db is None
 
 
 def test_pseudo_gt_cache_roundtrip(tmp_path):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from pbrsr_core.metrics import psnr
-from pbrsr_core.prior.blend import MIN_WEIGHT, blend, blend_check, blend_weights
+from pbrsr_core.prior.blend import MIN_WEIGHT, blend, blend_check, blend_plan, blend_weights
 
 
 def _images(seed: int, n: int, shape=(48, 48)) -> list[np.ndarray]:
@@ -97,3 +97,26 @@ def test_a_network_that_adds_little_is_not_run():
     assert blend_check(kept, [0], network_db=1e3, margin=0.0)[0] == ([], [], 0.0)
     # a blend counts towards a network's worth only where it passes the margin
     assert blend_check(kept, [0], network_db=0.1, margin=1e3)[0] == ([], [], 0.0)
+
+
+def test_a_channel_keeps_its_pick_unless_the_blend_beats_it():
+    names = ["a", "b", "guided"]
+    fits = {  # per channel: (sources, weights, the blend's dB over bicubic one scale down)
+        0: (["a", "guided"], [0.4, 0.5], 1.04),  # the pick "a" +1.00: within 0.05 dB of it
+        1: (["a", "guided"], [0.2, 0.7], 1.30),  # beats the pick "b" (+1.00) by 0.30
+        2: (["guided"], [0.9], 0.50),  # its check's pick lost to bicubic: the blend's margin
+        3: (["guided"], [0.9], 0.05),
+    }
+    picks = {0: ("a", 1.0), 1: ("b", 1.0)}
+    used, weights, use = blend_plan(fits, names, 4, 0.1, picks, 0.05)
+    assert used == ["a", "guided"] and use == [True, True, True, False]
+    assert weights == [[1.0, 0.0], [0.2, 0.7], [0.0, 0.9], [0.0, 0.0]]
+    # without the pick rule (or without picks) every channel is weighed against bicubic only
+    plain = blend_plan(fits, names, 4, 0.1)
+    assert plain == blend_plan(fits, names, 4, 0.1, picks, None)
+    assert plain[1] == [[0.4, 0.5], [0.2, 0.7], [0.0, 0.9], [0.0, 0.0]]
+    # a pick the network rule left out of every blend still runs where a channel keeps it
+    used, weights, _ = blend_plan(
+        {0: (["guided"], [0.9], 0.2)}, names, 1, 0.1, {0: ("b", 0.6)}, 0.05
+    )
+    assert used == ["b"] and weights == [[1.0]]

@@ -216,3 +216,67 @@ def test_balanced_blends_roughness_and_metallic_with_the_guided_upscale(tmp_path
     orm, report = run("unchecked")
     assert all("blend" not in c for c in report["prior_check"])
     assert np.abs(orm[..., 1:3] - bic[..., 1:3]).max() > 0.05  # the prior's blur, unchecked
+
+
+class KnowsRoughly(KnowsTheColourMap):
+    """KnowsTheColourMap, and on each channel of one data map (run as a grey image) its
+    upscale from one scale down and to the HR map, each with a fixed noise of 0.03 RMS: it
+    beats bicubic on sharp blocks, and loses to a guide that follows them exactly."""
+
+    def __init__(self, lr: np.ndarray, hr: np.ndarray, lr_data: np.ndarray, hr_data: np.ndarray):
+        super().__init__(lr, hr)
+        rng = np.random.default_rng(9)
+
+        def grey(a: np.ndarray) -> torch.Tensor:
+            return torch.from_numpy(np.ascontiguousarray(np.repeat(a[..., None], 3, -1))).permute(
+                2, 0, 1
+            )
+
+        def noisy(a: np.ndarray) -> np.ndarray:
+            return np.clip(a + rng.normal(0, 0.03, a.shape), 0, 1).astype(np.float32)
+
+        small = degrade_image(lr_data, 4)
+        for c in range(lr_data.shape[-1]):
+            self.pairs.append((grey(small[..., c]), grey(noisy(lr_data[..., c]))))
+            self.pairs.append((grey(lr_data[..., c]), grey(noisy(hr_data[..., c]))))
+
+
+def test_a_channel_keeps_the_checks_pick_unless_its_blend_beats_it(tmp_path, monkeypatch):
+    import pbrsr_core.pipeline as pipeline
+
+    hr_colour = _blocks(128, 8, seed=7)
+    hr_data = np.concatenate([_blocks(128, 8, seed=8)[..., :1], _follows(hr_colour)], -1)
+    path = make_quad_asset(
+        tmp_path / "q.gltf",
+        {
+            "metallic_roughness": degrade_image(hr_data, 4),
+            "base_color": degrade_image(hr_colour, 4),
+        },
+    )
+    lr = load_asset(path)
+    mat = lr.materials[0]
+    assert mat.base_color is not None and mat.metallic_roughness is not None
+    stored_orm = lr.images[mat.metallic_roughness.image].pixels
+    prior = KnowsRoughly(lr.images[mat.base_color.image].pixels, hr_colour, stored_orm, hr_data)
+    monkeypatch.setattr(pipeline, "load_prior", lambda n, d: prior)
+    monkeypatch.setattr(selfcheck, "MIN_SIDE", 8)
+
+    def run(name: str, pick_db: float | None) -> dict:
+        preset = presets.BALANCED.with_(project_lr=(), iterations=0, blend_pick_db=pick_db)
+        monkeypatch.setitem(presets.PRESETS, "balanced", preset)
+        report = upscale_asset(path, tmp_path / name, UpscaleOptions(preset="balanced"))
+        (entry,) = [c for c in report["prior_check"] if c["index"] == mat.metallic_roughness.image]
+        return entry
+
+    # the prior's noisy upscale beats bicubic one scale down on roughness and metallic (the
+    # red channel is no map's): the check's pick
+    entry = run("picks", 1e3)
+    assert entry["priors"][1:] == ["knows"] * 2 and min(entry["margins"][1:]) > 5.0
+    blended = entry["blend"]  # no blend beats the pick by 1000 dB: each channel takes the pick
+    assert blended["sources"] == ["knows"] and blended["weights"] == [[0.0], [1.0], [1.0]]
+    assert entry["channels"] == [False, True, True]
+    # the guided upscale follows roughness and metallic exactly: their blends beat the pick
+    for pick_db in (0.05, None):
+        blended = run(f"blend-{pick_db}", pick_db)["blend"]
+        k = blended["sources"].index("guided")
+        assert [w[k] > 0.5 for w in blended["weights"]] == [False, True, True], blended
