@@ -84,7 +84,7 @@ class PbrsrConfig:
     """With ``blend_data``: dB (one scale down, summed over a map's blended channels) a
     candidate network must add to the blends to run on the map at all: the work follows what
     the map gains from it (prior/blend.py)."""
-    blend_pick_db: float | None = 0.05
+    blend_pick_db: float | None = 0.0
     """With ``blend_data``: dB (one scale down) by which a data channel's blend must beat the
     self-check's pick, where that pick beats bicubic, to replace it; otherwise the channel
     takes the pick (prior/blend.py). None: the blend is weighed against bicubic only."""
@@ -276,12 +276,13 @@ CHECK_PRIOR_CPU = ("colour", "data")
 #   x4, 40 evaluation views, mean render gain over bicubic without / with: balanced +1.96 /
 #   +2.08 dB, fast +1.79 / +1.89 (BoomBox +0.41, WaterBottle +0.28, ToyCar +0.16 with
 #   balanced; pbr-upconv7); run times the same or shorter (docs/BENCHMARKS.md, "Data
-#   channels blended"). blend_margin and blend_network_db 0.1 dB (`pbrsr bench blend`,
-#   held-out materials' packed maps, x4, pbr-srmd: +0.896 dB over bicubic, 0.62 networks per
-#   map; margin 0 +0.958, a fabric's roughness; every network +0.904 with 0.92). With
-#   pbr-srmd the margin decides no map of the shared assets (the wooden table's metallic, the
-#   one it changed, is flat by the check's JPEG floor); kept until measured with pbr-upconv7
-#   (docs/METHOD.md, "Data channels blended").
+#   channels blended"). blend_margin and blend_network_db 0.1 dB, blend_pick_db 0 (`pbrsr
+#   bench blend`, held-out materials' packed maps, pbr-srmd; gain over bicubic and networks
+#   per map): x4 +0.995 dB with 0.85 networks (the blend against bicubic only +0.896 with 0.62,
+#   the pick alone +0.987 with 1.15; blend_pick_db 0.05 +1.002 with 0.92), JPEG 95 +0.323,
+#   JPEG 85 +0.139 (pick alone +0.293, +0.119), fast's x2 prior +0.928 (+0.915), x2 +1.865
+#   (+1.862). With the pick rule the margin decides no held-out channel, and on the shared
+#   assets none with pbr-srmd or pbr-upconv7 (docs/METHOD.md, "Data channels blended").
 # * fast: PBR-SR's init and export with no optimisation steps, the prior at x2 of the scale
 #   (max_prior_scale 2; bicubic the rest, then the back-projection step). waifu2x-photo's x2
 #   pass on a 512² map costs 2.1 s against 13.0 s for its x4 (two passes), and on the shared
