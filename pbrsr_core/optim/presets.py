@@ -77,14 +77,14 @@ class PbrsrConfig:
     colour map (prior/guided.py), weighted by a least-squares fit one scale down
     (prior/blend.py); only when the check covers data maps (``check_prior``). Off: each
     channel takes the check's pick. The paper upscales each map on its own."""
-    blend_margin: float = 0.1
+    blend_margin: float = 0.0
     """With ``blend_data``: dB (one scale down) by which a data channel's blend must beat
     bicubic to be used; otherwise the channel keeps bicubic's upscale (prior/blend.py)."""
     blend_network_db: float = 0.1
     """With ``blend_data``: dB (one scale down, summed over a map's blended channels) a
     candidate network must add to the blends to run on the map at all: the work follows what
     the map gains from it (prior/blend.py)."""
-    blend_pick_db: float | None = 0.0
+    blend_pick_db: float | None = None
     """With ``blend_data``: dB (one scale down) by which a data channel's blend must beat the
     self-check's pick, where that pick beats bicubic, to replace it; otherwise the channel
     takes the pick (prior/blend.py). None: the blend is weighed against bicubic only."""
@@ -276,13 +276,16 @@ CHECK_PRIOR_CPU = ("colour", "data")
 #   x4, 40 evaluation views, mean render gain over bicubic without / with: balanced +1.96 /
 #   +2.08 dB, fast +1.79 / +1.89 (BoomBox +0.41, WaterBottle +0.28, ToyCar +0.16 with
 #   balanced; pbr-upconv7); run times the same or shorter (docs/BENCHMARKS.md, "Data
-#   channels blended"). blend_margin and blend_network_db 0.1 dB, blend_pick_db 0 (`pbrsr
-#   bench blend`, held-out materials' packed maps, pbr-srmd; gain over bicubic and networks
-#   per map): x4 +0.995 dB with 0.85 networks (the blend against bicubic only +0.896 with 0.62,
-#   the pick alone +0.987 with 1.15; blend_pick_db 0.05 +1.002 with 0.92), JPEG 95 +0.323,
-#   JPEG 85 +0.139 (pick alone +0.293, +0.119), fast's x2 prior +0.928 (+0.915), x2 +1.865
-#   (+1.862). With the pick rule the margin decides no held-out channel, and on the shared
-#   assets none with pbr-srmd or pbr-upconv7 (docs/METHOD.md, "Data channels blended").
+#   channels blended"). blend_network_db 0.1 dB, blend_margin 0, blend_pick_db None (`pbrsr
+#   bench blend`, held-out materials' packed maps, x4, pbr-srmd; gain over bicubic, networks
+#   per map): +0.958 dB with 0.62 networks (margin 0.1 +0.896: one fabric's roughness kept
+#   bicubic's; every network +1.003 with 1.08; the pick alone +0.987 with 1.15), JPEG 95
+#   +0.274, JPEG 85 +0.105 (margin 0.1: +0.226, +0.094). The margin decides no map of the
+#   shared assets with pbr-srmd or pbr-upconv7. blend_pick_db 0 (the pick kept unless the
+#   blend fits better) gains +0.995 / +0.323 / +0.139 there, nearly all of it the same fabric,
+#   and costs the BoomBox's render 0.22 dB (fast) and 0.48 (balanced) on the shared assets,
+#   its roughness (fast, -1.28 dB) or metallic (balanced, -1.16 dB) given to the check's pick
+#   where the blend was closer at the real scale (docs/METHOD.md, "Data channels blended").
 # * fast: PBR-SR's init and export with no optimisation steps, the prior at x2 of the scale
 #   (max_prior_scale 2; bicubic the rest, then the back-projection step). waifu2x-photo's x2
 #   pass on a 512² map costs 2.1 s against 13.0 s for its x4 (two passes), and on the shared
