@@ -200,7 +200,7 @@ def run(
     size: int = 512,
     margins: tuple[float, ...] = (0.0, 0.1),
     network_dbs: tuple[float, ...] = (0.0, 0.1),
-    pick_dbs: tuple[float | None, ...] = (None, 0.05),
+    pick_dbs: tuple[float | None, ...] = (None,),
     max_prior_scale: int | None = None,
     jpeg: int | None = None,
 ) -> dict:

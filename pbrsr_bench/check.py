@@ -16,7 +16,7 @@ scale. With ``jpeg`` the LR crops are stored as JPEG files of that quality would
 (4:4:4, as ``pbrsr degrade`` writes JPEG maps), as real assets ship their maps, and checked
 and upscaled as the presets do: deblocked with those tables, the check told the map as
 stored (its flat floor counts the noise the deblocking took out); the gains are then over
-bicubic of the deblocked crop, the presets' own bicubic (``deblock=False``: the file's
+bicubic of the deblocked crop, the presets' own bicubic (``deblock_jpeg=False``: the file's
 pixels as they are, as with ``deblock_jpeg`` off).
 """
 

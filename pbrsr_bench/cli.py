@@ -145,9 +145,9 @@ def blend_cmd(
         "0,0.1", help="dB a network must add to a map's blends to run, comma-separated."
     ),
     pick_db: str = typer.Option(
-        "off,0.05",
+        "off",
         help="dB a channel's blend must beat the check's pick by one scale down to replace "
-        "it (off: weighed against bicubic only), comma-separated.",
+        "it (off: weighed against bicubic only, as the presets), comma-separated.",
     ),
     max_prior_scale: int | None = typer.Option(
         None, help="Largest factor the prior runs at (fast: 2; default: the prior's own)."
