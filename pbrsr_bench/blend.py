@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from pbrsr_core.prior import load_prior
-from pbrsr_core.prior.blend import blend, blend_check, blend_plan
+from pbrsr_core.prior.blend import blend, blend_check, blend_plan, check_picks
 from pbrsr_core.prior.direct import bicubic_map, upscale_map
 from pbrsr_core.prior.guided import CHANNELS as GUIDED_CHANNELS
 from pbrsr_core.prior.guided import guided_check_upscale, guided_upscale
@@ -42,7 +42,7 @@ from pbrsr_core.prior.train.data import (
     texture_folder,
 )
 
-from .check import _psnr, presets_low_res
+from .check import _jpeg_note, _psnr, presets_low_res
 from .results import pyplot, write_result
 
 PACKED = ("ao", "roughness", "metallic")
@@ -148,7 +148,7 @@ def score_crop(
         r["oracle"] = max(0.0, *r["gain"].values())
     networks = {}
     names = list(kept["ups"]) + (["guided"] if gc else [])
-    picks = {c: (check["priors"][c], check["margins"][c]) for c in todo if check["channels"][c]}
+    picks = check_picks(check, todo)
     for margin, network_db, pick_db in rules:
         key = rule_name(margin, network_db, pick_db)
         fits = blend_check(kept, todo, guided_small, network_db=network_db, margin=margin)
@@ -263,7 +263,7 @@ def markdown_table(result: dict) -> str:
     lines = [
         f"x{result['scale']}, prior {result['prior']}, {len(result['crops'])} packed crops of "
         f"{result['size']}² from the held-out materials"
-        + (f", LR stored as JPEG quality {result['jpeg']}, deblocked" if result.get("jpeg") else "")
+        + _jpeg_note(result)
         + "; mean PSNR gain over bicubic per "
         "channel at the real scale (dB); each upscale alone: "
         + ", ".join(f"{n} {v:+.3f}" for n, v in each.items())

@@ -14,7 +14,7 @@ import torch
 
 from .asset.model import MAP_ROLES
 from .maps import encoded_to_param, image_cutout, kind_of
-from .prior.blend import blend, blend_check, blend_plan
+from .prior.blend import blend, blend_check, blend_plan, check_picks
 from .prior.direct import bicubic_map, upscale_map
 from .prior.guided import CHANNELS as GUIDED_CHANNELS
 from .prior.guided import guide_pairs, guided_check_upscale, guided_upscale
@@ -163,8 +163,7 @@ def blended_channels(asset, images, prior, channels, checks, sources, kept, lr_p
                                margin=config.blend_margin)  # fmt: skip
             names = list(k["ups"]) + (["guided"] if guided else [])
             entry = entries[i]
-            picks = {c: (entry["priors"][c], entry["margins"][c])
-                     for c in todo if entry["channels"][c]}  # fmt: skip
+            picks = check_picks(entry, todo)
             names, weights, use = blend_plan(fits, names, n, config.blend_margin, picks,
                                              config.blend_pick_db)  # fmt: skip
             guide = g if "guided" in names else None

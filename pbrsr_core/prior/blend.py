@@ -119,6 +119,13 @@ def blend_check(
     return fits
 
 
+def check_picks(check: dict, channels: Sequence[int]) -> dict[int, tuple[str, float]]:
+    """The ``picks`` of :func:`blend_plan` from a data map's self-check report: per channel of
+    ``channels`` whose pick beats bicubic, (the pick's name, its dB over bicubic one scale
+    down)."""
+    return {c: (check["priors"][c], check["margins"][c]) for c in channels if check["channels"][c]}
+
+
 def blend_plan(
     fits: dict[int, tuple[list[str], list[float], float]],
     names: list[str],
