@@ -84,7 +84,7 @@ def score_crop(
     packed: np.ndarray,
     present: list[int],
     scale: int,
-    rules: list[tuple[float, float, float | None]],
+    rules: list[tuple[float, float, float | None, bool]],
     max_prior_scale: int | None = None,
     jpeg: int | None = None,
 ) -> tuple[list[dict], dict[str, int]]:
@@ -149,9 +149,10 @@ def score_crop(
     networks = {}
     names = list(kept["ups"]) + (["guided"] if gc else [])
     picks = check_picks(check, todo)
-    for margin, network_db, pick_db in rules:
-        key = rule_name(margin, network_db, pick_db)
-        fits = blend_check(kept, todo, guided_small, network_db=network_db, margin=margin)
+    for margin, network_db, pick_db, floor in rules:
+        key = rule_name(margin, network_db, pick_db, floor)
+        fits = blend_check(kept, todo, guided_small, network_db=network_db, margin=margin,
+                           picks=picks if floor else None)  # fmt: skip
         used, weights, use = blend_plan(fits, names, packed.shape[2], margin, picks, pick_db)
         networks[key] = sum(n != "guided" for n in used)
         for r, c in zip(rows, todo, strict=True):
@@ -166,9 +167,11 @@ def score_crop(
     return rows, networks
 
 
-def rule_name(margin: float, network_db: float, pick_db: float | None = None) -> str:
+def rule_name(
+    margin: float, network_db: float, pick_db: float | None = None, floor: bool = False
+) -> str:
     pick = "" if pick_db is None else f", over the pick {pick_db:g}"
-    return f"margin {margin:g}, networks {network_db:g}{pick}"
+    return f"margin {margin:g}, networks {network_db:g}{pick}" + (", pick floor" if floor else "")
 
 
 def summarise(result: dict) -> list[dict]:
@@ -201,11 +204,14 @@ def run(
     margins: tuple[float, ...] = (0.0, 0.1),
     network_dbs: tuple[float, ...] = (0.0, 0.1),
     pick_dbs: tuple[float | None, ...] = (None,),
+    pick_floors: tuple[bool, ...] = (False,),
     max_prior_scale: int | None = None,
     jpeg: int | None = None,
 ) -> dict:
     """Score the blend of ``prior``'s data upscales at ``scale`` for every rule of
-    ``margins``, ``network_dbs`` and ``pick_dbs`` (None: no pick rule) on packed crops of
+    ``margins``, ``network_dbs``, ``pick_dbs`` (None: no pick rule) and ``pick_floors``
+    (``blend_pick_floor``: networks kept where a channel needs them to reach its pick) on
+    packed crops of
     ``size`` HR pixels of the held-out materials, the LR crops stored as JPEG of quality
     ``jpeg`` when given."""
     if scale not in (2, 4, 8):
@@ -214,14 +220,14 @@ def run(
         raise ValueError(f"the crop size must be at least {16 * scale} px at x{scale}")
     picked = [v for v in pick_dbs if v is not None]
     if any(v < 0 for v in (*margins, *network_dbs, *picked)) or not (
-        margins and network_dbs and pick_dbs
+        margins and network_dbs and pick_dbs and pick_floors
     ):
         raise ValueError("margins, network dBs and pick dBs must be given and not negative")
     root = texture_folder(textures)
     manifest = read_manifest(root)
     held = split_materials(manifest)[1]
     p = load_prior(prior)
-    rules = list(product(margins, network_dbs, pick_dbs))
+    rules = list(product(margins, network_dbs, pick_dbs, pick_floors))
     rows: list[dict] = []
     crops: list[dict] = []
     for mat in load_materials(root, held, manifest):
@@ -285,10 +291,12 @@ def plot(result: dict, path: Path) -> None:
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     rules = dict(zip(result["rules"], result["rule_values"], strict=True))
     by_rule = {s["rule"]: s for s in result["summary"]}
-    for margin, pick in dict.fromkeys((m, p) for m, _, p in rules.values()):
+    for margin, pick, floor in dict.fromkeys((m, p, f) for m, _, p, f in rules.values()):
         pts = sorted((by_rule[k]["networks"], by_rule[k]["mean"], n)
-                     for k, (m, n, p) in rules.items() if (m, p) == (margin, pick))  # fmt: skip
-        label = f"margin {margin:g} dB" + ("" if pick is None else f", over the pick {pick:g}")
+                     for k, (m, n, p, f) in rules.items()
+                     if (m, p, f) == (margin, pick, floor))  # fmt: skip
+        label = (f"margin {margin:g} dB" + ("" if pick is None else f", over the pick {pick:g}")
+                 + (", pick floor" if floor else ""))  # fmt: skip
         ax.plot([x for x, _, _ in pts], [y for _, y, _ in pts], "o-", label=label)
         for x, y, n in pts:
             ax.annotate(f"{n:g}", (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")

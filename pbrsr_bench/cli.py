@@ -149,6 +149,11 @@ def blend_cmd(
         help="dB a channel's blend must beat the check's pick by one scale down to replace "
         "it (off: weighed against bicubic only, as the presets), comma-separated.",
     ),
+    pick_floor: str = typer.Option(
+        "off",
+        help="off, on or off,on: keep a network wherever leaving it out would put a "
+        "channel's blend below the check's pick one scale down (blend_pick_floor).",
+    ),
     max_prior_scale: int | None = typer.Option(
         None, help="Largest factor the prior runs at (fast: 2; default: the prior's own)."
     ),
@@ -169,8 +174,14 @@ def blend_cmd(
         pick_values = tuple(
             None if v.strip() == "off" else float(v) for v in pick_db.split(",") if v.strip()
         )
-    except ValueError:
-        _bad_input(ValueError("--margins, --network-db and --pick-db take comma-separated numbers"))
+        floors = tuple({"off": False, "on": True}[v.strip()] for v in pick_floor.split(","))
+    except (ValueError, KeyError):
+        _bad_input(
+            ValueError(
+                "--margins, --network-db and --pick-db take comma-separated numbers, "
+                "--pick-floor off, on or both"
+            )
+        )
     _report(
         run,
         lambda result: typer.echo(markdown_table(result)),
@@ -183,6 +194,7 @@ def blend_cmd(
         margins=margin_values,
         network_dbs=network_values,
         pick_dbs=pick_values,
+        pick_floors=floors,
         max_prior_scale=max_prior_scale,
         jpeg=jpeg,
     )

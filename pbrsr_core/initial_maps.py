@@ -159,11 +159,12 @@ def blended_channels(asset, images, prior, channels, checks, sources, kept, lr_p
                 size = lr_pixels[i].shape[:2]
                 up = guided_check_upscale(k, size, lr_pixels[g], upscale_guide, gc)
                 guided = {c: up[..., m] for m, c in enumerate(gc)}
-            fits = blend_check(k, todo, guided, network_db=config.blend_network_db,
-                               margin=config.blend_margin)  # fmt: skip
-            names = list(k["ups"]) + (["guided"] if guided else [])
             entry = entries[i]
             picks = check_picks(entry, todo)
+            fits = blend_check(k, todo, guided, network_db=config.blend_network_db,
+                               margin=config.blend_margin,
+                               picks=picks if config.blend_pick_floor else None)  # fmt: skip
+            names = list(k["ups"]) + (["guided"] if guided else [])
             names, weights, use = blend_plan(fits, names, n, config.blend_margin, picks,
                                              config.blend_pick_db)  # fmt: skip
             guide = g if "guided" in names else None

@@ -88,6 +88,10 @@ class PbrsrConfig:
     """With ``blend_data``: dB (one scale down) by which a data channel's blend must beat the
     self-check's pick, where that pick beats bicubic, to replace it; otherwise the channel
     takes the pick (prior/blend.py). None: the blend is weighed against bicubic only."""
+    blend_pick_floor: bool = False
+    """With ``blend_data``: a candidate network stays in a data map's blends wherever leaving
+    it out would put a channel's blend below the self-check's pick one scale down, whatever
+    ``blend_network_db`` says (prior/blend.py)."""
     deblock_jpeg: bool = False
     """LR maps stored as JPEG have their block artefacts reduced with the file's own
     quantisation tables (every component of 4:4:4 files, the luma of chroma-subsampled ones)

@@ -81,13 +81,17 @@ def blend_check(
     *,
     network_db: float,
     margin: float,
+    picks: dict[int, tuple[str, float]] | None = None,
 ) -> dict[int, tuple[list[str], list[float], float]]:
     """Per channel of ``channels`` of a data map: (the upscales' names, their weights, the
     blend's dB over bicubic), one scale down, from what its self-check compared (``kept``,
     :func:`~.selfcheck.prior_self_check`): each candidate's upscale, and ``guided[c]`` where
     given (named ``"guided"``). A candidate is left out of every channel while that costs the
     map's channels less than ``network_db`` in all (counting only channels that gain more
-    than ``margin``): its network then does not run on the map."""
+    than ``margin``): its network then does not run on the map. With ``picks`` (per channel,
+    the self-check's pick and its dB over bicubic one scale down, :func:`check_picks`) a
+    candidate stays wherever leaving it out would put a channel's blend below its pick (or
+    below the blend's own gain, where that is lower): the pick alone is a blend too."""
     db, ref, bic = kept["db"], kept["crop"], kept["bicubic"]
     guided = guided or {}
 
@@ -104,6 +108,13 @@ def blend_check(
     def worth(fits: dict) -> float:
         return sum(g for _, _, g in fits.values() if g > margin)
 
+    def keeps_picks(now: dict, then: dict) -> bool:
+        return all(
+            then[c][2] >= min(now[c][2], db_pick) - 1e-3
+            for c, (_, db_pick) in (picks or {}).items()
+            if c in now
+        )
+
     nets = list(kept["ups"])
     fits = fit(nets)
     while nets:
@@ -112,7 +123,10 @@ def blend_check(
             nets, fits = weighted, fit(weighted)
             continue
         dropped = {n: fit([m for m in nets if m != n]) for n in nets}
-        n = min(nets, key=lambda m: worth(fits) - worth(dropped[m]))
+        can = [n for n in nets if keeps_picks(fits, dropped[n])]
+        if not can:
+            break
+        n = min(can, key=lambda m: worth(fits) - worth(dropped[m]))
         if worth(fits) - worth(dropped[n]) >= network_db:
             break
         nets, fits = [m for m in nets if m != n], dropped[n]

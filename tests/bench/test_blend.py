@@ -84,6 +84,21 @@ def test_each_rule_is_scored_against_the_real_scale(folder, tmp_path: Path):
     assert kept  # the rule is exercised: some pick stays
 
 
+def test_the_pick_floor_holds_each_channel_at_its_pick(folder, tmp_path: Path):
+    result = run(lambda _: None, tmp_path / "out", folder, "waifu2x-photo", 4, 128,
+                 margins=(0.0,), network_dbs=(0.0, 1e3), pick_floors=(False, True))  # fmt: skip
+    every, rule, floor = ("margin 0, networks 0", "margin 0, networks 1000",
+                          "margin 0, networks 1000, pick floor")  # fmt: skip
+    assert result["rules"] == [every, f"{every}, pick floor", rule, floor]
+    for r in result["rows"]:
+        if r["margin_db"] > 0:  # the check's pick beats bicubic one scale down
+            assert r["fit_db"][floor] >= min(r["margin_db"], r["fit_db"][every]) - 1e-3
+        assert r["fit_db"][floor] >= r["fit_db"][rule] - 1e-3
+    nets = {k: sum(c["networks"][k] for c in result["crops"]) for k in (rule, floor)}
+    assert nets[rule] == 0 and nets[floor] > 0  # the floor runs the network somewhere
+    assert "| margin 0, networks 1000, pick floor | " in markdown_table(result)
+
+
 def test_cli_refuses_what_it_cannot_score(folder, tmp_path: Path, capfd):
     base = ["bench", "blend", "-o", str(tmp_path), "--textures", str(folder)]
     code, err = run_cli(["bench", "blend", "--textures", str(tmp_path / "none")], capfd)
@@ -100,6 +115,8 @@ def test_cli_refuses_what_it_cannot_score(folder, tmp_path: Path, capfd):
     assert code == 2 and "not negative" in err
     code, err = run_cli(base + ["--pick-db", "of"], capfd)
     assert code == 2 and "comma-separated numbers" in err
+    code, err = run_cli(base + ["--pick-floor", "yes"], capfd)
+    assert code == 2 and "--pick-floor off, on or both" in err
     code, err = run_cli(base + ["--size", "512"], capfd)
     assert code == 2 and "no held-out material" in err
 
@@ -131,10 +148,12 @@ def test_jpeg_lr_crops_are_deblocked_as_the_presets_deblock_them(
     monkeypatch.setattr(bench_check, "deblock", recorded)
     monkeypatch.setattr(bench_blend, "prior_self_check", recorded_check)
     prior = load_prior("bicubic", "cpu")
-    clean, _ = bench_blend.score_crop(prior, colour, packed, [1], 4, [(0.0, 0.0, None)])
+    clean, _ = bench_blend.score_crop(prior, colour, packed, [1], 4, [(0.0, 0.0, None, False)])
     assert not seen and all(stored is None for _, stored in checked)
     checked.clear()
-    jpeg, _ = bench_blend.score_crop(prior, colour, packed, [1], 4, [(0.0, 0.0, None)], jpeg=50)
+    jpeg, _ = bench_blend.score_crop(
+        prior, colour, packed, [1], 4, [(0.0, 0.0, None, False)], jpeg=50
+    )
     # both LR crops as a quality-50 file holds them, deblocked with its tables
     want = standard_quant(50)
     assert len(seen) == 2 and all(

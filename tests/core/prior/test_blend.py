@@ -99,6 +99,30 @@ def test_a_network_that_adds_little_is_not_run():
     assert blend_check(kept, [0], network_db=0.1, margin=1e3)[0] == ([], [], 0.0)
 
 
+def test_a_network_stays_where_the_blend_would_fall_below_its_pick():
+    u1, u2, bic = _images(11, 3)
+    g = np.random.default_rng(12)
+    ref = 0.7 * u1 + 0.3 * bic + g.normal(0, 0.05, u1.shape)
+    guide = 0.5 * ref + 0.5 * u2  # the guided fit follows the reference less closely
+    mask = np.ones(u1.shape, bool)
+
+    def db(up, r):
+        return psnr(up[mask], r[mask])
+
+    kept = {"db": db, "crop": ref[..., None], "bicubic": bic[..., None], "mask": mask,
+            "ups": {"a": u1[..., None]}}  # fmt: skip
+    pick = db(u1, ref) - db(bic, ref)
+    alone = blend_check(kept, [0], {0: guide}, network_db=1e3, margin=0.0)[0]
+    assert alone[0] == ["guided"] and alone[2] < pick  # the rule alone drops the network
+    kept_a = blend_check(kept, [0], {0: guide}, network_db=1e3, margin=0.0,
+                         picks={0: ("a", pick)})[0]  # fmt: skip
+    assert kept_a[0] == ["a", "guided"] and kept_a[1][0] > 0.5 and kept_a[2] >= pick - 1e-3
+    # a pick the guided fit alone reaches does not hold the network
+    low = blend_check(kept, [0], {0: guide}, network_db=1e3, margin=0.0,
+                      picks={0: ("a", alone[2] - 0.01)})[0]  # fmt: skip
+    assert low == alone
+
+
 def test_a_channel_keeps_its_pick_unless_the_blend_beats_it():
     names = ["a", "b", "guided"]
     fits = {  # per channel: (sources, weights, the blend's dB over bicubic one scale down)

@@ -241,11 +241,11 @@ class KnowsRoughly(KnowsTheColourMap):
             self.pairs.append((grey(lr_data[..., c]), grey(noisy(hr_data[..., c]))))
 
 
-def test_a_channel_keeps_the_checks_pick_unless_its_blend_beats_it(tmp_path, monkeypatch):
+def _roughly_known_quad(tmp_path, monkeypatch, hr_colour, hr_data):
+    """A quad of the two maps degraded x4, run with KnowsRoughly as the prior: its path and
+    the index of its metallic-roughness image."""
     import pbrsr_core.pipeline as pipeline
 
-    hr_colour = _blocks(128, 8, seed=7)
-    hr_data = np.concatenate([_blocks(128, 8, seed=8)[..., :1], _follows(hr_colour)], -1)
     path = make_quad_asset(
         tmp_path / "q.gltf",
         {
@@ -260,12 +260,19 @@ def test_a_channel_keeps_the_checks_pick_unless_its_blend_beats_it(tmp_path, mon
     prior = KnowsRoughly(lr.images[mat.base_color.image].pixels, hr_colour, stored_orm, hr_data)
     monkeypatch.setattr(pipeline, "load_prior", lambda n, d: prior)
     monkeypatch.setattr(selfcheck, "MIN_SIDE", 8)
+    return path, mat.metallic_roughness.image
+
+
+def test_a_channel_keeps_the_checks_pick_unless_its_blend_beats_it(tmp_path, monkeypatch):
+    hr_colour = _blocks(128, 8, seed=7)
+    hr_data = np.concatenate([_blocks(128, 8, seed=8)[..., :1], _follows(hr_colour)], -1)
+    path, orm_index = _roughly_known_quad(tmp_path, monkeypatch, hr_colour, hr_data)
 
     def run(name: str, pick_db: float | None) -> dict:
         preset = presets.BALANCED.with_(project_lr=(), iterations=0, blend_pick_db=pick_db)
         monkeypatch.setitem(presets.PRESETS, "balanced", preset)
         report = upscale_asset(path, tmp_path / name, UpscaleOptions(preset="balanced"))
-        (entry,) = [c for c in report["prior_check"] if c["index"] == mat.metallic_roughness.image]
+        (entry,) = [c for c in report["prior_check"] if c["index"] == orm_index]
         return entry
 
     # the prior's noisy upscale beats bicubic one scale down on roughness and metallic (the
@@ -280,3 +287,31 @@ def test_a_channel_keeps_the_checks_pick_unless_its_blend_beats_it(tmp_path, mon
         blended = run(f"blend-{pick_db}", pick_db)["blend"]
         k = blended["sources"].index("guided")
         assert [w[k] > 0.5 for w in blended["weights"]] == [False, True, True], blended
+
+
+def test_the_pick_floor_keeps_a_network_the_guide_cannot_replace(tmp_path, monkeypatch):
+    hr_colour = _blocks(128, 8, seed=7)
+    hr_data = np.roll(_blocks(128, 8, seed=8), 4, axis=(0, 1))  # no edge the colour has
+    path, orm_index = _roughly_known_quad(tmp_path, monkeypatch, hr_colour, hr_data)
+
+    def run(name: str, floor: bool) -> dict:
+        preset = presets.BALANCED.with_(project_lr=(), iterations=0, blend_network_db=1e3,
+                                        blend_pick_floor=floor)  # fmt: skip
+        monkeypatch.setitem(presets.PRESETS, "balanced", preset)
+        report = upscale_asset(path, tmp_path / name, UpscaleOptions(preset="balanced"))
+        (entry,) = [c for c in report["prior_check"] if c["index"] == orm_index]
+        return entry
+
+    # the network's pick beats bicubic by far one scale down; no network adds 1000 dB
+    entry = run("rule", False)
+    assert entry["priors"][1:] == ["knows"] * 2 and min(entry["margins"][1:]) > 5.0
+    assert "knows" not in entry["blend"]["sources"]
+    assert max(m for m in entry["blend"]["margins"][1:]) < min(entry["margins"][1:])
+    # with the floor the network stays where the guided fit alone falls below its pick
+    entry = run("floor", True)
+    blended = entry["blend"]
+    assert blended["sources"][0] == "knows" and entry["channels"][1:] == [True, True]
+    k = blended["sources"].index("knows")
+    assert all(w[k] > 0.5 for w in blended["weights"][1:]), blended
+    pairs = zip(blended["margins"][1:], entry["margins"][1:], strict=True)
+    assert all(b >= m - 1e-3 for b, m in pairs)
