@@ -290,6 +290,11 @@ CHECK_PRIOR_CPU = ("colour", "data")
 #   and costs the BoomBox's render 0.22 dB (fast) and 0.48 (balanced) on the shared assets,
 #   its roughness (fast, -1.28 dB) or metallic (balanced, -1.16 dB) given to the check's pick
 #   where the blend was closer at the real scale (docs/METHOD.md, "Data channels blended").
+#   blend_pick_floor (a network kept where leaving it out puts a channel's blend below the
+#   pick one scale down) gains +0.997 dB there with 0.81 networks per map (pbr-upconv7 +1.034
+#   against +1.026), nearly all of it the fabric, and on the shared assets moves the BoomBox's
+#   render only: +0.67 dB with pbr-upconv7, -0.15 with pbr-srmd (balanced; fast +0.17 and
+#   -0.18): off (docs/METHOD.md, "Where the network rule loses").
 # * fast: PBR-SR's init and export with no optimisation steps, the prior at x2 of the scale
 #   (max_prior_scale 2; bicubic the rest, then the back-projection step). waifu2x-photo's x2
 #   pass on a 512² map costs 2.1 s against 13.0 s for its x4 (two passes), and on the shared

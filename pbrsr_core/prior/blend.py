@@ -13,7 +13,8 @@ on thousands of texels: the fit barely overfits the scale it is made at.
 A channel is blended where its blend beats bicubic one scale down by the preset's
 ``blend_margin`` (and, with ``blend_pick_db`` set, the self-check's pick by that much where
 the pick beats bicubic; otherwise the channel takes the pick), and a candidate network runs
-on a map where it adds ``blend_network_db`` to the map's blends or is a kept pick. ``pbrsr
+on a map where it adds ``blend_network_db`` to the map's blends, is a kept pick or (with
+``blend_pick_floor``) holds a channel's blend at its pick one scale down. ``pbrsr
 bench blend`` scores the rules at the real scale on the held-out CC0 materials' maps packed
 as occlusion-roughness-metallic images (x4, pbr-srmd, 38 channels): the presets' margin 0,
 0.1 dB networks, no pick rule +0.958 dB over bicubic, no channel below it, 0.62 networks per
