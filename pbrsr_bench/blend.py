@@ -2,23 +2,23 @@
 materials.
 
 The CPU presets blend each data channel of a metallic-roughness map from its upscales
-(``pbrsr_core/prior/blend.py``): weights fitted one scale down, a channel kept bicubic's
-unless its blend beats bicubic by a margin there, and a candidate network run on the map only
-where it adds a set number of dB to the map's channels. Here both rules are scored at the real
-scale on what a glTF asset would hold: per held-out material of a texture folder (the split of
-``pbrsr priors train``, so no texture network has seen them) that has a colour map and a
-roughness, metallic or occlusion map, each HR crop of ``size`` pixels on a grid over the
-material is packed as an occlusion-roughness-metallic map (a map it lacks held constant, as
-an exporter writes it), degraded by the evaluation protocol with its colour map, and run
-through the steps of the pipeline: the colour map's self-check (its pick guides roughness and
-metallic), the data map's self-check, the guided upscale, :func:`blend_check` and
-:func:`blend_plan` for every pair of rules asked for. Per channel the result holds the gain
-over bicubic against the HR crop of each rule's blend (and its gain one scale down), of
-direct's choice (the check's pick where it beats bicubic), of each upscale alone and of the
-oracle; per rule, the networks it runs per map. The plot puts each rule's mean gain against
-its networks per map. With ``jpeg`` both LR crops are stored as JPEG files of that quality
-hold them (4:4:4, as ``pbrsr degrade`` writes JPEG maps) and checked and upscaled as the
-presets do (``check.presets_low_res``).
+(``pbrsr_core/prior/blend.py``): weights fitted one scale down, a channel kept bicubic's unless
+its blend beats bicubic by a margin there, and a candidate network run on the map only where it
+adds a set number of dB to the map's channels. Here both rules are scored at the real scale on
+what a glTF asset would hold: per held-out material of a texture folder (the split of ``pbrsr
+priors train``, so no texture network has seen them) that has a colour map and a roughness,
+metallic or occlusion map, each HR crop of ``size`` pixels on a grid over the material is
+packed as an occlusion-roughness-metallic map (a map it lacks held constant, as an exporter
+writes it), degraded by the evaluation protocol with its colour map, and run through the steps
+of the pipeline: the colour map's self-check (its pick guides roughness and metallic), the data
+map's self-check, the guided upscale, :func:`blend_check` and :func:`blend_plan` for every pair
+of rules asked for. Per channel the result holds the gain over bicubic against the HR crop of
+each rule's blend (and its gain one scale down), of direct's choice (the check's pick where it
+beats bicubic), of each upscale alone (and its gain one scale down, as the check saw it) and of
+the oracle; per rule, the networks it runs per map. The plot puts each rule's mean gain against
+its networks per map. With ``jpeg`` both LR crops are stored as JPEG files of that quality hold
+them (4:4:4, as ``pbrsr degrade`` writes JPEG maps) and checked and upscaled as the presets do
+(``check.presets_low_res``).
 """
 
 from __future__ import annotations
@@ -133,11 +133,20 @@ def score_crop(
         got = up[inner] if up.ndim == 2 else up[inner][..., c]
         return _psnr(got, ref) - _psnr(bic[inner][..., c], ref)
 
+    def check_gain(c: int) -> dict[str, float]:
+        """Each upscale's gain over bicubic one scale down, on the check's covered texels."""
+        db, ref, bic_small = kept["db"], kept["crop"][..., c], kept["bicubic"][..., c]
+        ups = {n: u[..., c] for n, u in kept["ups"].items()}
+        if c in guided_small:
+            ups["guided"] = guided_small[c]
+        return {n: db(u, ref) - db(bic_small, ref) for n, u in ups.items()}
+
     rows = [
         {
             "channel": PACKED[c],
             "margin_db": check["margins"][c],
             "gain": {n: gain(u, c) for n, u in real.items() if n != "guided" or c in gc},
+            "check_gain": check_gain(c),
             "direct": (gain(real[check["priors"][c]], c) if check["channels"][c] else 0.0),
             "rules": {},
             "fit_db": {},
@@ -273,7 +282,8 @@ def markdown_table(result: dict) -> str:
         + "; mean PSNR gain over bicubic per "
         "channel at the real scale (dB); each upscale alone: "
         + ", ".join(f"{n} {v:+.3f}" for n, v in each.items())
-        + f"; oracle {np.mean([r['oracle'] for r in rows]):+.3f}",
+        + f"; oracle {np.mean([r['oracle'] for r in rows]):+.3f}; "
+        + _ranking_note(rows),
         "",
         "| rule | channels | mean gain | worst | below bicubic | networks per map |",
         "|---|---|---|---|---|---|",
@@ -284,6 +294,17 @@ def markdown_table(result: dict) -> str:
             f"{s['below']} | {s['networks']:.2f} |"
         )
     return "\n".join(lines)
+
+
+def _ranking_note(rows: list[dict]) -> str:
+    """How often the upscale (or bicubic) that gains most one scale down gains most at the
+    real scale too, per channel."""
+
+    def best(gains: dict[str, float]) -> str:
+        return max({"bicubic": 0.0, **gains}.items(), key=lambda kv: kv[1])[0]
+
+    same = sum(best(r["check_gain"]) == best(r["gain"]) for r in rows)
+    return f"the best upscale one scale down is the real scale's best in {same} of {len(rows)}"
 
 
 def plot(result: dict, path: Path) -> None:

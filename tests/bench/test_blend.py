@@ -46,7 +46,9 @@ def test_each_rule_is_scored_against_the_real_scale(folder, tmp_path: Path):
         r["channel"] for r in rows
     }
     for r in rows:
-        assert set(r["gain"]) == {"waifu2x-photo", "guided"}
+        assert set(r["gain"]) == set(r["check_gain"]) == {"waifu2x-photo", "guided"}
+        if r["margin_db"] > 0:  # the check's pick is the network: its margin one scale down
+            assert r["check_gain"]["waifu2x-photo"] == pytest.approx(r["margin_db"], abs=2e-3)
         assert all(math.isfinite(v) for v in (*r["gain"].values(), *r["rules"].values()))
         assert r["oracle"] == max(0.0, *r["gain"].values())
         assert r["direct"] == (r["gain"]["waifu2x-photo"] if r["margin_db"] > 0 else 0.0)
@@ -75,6 +77,12 @@ def test_each_rule_is_scored_against_the_real_scale(folder, tmp_path: Path):
     assert saved["summary"] == result["summary"]
     assert (tmp_path / "out" / "blend.png").stat().st_size > 0
     assert "| margin 0.5, networks 0 | " in markdown_table(result)
+
+    def best(gains):
+        return max({"bicubic": 0.0, **gains}.items(), key=lambda kv: kv[1])[0]
+
+    same = sum(best(r["check_gain"]) == best(r["gain"]) for r in rows)
+    assert f"real scale's best in {same} of {len(rows)}" in markdown_table(result)
     assert "| margin 0.5, networks 0, over the pick 0.05 | " in markdown_table(result)
     kept = [
         r
