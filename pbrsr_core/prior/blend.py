@@ -109,7 +109,7 @@ def blend_check(
     def worth(fits: dict) -> float:
         return sum(g for _, _, g in fits.values() if g > margin)
 
-    def keeps_picks(now: dict, then: dict) -> bool:
+    def keeps_picks(now: dict, then: dict) -> bool:  # gains are rounded to 0.001 dB
         return all(
             then[c][2] >= min(now[c][2], db_pick) - 1e-3
             for c, (_, db_pick) in (picks or {}).items()
