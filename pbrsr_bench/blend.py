@@ -220,9 +220,8 @@ def run(
     """Score the blend of ``prior``'s data upscales at ``scale`` for every rule of
     ``margins``, ``network_dbs``, ``pick_dbs`` (None: no pick rule) and ``pick_floors``
     (``blend_pick_floor``: networks kept where a channel needs them to reach its pick) on
-    packed crops of
-    ``size`` HR pixels of the held-out materials, the LR crops stored as JPEG of quality
-    ``jpeg`` when given."""
+    packed crops of ``size`` HR pixels of the held-out materials, the LR crops stored as JPEG
+    of quality ``jpeg`` when given."""
     if scale not in (2, 4, 8):
         raise ValueError(f"scale must be 2, 4 or 8, not {scale}")
     if size < 16 * scale:
@@ -231,7 +230,9 @@ def run(
     if any(v < 0 for v in (*margins, *network_dbs, *picked)) or not (
         margins and network_dbs and pick_dbs and pick_floors
     ):
-        raise ValueError("margins, network dBs and pick dBs must be given and not negative")
+        raise ValueError(
+            "margins, network dBs, pick dBs and pick floors must be given, the dBs not negative"
+        )
     root = texture_folder(textures)
     manifest = read_manifest(root)
     held = split_materials(manifest)[1]

@@ -77,13 +77,13 @@ def test_each_rule_is_scored_against_the_real_scale(folder, tmp_path: Path):
     assert saved["summary"] == result["summary"]
     assert (tmp_path / "out" / "blend.png").stat().st_size > 0
     assert "| margin 0.5, networks 0 | " in markdown_table(result)
+    assert "| margin 0.5, networks 0, over the pick 0.05 | " in markdown_table(result)
 
     def best(gains):
         return max({"bicubic": 0.0, **gains}.items(), key=lambda kv: kv[1])[0]
 
     same = sum(best(r["check_gain"]) == best(r["gain"]) for r in rows)
     assert f"real scale's best in {same} of {len(rows)}" in markdown_table(result)
-    assert "| margin 0.5, networks 0, over the pick 0.05 | " in markdown_table(result)
     kept = [
         r
         for r in rows
