@@ -168,6 +168,10 @@ def _upscale_maps(
     from .optim.presets import get_preset
 
     config = config or get_preset(options.preset)
+    if config.self_ensemble > 1:
+        from .prior.symmetry import SelfEnsemble
+
+        prior = SelfEnsemble(prior, config.self_ensemble)
     lr_pixels, deblocked = deblocked_lr(images, config, timer)
     for img in images:  # a cutout's hidden colour takes no part (init, losses, projection)
         if (seen_from := cutouts[img.index]) is not None:

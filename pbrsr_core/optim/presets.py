@@ -71,6 +71,11 @@ class PbrsrConfig:
     one back-projection step onto its input (prior/direct.py ``upscale_rgb``): in the init,
     in the self-check (which scores the same upscaling) and in the pseudo-GT. None: the prior
     does the whole scale (the paper)."""
+    self_ensemble: int = 1
+    """The prior runs on this many symmetric copies of each map (1, 2, 4 or 8: the identity,
+    the half turn, the quarter turns, the mirrors), each output turned back and the copies
+    averaged (prior/symmetry.py): in the self-check, the init and the pseudo-GT; the cost is
+    one prior run per copy. 1: the prior once."""
     blend_data: bool = False
     """Each channel of a data map is a blend of the prior's candidates, bicubic and, for a
     metallic-roughness map's roughness and metallic, the upscale guided by the material's
@@ -178,6 +183,7 @@ class PbrsrConfig:
                 self.blend_pick_db is None or self.blend_pick_db >= 0,
                 "blend_pick_db must be None or >= 0",
             ),
+            (self.self_ensemble in (1, 2, 4, 8), "self_ensemble must be 1, 2, 4 or 8"),
         ]
         for ok, msg in checks:
             if not ok:

@@ -35,6 +35,7 @@ import torch
 from ...asset.jpeg import compress, standard_quant
 from ...degrade import degrade_tensor
 from ...errors import InvalidOptions
+from ..symmetry import dihedral
 from .graphics import DRAWN_KINDS, graphics_crop, normal_graphics_crop
 
 KINDS = ("colour", "data", "normal")
@@ -145,34 +146,6 @@ def load_materials(root: Path, names: list[str], manifest: dict[str, dict]) -> l
             mat.maps[key] = _read_rgb8(path, 3 if key in ("basecolor", "normal") else 1)
         out.append(mat)
     return out
-
-
-def dihedral(x: torch.Tensor, op: int, kind: str) -> torch.Tensor:
-    """One of the eight symmetries of the square (``op`` in 0..7) on images (N, 3, H, W).
-
-    Bit 0 mirrors left-right, bit 1 mirrors top-bottom, bit 2 transposes (after the flips).
-    For a normal map (encoded, tangent X right and Y up) the vector moves with the pixels:
-    a left-right mirror negates X, a top-bottom mirror negates Y, and a transpose maps
-    (X, Y) to (-Y, -X) (the image's right becomes its old down, its up the old left)."""
-    if not 0 <= op < 8:
-        raise ValueError(f"op must be 0..7, got {op}")
-    if op & 1:
-        x = x.flip(-1)
-    if op & 2:
-        x = x.flip(-2)
-    if op & 4:
-        x = x.transpose(-1, -2)
-    if kind != "normal":
-        return x
-    n = x * 2.0 - 1.0
-    nx, ny, nz = n[:, 0:1], n[:, 1:2], n[:, 2:3]
-    if op & 1:
-        nx = -nx
-    if op & 2:
-        ny = -ny
-    if op & 4:
-        nx, ny = -ny, -nx
-    return (torch.cat([nx, ny, nz], 1) + 1.0) * 0.5
 
 
 def normalize_encoded(t: torch.Tensor) -> torch.Tensor:

@@ -17,11 +17,11 @@ from pbrsr_core.errors import InvalidOptions, PriorUnavailable
 from pbrsr_core.prior.int8 import Calibration, FakeInt8
 from pbrsr_core.prior.registry import check_name, load_prior
 from pbrsr_core.prior.srmd import SRMD
+from pbrsr_core.prior.symmetry import dihedral
 from pbrsr_core.prior.texture import TexturePrior
 from pbrsr_core.prior.train.data import (
     CropSampler,
     degrade_pair,
-    dihedral,
     load_materials,
     read_manifest,
     split_materials,
