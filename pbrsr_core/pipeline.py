@@ -168,19 +168,20 @@ def _upscale_maps(
     from .optim.presets import get_preset
 
     config = config or get_preset(options.preset)
+    map_prior = prior  # the maps' (check, init, blends); the pseudo-GT's renders: ``prior``
     if config.self_ensemble > 1:
         from .prior.symmetry import SelfEnsemble
 
-        prior = SelfEnsemble(prior, config.self_ensemble)
+        map_prior = SelfEnsemble(prior, config.self_ensemble)
     lr_pixels, deblocked = deblocked_lr(images, config, timer)
     for img in images:  # a cutout's hidden colour takes no part (init, losses, projection)
         if (seen_from := cutouts[img.index]) is not None:
             lr_pixels[img.index] = filled_cutout(lr_pixels[img.index], seen_from)
     kept: dict[int, dict] | None = {} if config.blend_data else None
-    channels, checks, sources = prior_channels_checked(asset, images, prior, lr_pixels, s,
+    channels, checks, sources = prior_channels_checked(asset, images, map_prior, lr_pixels, s,
                                                         config, timer, progress, kept)  # fmt: skip
-    blends = blended_channels(asset, images, prior, channels, checks, sources, kept, lr_pixels,
-                              config, timer)  # fmt: skip
+    blends = blended_channels(asset, images, map_prior, channels, checks, sources, kept,
+                              lr_pixels, config, timer)  # fmt: skip
     del kept
     init_encoded, init, lr = initial_maps(images, sources, blends, lr_pixels, s, wraps, config,
                                           timer, progress)  # fmt: skip

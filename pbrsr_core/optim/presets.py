@@ -74,8 +74,8 @@ class PbrsrConfig:
     self_ensemble: int = 1
     """The prior runs on this many symmetric copies of each map (1, 2, 4 or 8: the identity,
     the half turn, the quarter turns, the mirrors), each output turned back and the copies
-    averaged (prior/symmetry.py): in the self-check, the init and the pseudo-GT; the cost is
-    one prior run per copy. 1: the prior once."""
+    averaged (prior/symmetry.py): in the self-check, the blends and the init, one prior run
+    per copy; the pseudo-GT's renders go through the prior once. 1: the prior once."""
     blend_data: bool = False
     """Each channel of a data map is a blend of the prior's candidates, bicubic and, for a
     metallic-roughness map's roughness and metallic, the upscale guided by the material's
@@ -361,6 +361,7 @@ BALANCED = FAST.with_(name="balanced", max_prior_scale=None)
 
 QUALITY = _CPU.with_(
     name="quality",
+    self_ensemble=8,
     iterations=25,
     n_candidates=64,
     max_views=16,
