@@ -323,10 +323,14 @@ CHECK_PRIOR_CPU = ("colour", "data")
 #   and pseudo-GT took 41-67 % of the run (Avocado 44 of 106 s, BoomBox 71 of 157 s, ToyCar
 #   56 of 83 s). What balanced gains over fast (ToyCar +0.21, WaterBottle +0.32 dB) is the
 #   prior at the full scale, not the steps.
-# * quality: balanced plus the optimiser (25 steps over up to 16 views, renders up to 512²),
-#   for stronger priors (`spandrel:`, `diffusion:`) whose pseudo-GT carries detail the init
-#   lacks. With the built-in priors it buys nothing measurable (above); 40 steps over 32
-#   views at 768² gained -0.01..+0.01 dB more in 1.7-2.2x the time (Avocado, BoomBox, ToyCar).
+# * quality: balanced with the prior averaged over the eight symmetries of each map
+#   (self_ensemble 8: +0.06..+0.34 dB render over balanced on every shared asset, +0.13 on
+#   average, in 6.0x its time; two copies +0.08 in 1.7x; docs/BENCHMARKS.md, "The prior
+#   averaged over the square's symmetries"), then the optimiser (25 steps over up to 16
+#   views, renders up to 512²) for stronger priors (`spandrel:`, `diffusion:`) whose
+#   pseudo-GT carries detail the init lacks. With the built-in priors the steps buy nothing
+#   measurable (above); 40 steps over 32 views at 768² gained -0.01..+0.01 dB more in
+#   1.7-2.2x the time (Avocado, BoomBox, ToyCar).
 
 _CPU = PbrsrConfig(
     view_mode="coverage",
