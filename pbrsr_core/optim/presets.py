@@ -329,8 +329,9 @@ CHECK_PRIOR_CPU = ("colour", "data")
 #   averaged over the square's symmetries"), then the optimiser (25 steps over up to 16
 #   views, renders up to 512²) for stronger priors (`spandrel:`, `diffusion:`) whose
 #   pseudo-GT carries detail the init lacks. With the built-in priors the steps buy nothing
-#   measurable (above); 40 steps over 32 views at 768² gained -0.01..+0.01 dB more in
-#   1.7-2.2x the time (Avocado, BoomBox, ToyCar).
+#   (above; on the averaged init -0.06..+0.02 dB per asset, -0.02 on average: their pseudo-GT
+#   is the prior's single copy on the renders); 40 steps over 32 views at 768² gained
+#   -0.01..+0.01 dB more in 1.7-2.2x the time (Avocado, BoomBox, ToyCar).
 
 _CPU = PbrsrConfig(
     view_mode="coverage",

@@ -15,9 +15,10 @@ from pbrsr_core.footprint import (
 from pbrsr_core.optim.presets import get_preset
 
 # peak RSS (MiB) measured by `pbrsr bench upscale` on Avocado (three 512² RGB maps, x4);
-# balanced by `--methods balanced+iterations=0`, quality as the 25-step preset it is
+# balanced by `--methods balanced+iterations=0`, quality (eight copies of pbr-srmd, 25 steps)
+# by `--methods quality`
 AVOCADO = [(512, 512, 3)] * 3
-MEASURED = {"bicubic": 863, "fast": 1549, "direct": 3241, "balanced": 3758, "quality": 4082}
+MEASURED = {"bicubic": 863, "fast": 1549, "direct": 3241, "balanced": 3758, "quality": 3067}
 
 
 def _estimate(method: str) -> int:
