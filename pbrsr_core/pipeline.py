@@ -216,6 +216,18 @@ def _direct_picks(prior: Prior, img: ImageData, check: dict | None) -> list[Prio
     return read_channels_only(picks, prior_channels(img, BALANCED))
 
 
+def _pseudo_gt_prior(prior: Prior, config, device: torch.device) -> Prior:
+    """The prior that upscales the LR renders into the pseudo-GT: ``config.pseudo_gt_prior``
+    or the run's, on ``config.pseudo_gt_self_ensemble`` copies of each render."""
+    if config.pseudo_gt_prior is not None:
+        prior = load_prior(config.pseudo_gt_prior, device)
+    if config.pseudo_gt_self_ensemble > 1 and prior.is_network:  # bicubic is symmetric
+        from .prior.symmetry import SelfEnsemble
+
+        prior = SelfEnsemble(prior, config.pseudo_gt_self_ensemble)
+    return prior
+
+
 def _precisions(prior: Prior, images: list[ImageData]) -> dict[str, str]:
     """Per map kind of the asset, the precision its prior ran in (fp32, bf16, int8)."""
     kinds = sorted({kind_of(img.roles) for img in images})
@@ -253,9 +265,7 @@ def _optimise(asset, images, init_encoded, init, lr, lr_pixels, channels, prior,
         {k: v.to(device) for k, v in init.items()},
         {img.index: set(img.roles) for img in images},
         scale=s,
-        prior=prior
-        if config.pseudo_gt_prior is None
-        else load_prior(config.pseudo_gt_prior, device),
+        prior=_pseudo_gt_prior(prior, config, device),
         light=light,
         config=config,
         device=device,

@@ -112,6 +112,9 @@ class PbrsrConfig:
     """The prior that upscales the LR renders into the pseudo-GT; None: the run's prior.
     ``bicubic`` with ``target`` "detail" makes the target the HR render of the init maps
     (the direct result's renders)."""
+    pseudo_gt_self_ensemble: int = 1
+    """The pseudo-GT's prior runs on this many symmetric copies of each LR render (1, 2, 4 or
+    8, as ``self_ensemble`` for the maps), one prior run per copy and view. 1: once."""
     target: Literal["prior", "detail"] = "prior"
     """prior: the prior's output is the target (the paper); detail: the HR render of the init
     maps plus what the prior adds over bicubic (keeps exact silhouettes and shading)."""
@@ -184,6 +187,10 @@ class PbrsrConfig:
                 "blend_pick_db must be None or >= 0",
             ),
             (self.self_ensemble in (1, 2, 4, 8), "self_ensemble must be 1, 2, 4 or 8"),
+            (
+                self.pseudo_gt_self_ensemble in (1, 2, 4, 8),
+                "pseudo_gt_self_ensemble must be 1, 2, 4 or 8",
+            ),
         ]
         for ok, msg in checks:
             if not ok:

@@ -122,6 +122,7 @@ def make_targets(
             config.lr_render,
             config.target,
             config.max_prior_scale,
+            config.pseudo_gt_self_ensemble,
             PRIOR_CONTEXT,
         )
         tex0 = {**static, **init_dev}

@@ -261,6 +261,25 @@ def test_pseudo_gt_prior_makes_the_render_targets(tmp_path, monkeypatch):
         one_step.with_(pseudo_gt_prior="photo")
 
 
+def test_pseudo_gt_self_ensemble_runs_the_prior_on_copies_of_each_render(tmp_path, monkeypatch):
+    """pseudo_gt_self_ensemble 2: the init runs the prior once, each view's render twice (the
+    identity and the half turn), and the targets are not the single copy's cached ones."""
+    from pbrsr_core.optim import presets
+
+    prior, asset, _ = _quad_with_prior(tmp_path, monkeypatch, seed=7)
+    one_step = presets.FAST.with_(iterations=1, check_prior=(), max_prior_scale=None)
+    calls = []
+    for n in (1, 2):
+        monkeypatch.setitem(presets.PRESETS, "fast", one_step.with_(pseudo_gt_self_ensemble=n))
+        prior.calls.clear()
+        upscale_asset(asset, tmp_path / f"o{n}", UpscaleOptions(preset="fast", prior="n"))
+        assert prior.calls[0] == (32, 4)
+        calls.append(len(prior.calls) - 1)
+    assert calls[0] > 0 and calls[1] == 2 * calls[0]
+    with pytest.raises(InvalidOptions, match="pseudo_gt_self_ensemble"):
+        one_step.with_(pseudo_gt_self_ensemble=3)
+
+
 @pytest.mark.parametrize("method", ["bicubic", "direct", "pbrsr"])
 def test_normal_maps_come_out_at_the_inputs_length(tmp_path: Path, method: str):
     """A normal map stored at |n| = 0.9 comes back at 0.9 from every method (the optimiser
