@@ -27,6 +27,13 @@ class UpscaleOptions(BaseModel):
         "bicubic: plain bicubic interpolation.",
     )
     preset: str = Field("balanced", description="fast, balanced, quality or paper (pbrsr only).")
+    iterations: int | None = Field(
+        None,
+        ge=0,
+        le=100_000,
+        description="Optimiser steps (pbrsr only); None: the preset's (fast, balanced and "
+        "quality none, paper 2000). Steps run over the preset's views.",
+    )
     prior: str = Field(
         DEFAULT_PRIOR,
         description="Image SR prior: pbr-upconv7, pbr-upconv7-fast, pbr-srmd, waifu2x-photo, "

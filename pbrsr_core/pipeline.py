@@ -90,10 +90,10 @@ def _resolve_input(input_path: Path, work_dir: Path, limits: Limits) -> Path:
 
 
 def _check_footprint(images, options: UpscaleOptions, config, budget: int) -> None:
-    from .optim.presets import get_preset
+    from .optim.presets import run_config
 
     if options.method == "pbrsr" and config is None:
-        config = get_preset(options.preset)
+        config = run_config(options.preset, options.iterations)
     sizes = [(img.width, img.height, int(img.pixels.shape[2])) for img in images]
     what = (
         f"x{options.scale} of {len(images)} maps (largest {max(max(w, h) for w, h, _ in sizes)} px)"
@@ -165,9 +165,9 @@ def _upscale_maps(
             **({"prior_picks": picked, "prior_check": checked} if picks else {}),
         }
 
-    from .optim.presets import get_preset
+    from .optim.presets import run_config
 
-    config = config or get_preset(options.preset)
+    config = config or run_config(options.preset, options.iterations)
     map_prior = prior  # the maps' (check, init, blends); the pseudo-GT's renders: ``prior``
     if config.self_ensemble > 1:
         from .prior.symmetry import SelfEnsemble

@@ -25,9 +25,11 @@ def warm_up() -> float:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="pbrsr-warmup-") as d:
         src = make_demo_asset(Path(d) / "in" / "demo.glb", size=16)
-        # quality, the preset with optimisation steps: the others would leave the
-        # renderer's backward and the optimiser's kernels uncompiled
-        options = UpscaleOptions(method="pbrsr", preset="quality", prior="bicubic", scale=2)
+        # optimisation steps: without them the renderer's backward and the optimiser's
+        # kernels would stay uncompiled
+        options = UpscaleOptions(
+            method="pbrsr", preset="balanced", prior="bicubic", scale=2, iterations=2
+        )
         upscale_asset(src, Path(d) / "out", options)
     return time.perf_counter() - t0
 

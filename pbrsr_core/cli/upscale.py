@@ -38,6 +38,10 @@ def register(app: typer.Typer) -> None:
         scale: Annotated[int, typer.Option(help="2, 4 or 8")] = 4,
         method: Annotated[str, typer.Option(help="pbrsr, direct or bicubic")] = "pbrsr",
         preset: Annotated[str, typer.Option(help="fast, balanced, quality, paper")] = "balanced",
+        iterations: Annotated[
+            int | None,
+            typer.Option(help="optimiser steps over the preset's views (default: the preset's)"),
+        ] = None,
         prior: Annotated[
             str,
             typer.Option(
@@ -72,6 +76,7 @@ def register(app: typer.Typer) -> None:
                 scale=scale,
                 method=method,
                 preset=preset,
+                iterations=iterations,
                 prior=prior,
                 envmap=envmap,
                 seed=seed,

@@ -251,7 +251,7 @@ PAPER = PbrsrConfig(
 # * iterations: render PSNR peaks within 10-25 steps and then the maps overfit the pseudo-GT
 #   (balanced, prior on the albedo only, 0 / 10 / 25 / 50 / 60 steps: ToyCar 34.00 / 34.09 /
 #   34.04 / 33.88 / 33.77; cabinet at 0 / 10 / 25 / 40 / 60: 30.39 / 30.48 / 30.47 / 30.44 /
-#   30.39), so quality runs 25.
+#   30.39); `--iterations 25` is within that peak.
 # * map_lr normal 0.3: the render loss moves the normal maps more than their pseudo-GT
 #   supports. balanced (120 evaluation views, rrdn-thick), normal lr x1 / x0.3: render PSNR
 #   cabinet 28.98 / 29.08, tea set 31.75 / 31.75, table 31.30 / 31.29, ToyCar 33.55 / 33.62;
@@ -333,12 +333,13 @@ CHECK_PRIOR_CPU = ("colour", "data")
 # * quality: balanced with the prior averaged over the eight symmetries of each map
 #   (self_ensemble 8: +0.06..+0.34 dB render over balanced on every shared asset, +0.13 on
 #   average, in 6.0x its time; two copies +0.08 in 1.7x; docs/BENCHMARKS.md, "The prior
-#   averaged over the square's symmetries"), then the optimiser (25 steps over up to 16
-#   views, renders up to 512²) for stronger priors (`spandrel:`, `diffusion:`) whose
-#   pseudo-GT carries detail the init lacks. With the built-in priors the steps buy nothing
-#   (above; on the averaged init -0.06..+0.02 dB per asset, -0.02 on average: their pseudo-GT
-#   is the prior's single copy on the renders); 40 steps over 32 views at 768² gained
-#   -0.01..+0.01 dB more in 1.7-2.2x the time (Avocado, BoomBox, ToyCar).
+#   averaged over the square's symmetries"), no optimisation steps. 25 steps over its views
+#   (``iterations`` 25: up to 16 views, renders up to 512²) move the render by -0.06..+0.02 dB
+#   per shared asset on that init, -0.02 on average, and by the same with the pseudo-GT's
+#   renders averaged over eight copies as well (pseudo_gt_self_ensemble 8); on one copy's init
+#   +0.01 (docs/BENCHMARKS.md, "quality with pbr-srmd"); 40 steps over 32 views at 768² gained
+#   -0.01..+0.01 dB more in 1.7-2.2x the time (Avocado, BoomBox, ToyCar). Its view numbers
+#   are the ones those steps were measured with.
 
 _CPU = PbrsrConfig(
     view_mode="coverage",
@@ -371,19 +372,25 @@ FAST = _CPU.with_(
 
 BALANCED = FAST.with_(name="balanced", max_prior_scale=None)
 
-QUALITY = _CPU.with_(
+QUALITY = BALANCED.with_(
     name="quality",
     self_ensemble=8,
-    iterations=25,
+    # the views its steps were measured with (``iterations``; none by default)
     n_candidates=64,
     max_views=16,
     max_render_res=512,  # 512: one pixel per texel on a 512 map seen face-on
     views_per_texel=3,
-    batch_views=2,
     log_every=10,
 )
 
 PRESETS: dict[str, PbrsrConfig] = {p.name: p for p in (FAST, BALANCED, QUALITY, PAPER)}
+
+
+def run_config(preset: str, iterations: int | None = None) -> PbrsrConfig:
+    """The config of a run: the preset called ``preset`` with ``iterations`` optimiser steps
+    when given (a run's ``UpscaleOptions.iterations``)."""
+    config = get_preset(preset)
+    return config if iterations is None else config.with_(iterations=iterations)
 
 
 def get_preset(name: str) -> PbrsrConfig:

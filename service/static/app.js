@@ -93,10 +93,12 @@ function pickFile(file) {
 }
 
 function options() {
+  const steps = $("opt-iterations").value.trim();  // empty: the preset's
   return {
     scale: Number($("opt-scale").value),
     method: $("opt-method").value,
     preset: $("opt-preset").value,
+    ...(steps !== "" && $("opt-method").value === "pbrsr" ? { iterations: Number(steps) } : {}),
     image_format: $("opt-format").value,
     seed: Math.max(0, Number($("opt-seed").value) || 0),
   };
@@ -537,7 +539,11 @@ function init() {
   $("filter").addEventListener("change", refreshList);
   $("cancel").addEventListener("click", cancelSelected);
   $("download").addEventListener("click", download);
-  $("opt-method").addEventListener("change", () => { $("opt-preset").disabled = $("opt-method").value !== "pbrsr"; });
+  $("opt-method").addEventListener("change", () => {
+    const pbrsr = $("opt-method").value === "pbrsr";
+    $("opt-preset").disabled = !pbrsr;
+    $("opt-iterations").disabled = !pbrsr;
+  });
   poll();
   followEvents();
 }

@@ -35,12 +35,19 @@ def test_the_loader_finds_every_extension_texture_with_its_kind(tmp_path):
 
 
 @pytest.mark.parametrize(
-    ("method", "preset"),
-    [("bicubic", "fast"), ("direct", "fast"), ("pbrsr", "fast"), ("pbrsr", "quality")],
+    ("method", "preset", "iterations"),
+    [
+        ("bicubic", "fast", None),
+        ("direct", "fast", None),
+        ("pbrsr", "fast", None),
+        ("pbrsr", "quality", 3),  # eight copies of the prior, then optimiser steps
+    ],
 )
-def test_extension_maps_come_back_upscaled_and_valid(tmp_path, method, preset):
+def test_extension_maps_come_back_upscaled_and_valid(tmp_path, method, preset, iterations):
     src = make_test_asset(tmp_path / "a.glb", size=32, features=FEATURES)
-    options = UpscaleOptions(scale=2, method=method, preset=preset, prior="pbr-upconv7")
+    options = UpscaleOptions(
+        scale=2, method=method, preset=preset, prior="pbr-upconv7", iterations=iterations
+    )
     report = upscale_asset(src, tmp_path / "out", options)
     out = load_asset(tmp_path / "out" / "a.glb")
     assert validate_gltf(tmp_path / "out" / "a.glb")["numErrors"] == 0

@@ -120,24 +120,36 @@ def test_the_report_names_the_precision_each_map_kind_ran_in(tmp_path: Path, set
         assert diff.max() <= 0.1 and diff.mean() < 0.01
 
 
-@pytest.mark.parametrize("preset", ["fast", "balanced", "quality"])
-def test_pbrsr_method_runs_and_reports(demo: Path, tmp_path: Path, preset: str):
-    report = upscale_asset(
-        demo, tmp_path / "out", UpscaleOptions(method="pbrsr", preset=preset, prior="bicubic")
-    )
+@pytest.mark.parametrize(
+    ("preset", "iterations"), [("fast", None), ("balanced", None), ("quality", None), ("fast", 3)]
+)
+def test_pbrsr_method_runs_and_reports(demo: Path, tmp_path: Path, preset: str, iterations):
+    """The CPU presets are PBR-SR's init and export; ``iterations`` adds optimiser steps over
+    the preset's views."""
+    options = UpscaleOptions(method="pbrsr", preset=preset, prior="bicubic", iterations=iterations)
+    report = upscale_asset(demo, tmp_path / "out", options)
     assert set(report["timings"]) >= {"load", "init", "project", "dilate", "preview"}
     assert report["consistency_psnr_db"]
     stages = {"gbuffers", "pseudo_gt", "optimize"}
-    if preset != "quality":  # PBR-SR's init and export, no optimisation steps
+    if iterations is None:  # no optimisation steps
         assert report["num_views"] == 0 and report["history"] == []
         assert not stages & set(report["timings"])
     else:
+        assert report["config"]["iterations"] == iterations
         assert report["num_views"] >= 1 and report["history"]
         assert set(report["timings"]) >= stages
     res = load_asset(tmp_path / "out" / "demo.glb")
     for img in res.images:
         assert np.isfinite(img.pixels).all()
         assert img.pixels.min() >= 0.0 and img.pixels.max() <= 1.0
+
+
+def test_iterations_are_checked():
+    from pydantic import ValidationError
+
+    for bad in (-1, 100_001, "many"):
+        with pytest.raises(ValidationError, match="iterations"):
+            UpscaleOptions(iterations=bad)
 
 
 def test_nothing_to_upscale_leaves_nothing(tmp_path: Path):

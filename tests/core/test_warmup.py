@@ -34,6 +34,7 @@ with tempfile.TemporaryDirectory() as d:
     for i, opts in enumerate([
         UpscaleOptions(method="pbrsr", preset="fast", prior="bicubic", scale=4),
         UpscaleOptions(method="pbrsr", preset="quality", prior="bicubic", scale=4),
+        UpscaleOptions(method="pbrsr", preset="balanced", prior="bicubic", scale=4, iterations=3),
         UpscaleOptions(method="bicubic", scale=2),
     ]):
         upscale_asset(src, Path(d) / f"out{i}", opts)

@@ -108,10 +108,12 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
             dt = page.evaluate_handle(DROP_FILE, [base64.b64encode(data).decode(), "chair.glb"])
             page.dispatch_event("#drop-zone", "drop", {"dataTransfer": dt})
             assert "chair.glb" in page.inner_text("#drop-text")
-            # quality's stages (prior, views, 25 steps) report progress for seconds; a
-            # bicubic job of this asset can start and end between two polls of the page
+            # quality's stages (eight copies of the prior, then views and the steps asked
+            # for) report progress for seconds; a bicubic job of this asset can start and end
+            # between two polls of the page
             page.select_option("#opt-method", "pbrsr")
             page.select_option("#opt-preset", "quality")
+            page.fill("#opt-iterations", "20")
             page.select_option("#opt-scale", "2")
             page.click("#submit")
             page.wait_for_selector("#job-view:not([hidden])")
@@ -147,6 +149,9 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
             row = page.locator(".job-row").first
             assert row.get_attribute("data-status") == "finished"
             assert page.inner_text("#timings")  # per-stage timings listed
+            # the steps' losses are drawn: one line per loss, no "no losses" text
+            assert page.locator("#loss-chart svg path[data-series]").count() > 0
+            assert "no losses" not in page.inner_text("#loss-chart")
             assert page.is_hidden("#cancel") and page.is_hidden("#auth")
             page.wait_for_timeout(600)  # let the bar's CSS transition end
             page.screenshot(path=str(ARTIFACTS / "dashboard.png"), full_page=True)

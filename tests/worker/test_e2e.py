@@ -197,13 +197,14 @@ def test_a_job_larger_than_the_workers_memory_is_refused_not_killed(env):
 
 
 def test_pbrsr_job_reports_losses_and_returns_valid_hr_maps(env):
-    """PBR-SR with its optimiser (quality; bicubic prior on a small asset: seconds): losses
-    and consistency PSNR reach the status while it runs, and the bundle holds a valid asset at
-    x2."""
+    """PBR-SR with optimiser steps (``iterations``; bicubic prior on a small asset: seconds):
+    losses and consistency PSNR reach the status while it runs, and the bundle holds a valid
+    asset at x2."""
     from pbrsr_core.asset import load_asset, validate_gltf
 
     settings, client, proc, tmp = env
     opts = {"method": "pbrsr", "preset": "quality", "prior": "bicubic", "scale": 2}
+    opts["iterations"] = 20
     job_id = post_asset(client, asset_bytes(tmp), options=opts).json()["id"]
     job = _wait_state(client, job_id, ("finished", "failed", "canceled"), 240)
     assert job["status"] == "finished", job

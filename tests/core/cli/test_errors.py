@@ -100,6 +100,7 @@ def test_missing_input_file(tmp_path, capfd):
         (["--format", "gif"], "image_format"),
         (["--method", "direct", "--prior", "no-such-prior"], "no-such-prior"),
         (["--method", "pbrsr", "--prior", "bicubic", "--preset", "no-such-preset"], "preset"),
+        (["--prior", "bicubic", "--iterations", "-1"], "iterations"),
     ],
 )
 def test_bad_options(quad, tmp_path, capfd, extra, says):
