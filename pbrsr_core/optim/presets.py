@@ -335,11 +335,13 @@ CHECK_PRIOR_CPU = ("colour", "data")
 #   average, in 6.0x its time; two copies +0.08 in 1.7x; docs/BENCHMARKS.md, "The prior
 #   averaged over the square's symmetries"), no optimisation steps. 25 steps over its views
 #   (``iterations`` 25: up to 16 views, renders up to 512²) move the render by -0.06..+0.02 dB
-#   per shared asset on that init, -0.02 on average, and by the same with the pseudo-GT's
-#   renders averaged over eight copies as well (pseudo_gt_self_ensemble 8); on one copy's init
-#   +0.01 (docs/BENCHMARKS.md, "quality with pbr-srmd"); 40 steps over 32 views at 768² gained
-#   -0.01..+0.01 dB more in 1.7-2.2x the time (Avocado, BoomBox, ToyCar). Its view numbers
-#   are the ones those steps were measured with.
+#   per shared asset on that init, -0.02 on average, and by the same to the hundredth with
+#   the pseudo-GT's renders averaged over eight copies as well (pseudo_gt_self_ensemble 8);
+#   on one copy's init +0.01 (docs/BENCHMARKS.md, "quality, fast with copies of the prior,
+#   and optimiser steps"); 40 steps over 32 views at 768² gained -0.01..+0.01 dB more in
+#   1.7-2.2x the time (Avocado, BoomBox, ToyCar). Its view numbers are the ones those steps
+#   were measured with. fast with eight copies leads it in the mean (+2.54 against +2.49 dB)
+#   through one JPEG map (the tea set's metallic) and trails it on the PNG data maps.
 
 _CPU = PbrsrConfig(
     view_mode="coverage",
