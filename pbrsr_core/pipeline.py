@@ -168,11 +168,9 @@ def _upscale_maps(
     from .optim.presets import run_config
 
     config = config or run_config(options.preset, options.iterations)
-    map_prior = prior  # the maps' (check, init, blends); the pseudo-GT's renders: ``prior``
-    if config.self_ensemble > 1:
-        from .prior.symmetry import SelfEnsemble
+    from .prior.symmetry import averaged
 
-        map_prior = SelfEnsemble(prior, config.self_ensemble)
+    map_prior = averaged(prior, config.self_ensemble)  # the check, init and blends
     lr_pixels, deblocked = deblocked_lr(images, config, timer)
     for img in images:  # a cutout's hidden colour takes no part (init, losses, projection)
         if (seen_from := cutouts[img.index]) is not None:
@@ -219,13 +217,11 @@ def _direct_picks(prior: Prior, img: ImageData, check: dict | None) -> list[Prio
 def _pseudo_gt_prior(prior: Prior, config, device: torch.device) -> Prior:
     """The prior that upscales the LR renders into the pseudo-GT: ``config.pseudo_gt_prior``
     or the run's, on ``config.pseudo_gt_self_ensemble`` copies of each render."""
+    from .prior.symmetry import averaged
+
     if config.pseudo_gt_prior is not None:
         prior = load_prior(config.pseudo_gt_prior, device)
-    if config.pseudo_gt_self_ensemble > 1 and prior.is_network:  # bicubic is symmetric
-        from .prior.symmetry import SelfEnsemble
-
-        prior = SelfEnsemble(prior, config.pseudo_gt_self_ensemble)
-    return prior
+    return averaged(prior, config.pseudo_gt_self_ensemble)
 
 
 def _precisions(prior: Prior, images: list[ImageData]) -> dict[str, str]:

@@ -122,3 +122,10 @@ class SelfEnsemble(Prior):
         with torch.inference_mode():
             out = out.div_(self.n).clamp_(0.0, 1.0)
         return out.clone()
+
+
+def averaged(prior: Prior, n: int) -> Prior:
+    """``prior`` on ``n`` symmetric copies (:class:`SelfEnsemble`), or ``prior`` itself where
+    the copies would all come back the same: one copy, or bicubic interpolation, which
+    commutes with every turn and mirror."""
+    return SelfEnsemble(prior, n) if n > 1 and prior.is_network else prior

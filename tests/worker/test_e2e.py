@@ -203,8 +203,13 @@ def test_pbrsr_job_reports_losses_and_returns_valid_hr_maps(env):
     from pbrsr_core.asset import load_asset, validate_gltf
 
     settings, client, proc, tmp = env
-    opts = {"method": "pbrsr", "preset": "quality", "prior": "bicubic", "scale": 2}
-    opts["iterations"] = 20
+    opts = {
+        "method": "pbrsr",
+        "preset": "quality",
+        "iterations": 20,
+        "prior": "bicubic",
+        "scale": 2,
+    }
     job_id = post_asset(client, asset_bytes(tmp), options=opts).json()["id"]
     job = _wait_state(client, job_id, ("finished", "failed", "canceled"), 240)
     assert job["status"] == "finished", job

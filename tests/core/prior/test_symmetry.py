@@ -16,7 +16,7 @@ from pbrsr_core.pipeline import upscale_asset
 from pbrsr_core.prior.base import Prior
 from pbrsr_core.prior.bicubic import BicubicPrior
 from pbrsr_core.prior.direct import upscale_map
-from pbrsr_core.prior.symmetry import ORDER, SelfEnsemble, dihedral, inverse
+from pbrsr_core.prior.symmetry import ORDER, SelfEnsemble, averaged, dihedral, inverse
 
 
 class Leaning(Prior):
@@ -126,3 +126,10 @@ def test_the_preset_field_runs_every_prior_call_of_a_run_on_the_copies(tmp_path:
     assert np.abs(want - upscale_map(prior, lr, "base_color", 4)).max() > 0.05
     with pytest.raises(InvalidOptions, match="self_ensemble"):
         frozen.with_(self_ensemble=3)
+
+
+def test_averaged_wraps_only_a_network_on_several_copies():
+    net, bicubic = Leaning(), BicubicPrior()
+    assert averaged(net, 1) is net and averaged(bicubic, 8) is bicubic
+    four = averaged(net, 4)
+    assert isinstance(four, SelfEnsemble) and four.inner is net and four.n == 4
