@@ -124,6 +124,7 @@ def _run_training(
     distill: bool = False,
     graphics: float = 0.0,
     int8: bool = False,
+    loss: str = "l1",
 ) -> None:
     """Train one network per kind (or one for all with ``joint``) from ``init`` (see
     :func:`~pbrsr_core.prior.train.weights.resolve_start`); ``arch``, ``widths`` and
@@ -192,6 +193,7 @@ def _run_training(
                 distill=distill,
                 graphics=graphics if DRAWN_KINDS & set(g) else 0.0,
                 int8=int8,
+                loss=loss,
             )
         )
     for c in configs:
@@ -305,6 +307,11 @@ _GRAPHICS = typer.Option(
     "drawn in colour or raised and sunk as a baked normal map; the labels, decals and "
     "modelled details that the CC0 materials seldom show.",
 )
+_LOSS = typer.Option(
+    "l1",
+    help="l1: L1 of the network's output against the HR crop; l1-backprojected: of the output "
+    "back-projected onto the LR crop, as the prior runs it.",
+)
 _RESUME = typer.Option(True, help="Continue from the folder's checkpoints.")
 _QUIET = typer.Option(False, "--quiet", "-q")
 
@@ -340,6 +347,7 @@ def train_cmd(
     first: str | None = _FIRST,
     distill: bool = _DISTILL,
     graphics: float = _GRAPHICS,
+    loss: str = _LOSS,
     resume: bool = _RESUME,
     quiet: bool = _QUIET,
 ) -> None:
@@ -387,6 +395,7 @@ def finetune_cmd(
         "on the start weights) and keep the step that is best in int8, for "
         "PBRSR_PRIOR_PRECISION=int8.",
     ),
+    loss: str = _LOSS,
     resume: bool = _RESUME,
     quiet: bool = _QUIET,
 ) -> None:

@@ -1,5 +1,6 @@
 """The training loop of a texture prior: AdamW with the learning rate halved at 40 % and 80 %
-of the steps, L1 on the HR crop's interior, EMA weights, validation on held-out crops,
+of the steps, L1 on the HR crop's interior (of the output as it is, or back-projected onto the
+LR crop as the prior runs it: :data:`LOSSES`), EMA weights, validation on held-out crops,
 checkpoints a run resumes from exactly, and the best EMA weights by validation written as
 safetensors (:mod:`pbrsr_core.prior.texture` loads them).
 
@@ -34,6 +35,12 @@ from .data import KINDS, CropSampler, Material, degrade_pair, validation_crops
 from .graphics import DRAWN_KINDS
 
 CHECKPOINT = "checkpoint.pt"
+LOSSES = ("l1", "l1-backprojected")
+"""``l1``: L1 between the network's output and the HR crop. ``l1-backprojected``: L1 between
+the output after one back-projection step onto the LR crop (prior/backproject.py, as every
+network prior runs at inference and as validation scores it) and the HR crop, so that the
+network is not taught what that step puts right by itself (low-frequency offsets) and spends
+itself on the detail above the LR grid."""
 HISTORY = "history.json"
 
 
@@ -45,6 +52,8 @@ class TrainConfig:
     """Map kinds this network learns: one (a network per kind) or several (one shared)."""
     scale: int = 2
     steps: int = 3000
+    loss: str = "l1"
+    """One of :data:`LOSSES` (a distilling run compares back-projected outputs either way)."""
     batch_size: int = 8
     patch: int = 96
     """HR crop side in pixels."""
@@ -109,6 +118,8 @@ class TrainConfig:
             raise InvalidOptions(
                 f"a network of stride {self.stride} cannot be trained at x{self.scale}"
             )
+        if self.loss not in LOSSES:
+            raise InvalidOptions(f"unknown loss {self.loss!r}: use {', '.join(LOSSES)}")
         if self.steps < 1 or self.batch_size < 1:
             raise InvalidOptions("steps and batch size must be at least 1")
         if self.patch % self.scale or self.val_patch % self.scale:
@@ -496,7 +507,10 @@ def train(
             up = back_project(upscale_net(student, lr_img, config.scale), lr_img, config.scale)
             loss = interior_l1(up, hr_img, shave)
         else:
-            loss = interior_l1(upscale_net(student, lr_img, config.scale, first), hr_img, shave)
+            up = upscale_net(student, lr_img, config.scale, first)
+            if config.loss == "l1-backprojected":
+                up = back_project(up, lr_img, config.scale)
+            loss = interior_l1(up, hr_img, shave)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

@@ -202,6 +202,16 @@ def _graphics_line(nets: list) -> str:
     )
 
 
+def _loss_words(cfg: dict) -> str:
+    """The training loss of a config, as the model card states it."""
+    if cfg.get("loss") == "l1-backprojected":
+        return (
+            "L1 on the crop interior, of the output back-projected onto the LR crop (one step, "
+            "as pbrsr runs the network)."
+        )
+    return "L1 on the crop interior."
+
+
 def model_card(folders: list[Path], results: dict, table: str) -> str:
     """The model card of the trained sets: data, licence, degradation, scales, parameters,
     measured numbers and the command that made them."""
@@ -262,7 +272,7 @@ def model_card(folders: list[Path], results: dict, table: str) -> str:
         "`pbrsr_core/degrade.py`); normal LR crops renormalised." + _jpeg_line(nets),
         f"- Crops: {cfg.get('patch')}² HR, batch {cfg.get('batch_size')}, the eight "
         "flips/rotations (normal vectors rotated with the pixels)." + _graphics_line(nets),
-        f"- Loss: L1 on the crop interior. AdamW lr {cfg.get('lr')}, betas (0.9, 0.99), "
+        f"- Loss: {_loss_words(cfg)} AdamW lr {cfg.get('lr')}, betas (0.9, 0.99), "
         f"weight decay {cfg.get('weight_decay')}, halved at 40 % and 80 % of the steps; EMA "
         f"{cfg.get('ema')}; the best EMA weights by mean validation PSNR are kept. Seed "
         f"{cfg.get('seed')}.",

@@ -14,6 +14,7 @@ import torch
 
 import pbrsr_core.prior.train.data as data_mod
 from pbrsr_core.errors import InvalidOptions, PriorUnavailable
+from pbrsr_core.prior.backproject import back_project
 from pbrsr_core.prior.int8 import Calibration, FakeInt8
 from pbrsr_core.prior.registry import check_name, load_prior
 from pbrsr_core.prior.srmd import SRMD
@@ -28,7 +29,15 @@ from pbrsr_core.prior.train.data import (
     validation_crops,
 )
 from pbrsr_core.prior.train.graphics import graphics_crop, height_normals, normal_graphics_crop
-from pbrsr_core.prior.train.loop import TrainConfig, Validator, build_network, train
+from pbrsr_core.prior.train.loop import (
+    TrainConfig,
+    Validator,
+    build_network,
+    interior_l1,
+    train,
+    upscale_net,
+)
+from pbrsr_core.prior.train.report import model_card
 from pbrsr_core.prior.train.weights import load_network, save_network
 from pbrsr_core.prior.waifu2x import UpConv7
 from tests.clirun import run_cli
@@ -272,6 +281,34 @@ def test_bad_jpeg_range_is_refused():
         TrainConfig(jpeg=(0, 70)).check()
     with pytest.raises(InvalidOptions, match="JPEG share"):
         TrainConfig(jpeg=(70, 90), jpeg_share=0.0).check()
+
+
+@pytest.mark.parametrize("loss", ["l1", "l1-backprojected"])
+def test_loss_compares_the_output_as_it_is_or_backprojected(materials, tmp_path, one_thread, loss):
+    """The first step's loss is the L1 of the start weights' output on the first batch, taken
+    back-projected onto the LR crop for ``l1-backprojected``; the model card names it."""
+    train_m, val_m = materials
+    cfg = TrainConfig(kinds=("colour",), steps=1, batch_size=2, patch=32, val_patch=64,
+                      widths=TINY, init="random", loss=loss, scale=2)  # fmt: skip
+    seen: list[float] = []
+    train(cfg, train_m, val_m, tmp_path / "run" / "tiny-colour", name="tiny-colour", resume=False,
+          progress=lambda step, total, info: seen.append(info["loss"]))  # fmt: skip
+    net = build_network(cfg)
+    sampler = CropSampler(train_m, cfg.kinds, cfg.scale, cfg.patch, cfg.batch_size, cfg.seed)
+    lr, hr, _ = sampler.batch(0)
+    with torch.no_grad():
+        up = upscale_net(net, lr, cfg.scale)
+        raw = float(interior_l1(up, hr, 4 * cfg.scale))
+        projected = float(interior_l1(back_project(up, lr, cfg.scale), hr, 4 * cfg.scale))
+    assert raw != pytest.approx(projected, rel=1e-3)
+    assert seen[0] == pytest.approx(projected if loss == "l1-backprojected" else raw, rel=1e-5)
+    card = model_card([tmp_path / "run"], {}, "")
+    assert ("back-projected onto the LR crop" in card) == (loss == "l1-backprojected")
+
+
+def test_unknown_loss_is_refused():
+    with pytest.raises(InvalidOptions, match="unknown loss 'l2'"):
+        TrainConfig(loss="l2").check()
 
 
 class _Stop(Exception):
