@@ -53,7 +53,7 @@ class TrainConfig:
     scale: int = 2
     steps: int = 3000
     loss: str = "l1"
-    """One of :data:`LOSSES` (a distilling run compares back-projected outputs either way)."""
+    """One of :data:`LOSSES`; a distilling run (``distill``) has a loss of its own."""
     batch_size: int = 8
     patch: int = 96
     """HR crop side in pixels."""
@@ -120,6 +120,11 @@ class TrainConfig:
             )
         if self.loss not in LOSSES:
             raise InvalidOptions(f"unknown loss {self.loss!r}: use {', '.join(LOSSES)}")
+        if self.distill and self.loss != "l1":
+            raise InvalidOptions(
+                "--loss is for runs against the HR crop; a distilling run compares with its "
+                "teacher's output"
+            )
         if self.steps < 1 or self.batch_size < 1:
             raise InvalidOptions("steps and batch size must be at least 1")
         if self.patch % self.scale or self.val_patch % self.scale:

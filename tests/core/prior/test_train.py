@@ -309,6 +309,8 @@ def test_loss_compares_the_output_as_it_is_or_backprojected(materials, tmp_path,
 def test_unknown_loss_is_refused():
     with pytest.raises(InvalidOptions, match="unknown loss 'l2'"):
         TrainConfig(loss="l2").check()
+    with pytest.raises(InvalidOptions, match="distilling run"):
+        TrainConfig(loss="l1-backprojected", distill=True).check()
 
 
 class _Stop(Exception):
