@@ -39,8 +39,9 @@ LOSSES = ("l1", "l1-backprojected")
 """``l1``: L1 between the network's output and the HR crop. ``l1-backprojected``: L1 between
 the output after one back-projection step onto the LR crop (prior/backproject.py, as every
 network prior runs at inference and as validation scores it) and the HR crop, so that the
-network is not taught what that step puts right by itself (low-frequency offsets) and spends
-itself on the detail above the LR grid."""
+network is not taught what that step puts right by itself (low-frequency offsets). On pbr-srmd's
+colour network it scored no better than ``l1`` (docs/BENCHMARKS.md, "The loss compared after
+back-projection"), which stays the default."""
 HISTORY = "history.json"
 
 
