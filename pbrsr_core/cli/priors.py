@@ -125,6 +125,7 @@ def _run_training(
     graphics: float = 0.0,
     int8: bool = False,
     loss: str = "l1",
+    device: str = "auto",
 ) -> None:
     """Train one network per kind (or one for all with ``joint``) from ``init`` (see
     :func:`~pbrsr_core.prior.train.weights.resolve_start`); ``arch``, ``widths`` and
@@ -134,9 +135,11 @@ def _run_training(
     (from a set's later-pass network where ``init`` has one); ``distill``: it learns the first
     network's own second pass (without ``first``: the start weights' output) instead of the HR
     crop; ``graphics``: the share of colour and normal crops drawn procedurally; ``int8``: an
-    SRMD network trained through its int8 rounding."""
+    SRMD network trained through its int8 rounding; ``device``: where the networks train and
+    the report runs (:func:`~pbrsr_core.device.resolve_device`)."""
     from tqdm import tqdm
 
+    from ..device import resolve_device
     from ..errors import InvalidOptions
     from ..prior.train.data import (
         load_materials,
@@ -148,6 +151,7 @@ def _run_training(
     from ..prior.train.loop import TrainConfig, train
     from ..prior.train.weights import ARCHS, resolve_start, start_shape
 
+    dev = resolve_device(device)
     root = texture_folder(textures)
     manifest = read_manifest(root)
     train_names, held = split_materials(manifest)
@@ -235,6 +239,7 @@ def _run_training(
                 resume=resume,
                 progress=progress,
                 metadata=meta,
+                device=dev,
             )
         finally:
             if bar is not None:
@@ -247,7 +252,7 @@ def _run_training(
             _print_calibration(done)
     from ..prior.train.report import write_report
 
-    report = write_report(out, val, scale_list=(2, 4, 8))
+    report = write_report(out, val, scale_list=(2, 4, 8), device=dev)
     if not quiet:
         typer.echo(f"report: {report}")
 
@@ -312,6 +317,9 @@ _LOSS = typer.Option(
     help="l1: L1 of the network's output against the HR crop; l1-backprojected: of the output "
     "back-projected onto the LR crop, as the prior runs it.",
 )
+_DEVICE = typer.Option(
+    "auto", help="Where the networks train: auto (CUDA when there is one), cpu, cuda, cuda:N."
+)
 _RESUME = typer.Option(True, help="Continue from the folder's checkpoints.")
 _QUIET = typer.Option(False, "--quiet", "-q")
 
@@ -348,6 +356,7 @@ def train_cmd(
     distill: bool = _DISTILL,
     graphics: float = _GRAPHICS,
     loss: str = _LOSS,
+    device: str = _DEVICE,
     resume: bool = _RESUME,
     quiet: bool = _QUIET,
 ) -> None:
@@ -362,7 +371,9 @@ def finetune_cmd(
         "waifu2x-photo",
         "--from",
         help="Start weights: waifu2x-photo (UpConv7), realesr-animevideov3 (compact), "
-        "pbr-upconv7, texture:<folder> or a .safetensors file (a set's network for each kind).",
+        "pbr-upconv7, texture:<folder>, a .safetensors file (a set's network for each kind), or "
+        "spandrel:<file>: any SR model spandrel recognises (SwinIR, HAT, Real-ESRGAN, SPAN, "
+        "...), fine-tuned as it is (--stride its scale; for a farm's GPU).",
     ),
     out: Path = _OUT,
     textures: Path | None = _TEXTURES,
@@ -396,6 +407,7 @@ def finetune_cmd(
         "PBRSR_PRIOR_PRECISION=int8.",
     ),
     loss: str = _LOSS,
+    device: str = _DEVICE,
     resume: bool = _RESUME,
     quiet: bool = _QUIET,
 ) -> None:
@@ -411,6 +423,7 @@ def report_cmd(
     out: Path = typer.Option(..., "--out", "-o", help="Where report.md/.json/.png go."),
     textures: Path | None = _TEXTURES,
     scales: str = typer.Option("2,4,8", help="Scales, comma-separated."),
+    device: str = typer.Option("auto", help="Where the priors run: auto, cpu, cuda, cuda:N."),
 ) -> None:
     """Score trained priors side by side with bicubic and waifu2x-photo on the held-out
     materials (x2/x4/x8, per map kind), with their training curves and a model card."""
@@ -435,7 +448,10 @@ def report_cmd(
     root = texture_folder(textures)
     manifest = read_manifest(root)
     held = split_materials(manifest)[1]
-    md = write_report(out, load_materials(root, held, manifest), scale_t, folders=folders)
+    from ..device import resolve_device
+
+    held_m = load_materials(root, held, manifest)
+    md = write_report(out, held_m, scale_t, folders=folders, device=resolve_device(device))
     typer.echo(md.read_text())
 
 

@@ -110,6 +110,77 @@ def import_spandrel():
         return spandrel
 
 
+def _sr_descriptor(load, label: str):
+    """The spandrel descriptor ``load()`` returns (``label`` names its source in errors),
+    refused unless it is a single-image SR model from RGB to RGB at x2 or more."""
+    try:
+        spandrel = import_spandrel()
+    except ImportError as exc:
+        raise PriorUnavailable("spandrel priors need `pip install spandrel`") from exc
+    try:
+        desc = load(spandrel)
+    except spandrel.UnsupportedModelError as exc:
+        raise InvalidOptions(f"'{label}' is not a model architecture spandrel recognises") from exc
+    except (ValueError, RuntimeError, OSError, KeyError) as exc:
+        raise InvalidOptions(f"cannot load the prior weights '{label}': {exc}") from exc
+    if not isinstance(desc, spandrel.ImageModelDescriptor) or desc.purpose not in ("SR", "FaceSR"):
+        raise InvalidOptions(
+            f"'{label}' is a {desc.architecture.name} model for "
+            f"{getattr(desc, 'purpose', 'another task')}, not single-image super-resolution"
+        )
+    if desc.input_channels != 3 or desc.output_channels != 3 or desc.scale < 2:
+        raise InvalidOptions(
+            f"'{label}' maps {desc.input_channels} to {desc.output_channels} channels "
+            f"at x{desc.scale}; a prior must map RGB to RGB at x2 or more"
+        )
+    return desc
+
+
+def load_descriptor(path: Path, device: torch.device | str = "cpu"):
+    """The SR model in the weights file ``path``, a spandrel descriptor (:func:`_sr_descriptor`)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InvalidOptions(f"the prior weights file '{path.name}' does not exist")
+    return _sr_descriptor(lambda s: s.ModelLoader(device).load_from_file(path), path.name)
+
+
+class SpandrelNet(torch.nn.Module):
+    """A spandrel SR model as a network a texture prior trains and runs
+    (:mod:`pbrsr_core.prior.train`): ``net(x)`` takes (B, 3, h, w) in [0, 1] of any size
+    (padded to the model's size requirements as spandrel pads, the padding cut off the
+    output) to (B, 3, s*h, s*w), with gradients. ``architecture`` is spandrel's id of it;
+    :meth:`weights` the state dict spandrel recognises it by."""
+
+    widths: tuple[int, ...] = ()
+
+    def __init__(self, desc) -> None:
+        super().__init__()
+        self.model = desc.model
+        self.architecture = str(desc.architecture.id)
+        self.stride = int(desc.scale)
+        self.requirements = desc.size_requirements
+
+    @classmethod
+    def from_file(cls, path: Path) -> SpandrelNet:
+        return cls(load_descriptor(path))
+
+    @classmethod
+    def from_weights(cls, state: dict[str, torch.Tensor], label: str) -> SpandrelNet:
+        return cls(_sr_descriptor(lambda s: s.ModelLoader().load_from_state_dict(state), label))
+
+    def weights(self) -> dict[str, torch.Tensor]:
+        return self.model.state_dict()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h, w = x.shape[-2:]
+        pad_w, pad_h = self.requirements.get_padding(w, h)
+        if pad_w or pad_h:  # reflect as far as it reaches, then replicate (as spandrel)
+            rw, rh = min(pad_w, w - 1), min(pad_h, h - 1)
+            x = torch.nn.functional.pad(x, (0, rw, 0, rh), mode="reflect")
+            x = torch.nn.functional.pad(x, (0, pad_w - rw, 0, pad_h - rh), mode="replicate")
+        return self.model(x)[..., : h * self.stride, : w * self.stride]
+
+
 class SpandrelPrior(Prior):
     """A spandrel-loaded SR model (3 channels in and out, scale >= 2)."""
 
@@ -121,39 +192,13 @@ class SpandrelPrior(Prior):
         self.device = torch.device(device)
         path = Path(path)
         self.name = f"spandrel:{path.name}"
-        if not path.is_file():
-            raise InvalidOptions(f"the prior weights file '{path.name}' does not exist")
-        try:
-            spandrel = import_spandrel()
-        except ImportError as exc:
-            raise PriorUnavailable("spandrel priors need `pip install spandrel`") from exc
-        try:
-            desc = spandrel.ModelLoader(self.device).load_from_file(path)
-        except spandrel.UnsupportedModelError as exc:
-            raise InvalidOptions(
-                f"'{path.name}' is not a model architecture spandrel recognises"
-            ) from exc
-        except (ValueError, RuntimeError, OSError, KeyError) as exc:
-            raise InvalidOptions(f"cannot load the prior weights '{path.name}': {exc}") from exc
-        if not isinstance(desc, spandrel.ImageModelDescriptor) or desc.purpose not in (
-            "SR",
-            "FaceSR",
-        ):
-            raise InvalidOptions(
-                f"'{path.name}' is a {desc.architecture.name} model for "
-                f"{getattr(desc, 'purpose', 'another task')}, not single-image super-resolution"
-            )
-        if desc.input_channels != 3 or desc.output_channels != 3 or desc.scale < 2:
-            raise InvalidOptions(
-                f"'{path.name}' maps {desc.input_channels} to {desc.output_channels} channels "
-                f"at x{desc.scale}; a prior must map RGB to RGB at x2 or more"
-            )
+        desc = load_descriptor(path, self.device)
         self.descriptor = desc.eval().to(self.device)
         self.architecture = desc.architecture.name
         self.scales = (int(desc.scale),)
         req = desc.size_requirements
         self.min_size = max(1, int(req.minimum))
-        if desc.tiling == spandrel.ModelTiling.INTERNAL:
+        if desc.tiling == import_spandrel().ModelTiling.INTERNAL:
             self.tile_size = 1 << 20  # never tile: the model needs the whole image
         self._lock = threading.Lock()
 

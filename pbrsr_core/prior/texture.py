@@ -25,6 +25,7 @@ import torch
 from ..errors import PriorUnavailable
 from .base import Prior
 from .int8 import METADATA_KEY, Calibration, Int8SRMD
+from .spandrel_prior import SpandrelNet, SpandrelPrior
 from .srmd import SRMD
 from .train.weights import Network, file_sha256, load_network, read_metadata
 
@@ -191,6 +192,11 @@ class TexturePrior(Prior):
                 self.later[kind] = loaded[f]
             else:
                 self.nets.setdefault(kind, {})[stride] = loaded[f]
+        self.spandrel = any(isinstance(n, SpandrelNet) for n in loaded.values())
+        """Any of the networks a spandrel model (fine-tuned from ``spandrel:<file>``): tiles
+        sized for SpandrelPrior's memory per pixel (transformers need far more than CNNs)."""
+        if self.spandrel:
+            self.bytes_per_pixel = SpandrelPrior.bytes_per_pixel
         self.fallback = fallback
         self.x4_only = x4_only
         """Kinds whose x4 network makes x4 only; their other scales are x2 passes."""
@@ -249,7 +255,7 @@ class TexturePrior(Prior):
         # one pass of a stride-4 network has every layer but its head at the LR size: the
         # overlap a tile recomputes costs more than the memory traffic of a larger tile (SRMD,
         # x4 of a 1024² input on a 2-core EPYC: 28.9 s untiled, 32.2 s in 9 tiles)
-        if self._passes(kind, scale) == [4]:
+        if self._passes(kind, scale) == [4] and not self.spandrel:
             return self.one_pass_bytes_per_pixel, 1024
         return self.bytes_per_pixel, self.cpu_tile_max
 

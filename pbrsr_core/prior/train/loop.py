@@ -6,14 +6,17 @@ safetensors (:mod:`pbrsr_core.prior.texture` loads them).
 
 The network is an :class:`~pbrsr_core.prior.waifu2x.UpConv7`, a
 :class:`~pbrsr_core.prior.compact.Compact`, a :class:`~pbrsr_core.prior.span.Span` or a
-:class:`~pbrsr_core.prior.srmd.SRMD` network, of stride 2 or 4 (x4 training of a stride-2
-network chains two passes with a clamp between them, as inference does). A run with ``first``
+:class:`~pbrsr_core.prior.srmd.SRMD` network, or any SR model spandrel loads
+(:class:`~pbrsr_core.prior.spandrel_prior.SpandrelNet`, fine-tuned from its weights file), of
+stride 2 or 4 (x4 training of a stride-2 network chains two passes with a clamp between them,
+as inference does). A run with ``first``
 trains a later-pass network: the frozen ``first`` network makes the first x2 pass, the trained
 one the second; the run's folder gets a copy of the first network beside the trained one, so
 the folder is a texture set of its own."""
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import os
@@ -64,7 +67,8 @@ class TrainConfig:
     seed: int = 0
     arch: str = "upconv7"
     """``upconv7``, ``compact``, ``span`` or ``srmd``
-    (:func:`~pbrsr_core.prior.train.weights.new_network`)."""
+    (:func:`~pbrsr_core.prior.train.weights.new_network`), or ``spandrel`` (``init``
+    ``spandrel:<file>``: the file's architecture and scale, no widths)."""
     widths: tuple[int, ...] = (16, 32, 64, 128, 128, 256)
     stride: int = 2
     """Upscaling of one network pass: 2 (``scale`` 4 chains two passes) or 4."""
@@ -87,7 +91,8 @@ class TrainConfig:
     while that error was learnt away); validation scores the HR crops."""
     init: str = "waifu2x-photo"
     """Start weights: ``waifu2x-photo`` (UpConv7), ``realesr-animevideov3`` (compact), ``srmdnf``
-    (SRMD, of the run's stride), a weights file, or ``random`` (seeded). Start weights of
+    (SRMD, of the run's stride), a weights file, ``spandrel:<file>`` (any SR model spandrel
+    recognises, of the run's stride), or ``random`` (seeded). Start weights of
     another stride give the convolutions; the new head starts at random."""
     jpeg: tuple[int, int] | None = None
     """JPEG stage of the LR model: a quality range (inclusive) for ``jpeg_share`` of the LR
@@ -147,10 +152,13 @@ class TrainConfig:
             )
         if not (0.0 <= self.ema < 1.0):
             raise InvalidOptions(f"ema must be in [0, 1), not {self.ema}")
-        try:
-            weights.new_network(self.arch, self.widths, self.stride, self.residual)
-        except ValueError as exc:
-            raise InvalidOptions(str(exc)) from exc
+        if self.arch == "spandrel" or self.init.startswith(weights.SPANDREL):
+            self._check_spandrel()
+        else:
+            try:
+                weights.new_network(self.arch, self.widths, self.stride, self.residual)
+            except ValueError as exc:
+                raise InvalidOptions(str(exc)) from exc
         if self.int8 and (self.arch != "srmd" or self.first is not None):
             raise InvalidOptions("--int8 trains an SRMD network that makes every pass itself")
         if self.first is not None:
@@ -173,6 +181,25 @@ class TrainConfig:
                     "distil"
                 )
 
+    def _check_spandrel(self) -> None:
+        """A spandrel model is fine-tuned as its file has it: the file's scale is the stride."""
+        if self.arch != "spandrel" or not self.init.startswith(weights.SPANDREL):
+            raise InvalidOptions(
+                "a spandrel network is fine-tuned from its weights: --from spandrel:<file>"
+            )
+        if self.widths or self.residual or self.int8 or self.first is not None:
+            raise InvalidOptions(
+                "a spandrel network trains as its file has it: no --widths, --residual, --int8 "
+                "or --first"
+            )
+        net = start_network(self.init, self.stride)
+        if net.stride != self.stride:
+            raise InvalidOptions(
+                f"'{self.init[len(weights.SPANDREL) :]}' is an x{net.stride} "
+                f"{net.architecture} model: train it with --stride {net.stride} and a --scale "
+                f"it divides"
+            )
+
 
 @dataclass
 class History:
@@ -193,7 +220,11 @@ validation, ``val`` (mean PSNR)."""
 
 def start_network(init: str, stride: int = 2) -> weights.Network:
     """The start weights ``init`` names (not ``random``) as a network; SRMD's of ``stride``
-    (its package has a network per scale)."""
+    (its package has a network per scale); ``spandrel:<file>`` the model in the file."""
+    if init.startswith(weights.SPANDREL):
+        from ..spandrel_prior import SpandrelNet
+
+        return SpandrelNet.from_file(Path(init[len(weights.SPANDREL) :]).expanduser())
     if init == "waifu2x-photo":
         from ..ncnn import read_model
         from ..waifu2x import INSTALL_HINT, model_files
@@ -253,6 +284,8 @@ def build_network(config: TrainConfig, materials: list[Material] | None = None) 
     them, its convolutions refit on LR crops of ``materials`` where given (drawn as the run
     draws its batches, with another seed)."""
     torch.manual_seed(config.seed)
+    if config.arch == "spandrel":  # the file's model as it is (TrainConfig.check)
+        return start_network(config.init, config.stride)
     net = weights.new_network(config.arch, config.widths, config.stride, config.residual)
     if config.init == "random":
         return net
@@ -342,7 +375,8 @@ class Validator:
 
     With ``first`` (a later-pass run's frozen network) the network runs behind one pass of it.
     With ``distill`` too, the network is scored as what it learns: its pass on ``first``'s
-    output against ``first``'s own second pass; "bicubic" is then a bicubic second pass."""
+    output against ``first``'s own second pass; "bicubic" is then a bicubic second pass. The
+    crops are kept on ``device``, the networks'."""
 
     def __init__(
         self,
@@ -352,6 +386,7 @@ class Validator:
         patch: int,
         first: weights.Network | None = None,
         distill: bool = False,
+        device: torch.device | str = "cpu",
     ) -> None:
         self.scale, self.sets, self.first = scale, {}, first
         self.teacher = teacher = first if distill else None
@@ -360,7 +395,7 @@ class Validator:
             if not crops:
                 continue
             hr = torch.stack([torch.from_numpy(c).permute(2, 0, 1).float() / 255 for _, c in crops])
-            lr = degrade_pair(hr, scale, kind)
+            lr, hr = degrade_pair(hr, scale, kind).to(device), hr.to(device)
             if teacher is not None:  # its first pass, and its second pass on that
                 with torch.no_grad():
                     lr = _in_fours(lambda t: teacher(t).clamp(0, 1), lr)
@@ -420,6 +455,7 @@ def train(
     resume: bool = True,
     progress: Progress | None = None,
     metadata: dict[str, str] | None = None,
+    device: torch.device | str = "cpu",
 ) -> tuple[Path, History]:
     """Train (or resume) one network; returns the best weights file and the history.
 
@@ -427,7 +463,8 @@ def train(
     ``history.json`` and ``<name>.safetensors`` (the best EMA weights by mean validation
     PSNR); a run with ``first`` also ``<name>-first.safetensors``, a copy of the first-pass
     network. A run with ``resume`` picks up its checkpoint and draws the same batches it would
-    have drawn without the interruption."""
+    have drawn without the interruption. The networks train on ``device``; a checkpoint is
+    read onto the CPU and copied into them wherever they are."""
     config.check()
     out_dir.mkdir(parents=True, exist_ok=True)
     if config.threads:
@@ -435,21 +472,19 @@ def train(
     first = None
     meta = {**(metadata or {}), "name": name}
     if config.first is not None:
-        first = first_network(config)
-        copy = out_dir / f"{name}-first.safetensors"
-        if Path(config.first).resolve() != copy.resolve():
-            shutil.copyfile(config.first, copy)
-        meta["first_sha256"] = weights.file_sha256(copy)
+        first = first_network(config).to(device)
+        first_file = out_dir / f"{name}-first.safetensors"
+        if Path(config.first).resolve() != first_file.resolve():
+            shutil.copyfile(config.first, first_file)
+        meta["first_sha256"] = weights.file_sha256(first_file)
     # a later-pass run distils its first network's second pass (below); any other, its start
-    teacher = teacher_network(config) if config.distill and first is None else None
+    teacher = teacher_network(config).to(device) if config.distill and first is None else None
     history, start = History(), 0
     ckpt = out_dir / CHECKPOINT
     resuming = resume and ckpt.is_file()
     # resuming, the checkpoint holds the weights: no refit of a pruned start
-    net = build_network(config, None if resuming else train_materials).train()
-    ema = weights.new_network(config.arch, config.widths, config.stride, config.residual)
-    ema.load_state_dict(net.state_dict())
-    ema.eval().requires_grad_(False)
+    net = build_network(config, None if resuming else train_materials).to(device).train()
+    ema = copy.deepcopy(net).eval().requires_grad_(False)
     opt = torch.optim.AdamW(
         net.parameters(), lr=config.lr, betas=(0.9, 0.99), weight_decay=config.weight_decay
     )
@@ -465,7 +500,7 @@ def train(
         config.graphics,
     )
     validator = Validator(
-        val_materials, config.kinds, config.scale, config.val_patch, first, config.distill
+        val_materials, config.kinds, config.scale, config.val_patch, first, config.distill, device
     )
     best_file = out_dir / f"{name}.safetensors"
     state: dict = {}
@@ -490,7 +525,7 @@ def train(
         else:
             crops = calibration_crops(train_materials, config.kinds, config.scale, config.patch,
                                       INT8_CALIBRATION_CROPS, config.seed + 1)  # fmt: skip
-            calibration = calibrate(net, crops)
+            calibration = calibrate(net, crops.to(device))
         student = FakeInt8(net, calibration)
     if not history.val_bicubic:
         history.val_bicubic = validator.bicubic()
@@ -501,6 +536,7 @@ def train(
         for group in opt.param_groups:
             group["lr"] = _lr_at(config, step)
         lr_img, hr_img, _ = sampler.batch(step)
+        lr_img, hr_img = lr_img.to(device), hr_img.to(device)
         if first is not None and config.distill:
             with torch.no_grad():
                 mid = first(lr_img).clamp(0.0, 1.0)

@@ -67,19 +67,21 @@ def evaluate(
     val_materials: list[Material],
     scales: tuple[int, ...] = (2, 4, 8),
     baselines: tuple[str, ...] = ("bicubic", "waifu2x-photo"),
+    device: torch.device | str = "cpu",
 ) -> dict:
     """{kind: {scale: {prior label: scores}}} on the held-out crops, for the kinds the
-    trained sets in ``folders`` have networks for (every kind when there are none)."""
+    trained sets in ``folders`` have networks for (every kind when there are none); the
+    priors run on ``device``."""
     from ..registry import load_prior
     from ..texture import TexturePrior
 
     priors: dict[str, Prior] = {}
     for name in baselines:
-        priors[name] = load_prior(name)
+        priors[name] = load_prior(name, device)
     for folder in folders:
         files = network_files(folder)
         if files:
-            priors[folder.name] = TexturePrior(files, name=folder.name)
+            priors[folder.name] = TexturePrior(files, device, name=folder.name)
     trained = [p for p in priors.values() if isinstance(p, TexturePrior)]
     kinds = [k for k in KINDS if not trained or any(k in p.nets for p in trained)]
     results: dict = {}
@@ -158,12 +160,14 @@ def write_report(
     val_materials: list[Material],
     scale_list: tuple[int, ...] = (2, 4, 8),
     folders: list[Path] | None = None,
+    device: torch.device | str = "cpu",
 ) -> Path:
-    """Evaluate the trained sets in ``folders`` (default: ``out``) and write report.png,
-    report.json, report.md and MODEL_CARD.md into ``out``. Returns report.md's path."""
+    """Evaluate the trained sets in ``folders`` (default: ``out``) on ``device`` and write
+    report.png, report.json, report.md and MODEL_CARD.md into ``out``. Returns report.md's
+    path."""
     out.mkdir(parents=True, exist_ok=True)
     folders = folders or [out]
-    results = evaluate(folders, val_materials, scale_list)
+    results = evaluate(folders, val_materials, scale_list, device=device)
     (out / "report.json").write_text(json.dumps(results, indent=1))
     _plot(folders, out / "report.png")
     table = _table(results)
@@ -231,7 +235,7 @@ def model_card(folders: list[Path], results: dict, table: str) -> str:
     own = [n for n in nets if n[1].get("name") == n[0].parent.name] or nets
     meta0 = own[0][1]
     held = meta0.get("held_out", "").split(",")
-    archs = sorted({ARCH_NAMES.get(meta.get("arch", ""), "UpConv7") for _, meta, _, _ in own})
+    archs = sorted({_arch_name(meta) for _, meta, _, _ in own})
     lines = [
         f"# Model card: texture priors ({' and '.join(archs)} trained on PBR maps)",
         "",
@@ -298,6 +302,13 @@ def model_card(folders: list[Path], results: dict, table: str) -> str:
 
 
 ARCH_NAMES = {"upconv7": "UpConv7", "compact": "SRVGGNetCompact", "span": "SPAN", "srmd": "SRMD"}
+
+
+def _arch_name(meta: dict[str, str]) -> str:
+    """A network file's architecture as the card names it (a spandrel model: spandrel's id)."""
+    if meta.get("arch") == "spandrel":
+        return meta.get("architecture", "spandrel")
+    return ARCH_NAMES.get(meta.get("arch", ""), "UpConv7")
 
 
 def _start_line(nets: list) -> str:

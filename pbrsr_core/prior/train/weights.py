@@ -11,10 +11,11 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from ...errors import PriorUnavailable
+from ...errors import InvalidOptions, PriorUnavailable
 from ..compact import START as COMPACT_START
 from ..compact import Compact
 from ..span import Span
+from ..spandrel_prior import SpandrelNet
 from ..srmd import SRMD
 from ..srmd import START as SRMD_START
 from ..waifu2x import UpConv7
@@ -22,14 +23,19 @@ from ..waifu2x import UpConv7
 if TYPE_CHECKING:
     from .loop import TrainConfig
 
-Network = UpConv7 | Compact | Span | SRMD
-ARCHS = ("upconv7", "compact", "span", "srmd")
+Network = UpConv7 | Compact | Span | SRMD | SpandrelNet
+ARCHS = ("upconv7", "compact", "span", "srmd", "spandrel")
+SPANDREL = "spandrel:"
+"""Start weights of this prefix: any SR model spandrel recognises, fine-tuned as it is (its
+architecture and scale are the file's; :class:`~pbrsr_core.prior.spandrel_prior.SpandrelNet`)."""
 HALF_ARCHS = ("srmd",)
 """Architectures whose weights are stored as float16, as their ncnn start weights are: an SRMD
 network takes 3.1 MB where float32 would take 6.2 MB."""
 
 
 def arch_of(net: Network) -> str:
+    if isinstance(net, SpandrelNet):
+        return "spandrel"
     if isinstance(net, Span):
         return "span"
     if isinstance(net, SRMD):
@@ -43,7 +49,10 @@ def new_network(arch: str, widths: tuple[int, ...], stride: int, residual: bool 
     ``len(widths)`` blocks of ``widths[0]`` features, or an SRMD network of ``len(widths)``
     convolutions of ``widths[0]`` features (all three: all widths equal). A ``residual``
     UpConv7 (bicubic plus the network) starts with its last layer at zero, so at step 0 it is
-    bicubic exactly, as a SPAN network always does."""
+    bicubic exactly, as a SPAN network always does. A ``spandrel`` network has no random
+    start: its weights file (``--from spandrel:FILE``) is what it is."""
+    if arch == "spandrel":
+        raise ValueError("a spandrel network starts from its weights: --from spandrel:<file>")
     if arch in ("compact", "span", "srmd"):
         if len(set(widths)) != 1:
             raise ValueError(f"a {arch} network has equal widths, not {widths}")
@@ -73,12 +82,15 @@ def head_prefix(net: Network) -> str:
 def save_network(net: Network, path: Path, config: TrainConfig, extra: dict[str, str]) -> None:
     """Write ``net``'s weights (float32; :data:`HALF_ARCHS` float16) with metadata: ``arch``,
     its shape (UpConv7: ``widths``, ``slope``, ``residual``; compact and SRMD: ``feat``,
-    ``convs``; SPAN: ``feat``, ``blocks``), ``stride``, ``pass`` (``first``, or ``later``: a
-    network trained behind another that runs the first x2 pass),
+    ``convs``; SPAN: ``feat``, ``blocks``; spandrel: its ``architecture``, the tensors its
+    model's own state dict, which spandrel recognises it by), ``stride``, ``pass``
+    (``first``, or ``later``: a network trained behind another that runs the first x2 pass),
     ``kinds``, ``scale``, the training config as JSON and ``extra``."""
     from safetensors.torch import save_file
 
-    if isinstance(net, Compact | SRMD):
+    if isinstance(net, SpandrelNet):
+        shape = {"architecture": net.architecture}
+    elif isinstance(net, Compact | SRMD):
         shape = {"feat": str(net.feat), "convs": str(net.convs)}
     elif isinstance(net, Span):
         shape = {"feat": str(net.feat), "blocks": str(net.blocks)}
@@ -96,7 +108,8 @@ def save_network(net: Network, path: Path, config: TrainConfig, extra: dict[str,
         **{k: str(v) for k, v in extra.items()},
     }
     dtype = torch.float16 if arch_of(net) in HALF_ARCHS else torch.float32
-    tensors = {k: v.detach().to(dtype).contiguous() for k, v in net.state_dict().items()}
+    state = net.weights() if isinstance(net, SpandrelNet) else net.state_dict()
+    tensors = {k: v.detach().to("cpu", dtype).contiguous() for k, v in state.items()}
     tmp = path.with_suffix(".tmp")
     save_file(tensors, str(tmp), metadata=meta)
     tmp.replace(path)
@@ -144,6 +157,14 @@ def load_network(path: Path) -> Network:
     try:
         stride = int(meta.get("stride", "2"))
         net: Network
+        if arch == "spandrel":
+            net = SpandrelNet.from_weights(load_file(str(path)), path.name)
+            if (net.architecture, net.stride) != (meta.get("architecture"), stride):
+                raise ValueError(
+                    f"spandrel reads a x{net.stride} {net.architecture} network, the file says "
+                    f"x{stride} {meta.get('architecture')}"
+                )
+            return net.eval()
         if arch == "compact":
             net = Compact(int(meta["feat"]), int(meta["convs"]), stride)
         elif arch == "span":
@@ -159,7 +180,7 @@ def load_network(path: Path) -> Network:
                 residual=meta.get("residual", "0") == "1",
             )
         net.load_state_dict(load_file(str(path)))
-    except (KeyError, ValueError, RuntimeError) as exc:
+    except (KeyError, ValueError, RuntimeError, InvalidOptions) as exc:
         raise PriorUnavailable(
             f"'{path.name}': weights do not match their metadata: {exc}"
         ) from exc
@@ -169,6 +190,8 @@ def load_network(path: Path) -> Network:
 def start_shape(start: str, arch: str) -> tuple[str, tuple[int, ...], bool]:
     """(architecture, widths, residual) of the start weights ``start`` (a
     :func:`resolve_start` result); ``random`` takes ``arch`` at its default widths."""
+    if start.startswith(SPANDREL):
+        return "spandrel", (), False
     if start == "random":
         if arch == "span":
             return arch, Span().widths, False
@@ -187,11 +210,12 @@ def start_shape(start: str, arch: str) -> tuple[str, tuple[int, ...], bool]:
 
 def resolve_start(source: str, kind: str, stride: int, later: bool = False) -> str:
     """The start weights of a network for ``kind`` maps: ``random``, ``waifu2x-photo`` and
-    ``realesr-animevideov3`` as they are, a ``.safetensors`` file as it is, and a texture prior
+    ``realesr-animevideov3`` as they are, a ``.safetensors`` file and ``spandrel:<file>`` as
+    they are, and a texture prior
     (a shipped set, ``texture:<folder>``) as its file for ``kind`` (of ``stride`` where it
     has one; with ``later``, its later-pass network where it has one)."""
     named = ("random", "waifu2x-photo", COMPACT_START, SRMD_START)
-    if source in named or source.endswith(".safetensors"):
+    if source in named or source.endswith(".safetensors") or source.startswith(SPANDREL):
         return source
     from ..texture import SHIPPED, shipped_files, weight_files
 
@@ -204,7 +228,7 @@ def resolve_start(source: str, kind: str, stride: int, later: bool = False) -> s
         raise PriorUnavailable(
             f"cannot start from {source!r}: use random, waifu2x-photo, {COMPACT_START}, "
             f"{SRMD_START}, "
-            f"{', '.join(SHIPPED)}, texture:<folder> or a .safetensors file"
+            f"{', '.join(SHIPPED)}, texture:<folder>, spandrel:<file> or a .safetensors file"
         )
     files = weight_files(folder)
     keys = [(kind, stride, "first"), *((kind, s, "first") for s in (2, 4) if s != stride)]
