@@ -118,8 +118,9 @@ class Settings(BaseSettings):
     npm_dir: Path | None = Field(None, description="node_modules holding the TF.js prior.")
     models_dir: Path | None = Field(
         None,
-        description="Folder of extra prior weights a job may name as 'spandrel:<file>' or "
-        "'diffusion:<folder>'; unset = only built-in priors.",
+        description="Folder of extra prior weights a job may name as 'spandrel:<file>', "
+        "'diffusion:<folder>' or 'texture:<folder>' (a set pbrsr priors train|finetune wrote); "
+        "unset = only built-in priors.",
     )
     envmap_dir: Path | None = Field(
         None,

@@ -593,8 +593,9 @@ def resolve_options(raw: dict[str, Any], settings: Any, *, device: str | None = 
     """Validate a job's user options and turn names into server paths.
 
     ``raw`` is what the client sent (a JSON object). Clients name server-side files only by
-    bare names: ``envmap`` is a file in ``settings.envmap_dir``; a prior ``spandrel:<file>`` or
-    ``diffusion:<folder>`` lives in ``settings.models_dir``. The device is the worker's
+    bare names: ``envmap`` is a file in ``settings.envmap_dir``; a prior ``spandrel:<file>``,
+    ``diffusion:<folder>`` or ``texture:<folder>`` (a set ``pbrsr priors train|finetune``
+    wrote) lives in ``settings.models_dir``. The device is the worker's
     (``device``), never the client's. Returns a ``UpscaleOptions``; raises ``InvalidOptions``
     with a message naming the field.
     """
@@ -622,9 +623,10 @@ def resolve_options(raw: dict[str, Any], settings: Any, *, device: str | None = 
         update["envmap"] = str(_named_file(options.envmap, settings.envmap_dir, "envmap"))
     if ":" in options.prior:
         kind, _, name = options.prior.partition(":")
-        if kind not in ("spandrel", "diffusion"):
+        if kind not in ("spandrel", "diffusion", "texture"):
             raise InvalidOptions(
-                f"unknown prior kind {kind!r}: use spandrel:<file> or diffusion:<folder>"
+                f"unknown prior kind {kind!r}: use spandrel:<file>, diffusion:<folder> or "
+                "texture:<folder>"
             )
         update["prior"] = f"{kind}:{_named_file(name, settings.models_dir, 'prior')}"
     if device is not None:

@@ -12,6 +12,7 @@ from urllib.parse import urljoin
 
 import numpy as np
 import pytest
+import torch
 from fastapi.testclient import TestClient
 from PIL import Image
 
@@ -34,7 +35,9 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def env(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("worker-e2e")
-    settings = make_settings(tmp, worker_memory_mb=8192)  # a budget, not the machine's
+    (tmp / "models").mkdir()
+    # a memory budget, not the machine's; the server's own priors in models/
+    settings = make_settings(tmp, worker_memory_mb=8192, models_dir=tmp / "models")
     with (
         worker_process(settings, tmp / "worker.log") as proc,
         TestClient(create_app(settings), raise_server_exceptions=False) as client,
@@ -251,3 +254,27 @@ def test_a_worker_takes_high_priority_jobs_first(tmp_path):
             assert started["high"] < started["normal"] < started["low"], started
     finally:
         cleanup_redis(settings)
+
+
+def test_a_job_names_a_texture_set_from_the_servers_models_folder(env):
+    """A set ``pbrsr priors train|finetune`` wrote, put in PBRSR_MODELS_DIR, is a job's
+    ``texture:<name>`` prior; a name the folder does not hold is refused before queueing."""
+    from pbrsr_core.prior.train.loop import TrainConfig
+    from pbrsr_core.prior.train.weights import new_network, save_network
+
+    settings, client, proc, tmp = env
+    cfg = TrainConfig(kinds=("colour",), widths=(4, 8), init="random")
+    torch.manual_seed(0)
+    net = new_network(cfg.arch, cfg.widths, cfg.stride)
+    (tmp / "models" / "farm-set" / "farm-colour").mkdir(parents=True)
+    save_network(net, tmp / "models" / "farm-set" / "farm-colour" / "farm-colour.safetensors",
+                 cfg, {})  # fmt: skip
+    options = {"method": "direct", "prior": "texture:farm-set", "scale": 2}
+    r = post_asset(client, asset_bytes(tmp), options=options)
+    assert r.status_code == 202, r.text
+    job = _wait_state(client, r.json()["id"], ("finished", "failed", "canceled"), 150)
+    assert job["status"] == "finished", job
+    report = client.get(f"/v1/jobs/{job['id']}/files/report.json").json()
+    assert report["options"]["prior"] == f"texture:{tmp / 'models' / 'farm-set'}"
+    r = post_asset(client, asset_bytes(tmp), options={**options, "prior": "texture:other-set"})
+    assert r.status_code == 422 and "not available on this server" in r.text
