@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -24,6 +24,8 @@ class Limits:
 
 class _Sized(Protocol):
     @property
+    def index(self) -> int: ...
+    @property
     def name(self) -> str: ...
     @property
     def width(self) -> int: ...
@@ -31,14 +33,16 @@ class _Sized(Protocol):
     def height(self) -> int: ...
 
 
-def check_output_size(images: Iterable[_Sized], scale: int, limits: Limits) -> None:
-    """Refuse (LimitExceeded) an image whose side times ``scale`` is over ``max_output_dim``."""
+def check_output_size(images: Iterable[_Sized], scales: Mapping[int, int], limits: Limits) -> None:
+    """Refuse (LimitExceeded) an image whose side times its factor (``scales`` by image index)
+    is over ``max_output_dim``."""
     for img in images:
+        scale = scales[img.index]
         if max(img.width, img.height) * scale > limits.max_output_dim:
             raise LimitExceeded(
                 f"image '{img.name}' is {img.width}x{img.height}; x{scale} would be "
                 f"{img.width * scale}x{img.height * scale}, over the output limit of "
-                f"{limits.max_output_dim} pixels per side"
+                f"{limits.max_output_dim} pixels per side (max_size caps it per map)"
             )
 
 

@@ -88,6 +88,19 @@ def upscalable_images(asset: Asset) -> list[ImageData]:
     return [img for img in asset.images if img.roles]
 
 
+def map_scales(images: list[ImageData], scale: int, max_size: int | None) -> dict[int, int]:
+    """Per image index, the factor its map is upscaled by: ``scale``, or with ``max_size`` the
+    largest of ``scale``, ``scale / 2``, ... whose output is at most ``max_size`` px on a side;
+    1 (the map kept as it is) where even x2 would be larger."""
+    out = {}
+    for img in images:
+        f = scale
+        while max_size is not None and f > 1 and max(img.width, img.height) * f > max_size:
+            f //= 2
+        out[img.index] = f
+    return out
+
+
 def to_param(image: ImageData) -> torch.Tensor:
     """Stored pixels -> optimisation space (H, W, C): colour RGB linearised (alpha stays)."""
     px = torch.from_numpy(np.ascontiguousarray(image.pixels, dtype=np.float32))

@@ -20,7 +20,17 @@ class UpscaleOptions(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    scale: Literal[2, 4, 8] = Field(4, description="Upscaling factor of every texture.")
+    scale: Literal[2, 4, 8] = Field(
+        4, description="Upscaling factor of every texture (max_size may lower it per map)."
+    )
+    max_size: int | None = Field(
+        None,
+        ge=2,
+        le=65536,
+        description="Largest output texture side in pixels: a map that scale would make larger "
+        "is upscaled by the largest of scale/2, scale/4 that fits, and kept as it is where x2 "
+        "would not fit. None: every map at scale.",
+    )
     method: Method = Field(
         "pbrsr",
         description="pbrsr: the PBR-SR optimizer; direct: the prior applied to each map; "

@@ -34,7 +34,7 @@ from .asset import (
 from .asset.model import MAP_ROLES, Asset
 from .crops import write_map_crops
 from .device import resolve_device
-from .errors import PbrsrError, StorageError, UnprocessableAsset
+from .errors import InvalidOptions, PbrsrError, StorageError, UnprocessableAsset
 from .footprint import check_memory, estimate_peak_bytes
 from .initial_maps import (
     blended_channels,
@@ -51,6 +51,7 @@ from .maps import (
     image_wrap,
     kind_of,
     map_file_stem,
+    map_scales,
     param_to_encoded,
     role_label,
     upscalable_images,
@@ -90,17 +91,25 @@ def _resolve_input(input_path: Path, work_dir: Path, limits: Limits) -> Path:
 
 
 def _check_footprint(images, options: UpscaleOptions, config, budget: int) -> None:
+    """Refuse a run whose peak memory estimate is over ``budget``: the largest of its factor
+    groups' (they run one after the other), with the float32 HR maps of the groups before it."""
     from .optim.presets import run_config
 
     if options.method == "pbrsr" and config is None:
         config = run_config(options.preset, options.iterations)
-    sizes = [(img.width, img.height, int(img.pixels.shape[2])) for img in images]
-    what = (
-        f"x{options.scale} of {len(images)} maps (largest {max(max(w, h) for w, h, _ in sizes)} px)"
-    )
+    factors = checked_map_scales(images, options, config)
+    sizes = {img.index: (img.width, img.height, int(img.pixels.shape[2])) for img in images}
+    largest = max(max(w, h) for w, h, _ in sizes.values())
+    what = f"x{options.scale} of {len(images)} maps (largest {largest} px)"
+    if options.max_size is not None:
+        what += f" at most {options.max_size} px"
     if options.method == "pbrsr":
         what += f" with the {options.preset} preset"
-    estimate = estimate_peak_bytes(sizes, options.scale, options.method, config)
+    estimate, held = 0, 0
+    for f in sorted({f for f in factors.values() if f > 1}, reverse=True):
+        group = [sizes[i] for i, g in factors.items() if g == f]
+        estimate = max(estimate, held + estimate_peak_bytes(group, f, options.method, config))
+        held += sum(4 * w * h * c * f * f for w, h, c in group)
     check_memory(estimate, budget, what)
 
 
@@ -111,6 +120,75 @@ def load_light(envmap: str | None) -> EnvLight:
 def _upscale_maps(
     asset: Asset,
     options: UpscaleOptions,
+    config: PbrsrConfig | None,
+    run: Callable[[list[ImageData], UpscaleOptions], tuple[dict[int, np.ndarray], dict]],
+) -> tuple[dict[int, np.ndarray], dict]:
+    """HR maps (stored encoding) for every used image ``options.max_size`` does not keep, and
+    method-specific report fields. The maps of each factor (:func:`map_scales`) go to
+    ``run(images, options at that scale)`` (:func:`_upscale_group`) as one group, the larger
+    factors first (a metallic-roughness map whose colour map runs at another factor is blended
+    without it as guide); a map kept at its size has no HR map."""
+    images = upscalable_images(asset)
+    factors = checked_map_scales(images, options, config)
+    groups: dict[int, list[ImageData]] = {}
+    for img in images:
+        groups.setdefault(factors[img.index], []).append(img)
+    if list(groups) == [options.scale]:
+        return run(images, options)
+    out: dict[int, np.ndarray] = {}
+    report: dict = {}
+    for f in sorted((f for f in groups if f > 1), reverse=True):
+        hr, part = run(groups[f], options.model_copy(update={"scale": f}))
+        out.update(hr)
+        _merge_report(report, part)
+    return out, report
+
+
+def checked_map_scales(
+    images: list[ImageData], options: UpscaleOptions, config: PbrsrConfig | None = None
+) -> dict[int, int]:
+    """Per image index, the factor ``options`` upscales it by (:func:`map_scales`). Refused
+    (UnprocessableAsset) when ``max_size`` keeps every map, and (InvalidOptions) when it puts
+    the maps at several factors and the run takes optimiser steps: their renders take every
+    map of a material at one factor."""
+    from .optim.presets import run_config
+
+    factors = map_scales(images, options.scale, options.max_size)
+    upscaled = sorted({f for f in factors.values() if f > 1}, reverse=True)
+    if not upscaled:
+        raise UnprocessableAsset(
+            f"nothing to upscale: every map would be over max_size ({options.max_size} px) at x2"
+        )
+    steps = options.method == "pbrsr" and bool(
+        (config or run_config(options.preset, options.iterations)).iterations
+    )
+    if steps and len(set(factors.values())) > 1:
+        at = sorted(set(factors.values()), reverse=True)
+        raise InvalidOptions(
+            f"max_size {options.max_size} puts the maps at "
+            + " and ".join(f"x{f}" if f > 1 else "x1 (kept)" for f in at)
+            + "; optimiser steps render every map at one factor: raise max_size, choose a "
+            "smaller scale, or run a preset without steps (fast, balanced, quality)"
+        )
+    return factors
+
+
+def _merge_report(into: dict, part: dict) -> None:
+    """One factor group's method report into the run's: lists joined, mappings merged, the
+    first group's other values kept."""
+    for k, v in part.items():
+        if isinstance(v, list) and isinstance(into.get(k), list):
+            into[k] = into[k] + v
+        elif isinstance(v, dict) and isinstance(into.get(k), dict):
+            into[k] = {**into[k], **v}
+        else:
+            into.setdefault(k, v)
+
+
+def _upscale_group(
+    asset: Asset,
+    images: list[ImageData],
+    options: UpscaleOptions,
     device: torch.device,
     timer: StageTimer,
     progress: ProgressFn | None,
@@ -118,8 +196,7 @@ def _upscale_maps(
     snapshots: Snapshots | None = None,
     config: PbrsrConfig | None = None,
 ) -> tuple[dict[int, np.ndarray], dict]:
-    """HR maps (stored encoding) for every used image, and method-specific report fields."""
-    images = upscalable_images(asset)
+    """HR maps of ``images``, all at ``options.scale``, and the method's report fields."""
     s = options.scale
     wraps = {img.index: image_wrap(asset, img.index) for img in images}  # tiling maps
     cutouts = {img.index: image_cutout(asset, img.index) for img in images}
@@ -361,12 +438,17 @@ def upscale_asset(
                 raise UnprocessableAsset(
                     "nothing to upscale: no material of this asset uses a texture"
                 )
-            check_output_size(images, options.scale, limits)
+            check_output_size(images, checked_map_scales(images, options, config), limits)
             if memory_budget is not None:
                 _check_footprint(images, options, config, memory_budget)
         with reuse_large_blocks():
             hr, method_report = _upscale_maps(
-                asset, options, device, timer, progress, work, snapshots, config
+                asset,
+                options,
+                config,
+                lambda imgs, opts: _upscale_group(
+                    asset, imgs, opts, device, timer, progress, work, snapshots, config
+                ),
             )
         emit(progress, Progress(stage="export"))
         with timer("export"):
@@ -440,12 +522,19 @@ def _write_bundle(
                     "label": role_label(img.roles),
                     "lr_size": [img.width, img.height],
                     "hr_size": [int(hr[img.index].shape[1]), int(hr[img.index].shape[0])],
+                    "scale": int(hr[img.index].shape[1]) // img.width,
                     "bit_depth": img.bit_depth,
                     "file": map_files[img.index],
                     **_seams(asset, img, hr[img.index]),
                 }
                 for img in asset.images
                 if img.index in hr
+            ],
+            # maps max_size keeps as they are: their files are the input's
+            "kept": [
+                {"index": img.index, "name": img.name, "size": [img.width, img.height]}
+                for img in upscalable_images(asset)
+                if img.index not in hr
             ],
             "timings": {k: round(v, 3) for k, v in timer.seconds.items()},
             "wall_seconds": round(time.perf_counter() - t_start, 3),

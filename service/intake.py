@@ -74,6 +74,7 @@ def check_asset(path: Path, options: dict[str, Any], settings: Settings) -> floa
     from pbrsr_core.asset import load_asset
     from pbrsr_core.limits import check_output_size
     from pbrsr_core.maps import upscalable_images
+    from pbrsr_core.pipeline import checked_map_scales
 
     limits = settings.limits()
     with _VALIDATION_SLOTS:
@@ -84,9 +85,9 @@ def check_asset(path: Path, options: dict[str, Any], settings: Settings) -> floa
                 raise UnprocessableAsset(
                     "nothing to upscale: no material of this asset uses a texture"
                 )
-            scale = int(options["scale"])
-            check_output_size(images, scale, limits)
-            return sum(img.width * img.height for img in images) * scale * scale / 1e6
+            factors = checked_map_scales(images, UpscaleOptions(**options))
+            check_output_size(images, factors, limits)
+            return sum(img.width * img.height * factors[img.index] ** 2 for img in images) / 1e6
         finally:
             del asset
             gc.collect()

@@ -36,6 +36,13 @@ def register(app: typer.Typer) -> None:
         input: Annotated[Path, typer.Argument(help=".glb, .gltf or .zip holding one .gltf")],
         out: Annotated[Path, typer.Option("-o", "--out", help="output folder")],
         scale: Annotated[int, typer.Option(help="2, 4 or 8")] = 4,
+        max_size: Annotated[
+            int | None,
+            typer.Option(
+                help="largest output texture side (px): a map scale would make larger gets "
+                "scale/2 or scale/4, or is kept"
+            ),
+        ] = None,
         method: Annotated[str, typer.Option(help="pbrsr, direct or bicubic")] = "pbrsr",
         preset: Annotated[str, typer.Option(help="fast, balanced, quality, paper")] = "balanced",
         iterations: Annotated[
@@ -74,6 +81,7 @@ def register(app: typer.Typer) -> None:
         try:
             options = UpscaleOptions(
                 scale=scale,
+                max_size=max_size,
                 method=method,
                 preset=preset,
                 iterations=iterations,

@@ -94,8 +94,10 @@ function pickFile(file) {
 
 function options() {
   const steps = $("opt-iterations").value.trim();  // empty: the preset's
+  const maxSize = $("opt-max-size").value.trim();  // empty: every map at the scale
   return {
     scale: Number($("opt-scale").value),
+    ...(maxSize !== "" ? { max_size: Number(maxSize) } : {}),
     method: $("opt-method").value,
     preset: $("opt-preset").value,
     ...(steps !== "" && $("opt-method").value === "pbrsr" ? { iterations: Number(steps) } : {}),

@@ -77,3 +77,25 @@ def test_the_pipeline_refuses_before_writing_anything(tmp_path):
     assert not out.exists() or not any(out.iterdir())
     report = upscale_asset(src, out, options, memory_budget=available_bytes())
     assert report["images"]
+
+
+def test_max_size_counts_each_map_at_its_own_factor(tmp_path):
+    """x8 of the demo's 32² maps is refused under a budget that x2 (what max_size 64 leaves
+    of it) fits in, and runs with max_size."""
+    from pbrsr_core.asset import load_asset, make_demo_asset
+    from pbrsr_core.options import UpscaleOptions
+    from pbrsr_core.pipeline import upscale_asset
+
+    src = make_demo_asset(tmp_path / "demo.glb", size=32)
+    sizes = [(i.width, i.height, i.pixels.shape[2]) for i in load_asset(src).images if i.roles]
+    assert {w for w, _, _ in sizes} == {32}
+    budget = (
+        estimate_peak_bytes(sizes, 2, "bicubic") + estimate_peak_bytes(sizes, 8, "bicubic")
+    ) // 2
+    with pytest.raises(LimitExceeded, match="x8 of 3 maps"):
+        upscale_asset(
+            src, tmp_path / "a", UpscaleOptions(scale=8, method="bicubic"), memory_budget=budget
+        )
+    options = UpscaleOptions(scale=8, method="bicubic", max_size=64)
+    report = upscale_asset(src, tmp_path / "b", options, memory_budget=budget)
+    assert [i["hr_size"] for i in report["images"]] == [[64, 64]] * 3

@@ -331,3 +331,76 @@ def test_prior_stages_report_tiles_with_an_eta(tmp_path, set_runtime):
         assert sum("tile" in e.message for e in mine) > 6
         assert all(e.total == 1000 for e in mine)
         assert any(e.eta_s is not None and e.eta_s >= 0 for e in mine)
+
+
+def _three_sizes(tmp_path: Path) -> Path:
+    """A quad whose albedo is 32², normal map 16² and metallic-roughness map 8²."""
+    rng = np.random.default_rng(5)
+    n = rng.normal(0, 0.3, (16, 16, 3))
+    n[..., 2] = 1.0
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    maps = {
+        "base_color": rng.random((32, 32, 3)).astype(np.float32),
+        "normal": ((n + 1) / 2).astype(np.float32),
+        "metallic_roughness": rng.random((8, 8, 3)).astype(np.float32),
+    }
+    return make_quad_asset(tmp_path / "in" / "q.gltf", maps)
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        UpscaleOptions(method="direct", prior="pbr-srmd"),
+        UpscaleOptions(method="pbrsr", preset="balanced", prior="pbr-srmd"),
+        UpscaleOptions(method="bicubic"),
+    ],
+    ids=["direct", "balanced", "bicubic"],
+)
+def test_max_size_upscales_each_map_by_the_largest_factor_that_fits(tmp_path, options):
+    """x4 with max_size 64: the 32² albedo at x2, the 16² normal and 8² data maps at x4, each
+    map as a run at its own factor makes it; with max_size 32 the albedo keeps its file."""
+    src = _three_sizes(tmp_path)
+    capped = upscale_asset(src, tmp_path / "c", options.model_copy(update={"max_size": 64}))
+    assert [(i["lr_size"][0], i["scale"]) for i in capped["images"]] == [(32, 2), (16, 4), (8, 4)]
+    assert capped["kept"] == []
+    runs = {}
+    for f in (2, 4):
+        upscale_asset(src, tmp_path / f"x{f}", options.model_copy(update={"scale": f}))
+        runs[f] = load_asset(tmp_path / f"x{f}" / "q.gltf")
+    out = load_asset(tmp_path / "c" / "q.gltf")
+    for img, f in zip(out.images, (2, 4, 4), strict=True):
+        assert np.array_equal(img.pixels, runs[f].images[img.index].pixels), (img.name, f)
+    assert validate_gltf(tmp_path / "c" / "q.gltf")["numErrors"] == 0
+
+    kept = upscale_asset(src, tmp_path / "k", options.model_copy(update={"max_size": 32}))
+    assert [(i["lr_size"][0], i["scale"]) for i in kept["images"]] == [(16, 2), (8, 4)]
+    assert [k["size"] for k in kept["kept"]] == [[32, 32]]
+    uri = json.loads(src.read_text())["images"][0]["uri"]
+    assert json.loads((tmp_path / "k" / "q.gltf").read_text())["images"][0]["uri"] == uri
+    assert (tmp_path / "k" / uri).read_bytes() == (src.parent / uri).read_bytes()
+    assert len(list((tmp_path / "k" / "maps").iterdir())) == 2
+
+
+def test_max_size_refuses_what_it_cannot_run(tmp_path):
+    src = _three_sizes(tmp_path)
+    with pytest.raises(UnprocessableAsset, match=r"over max_size \(15 px\) at x2"):
+        upscale_asset(src, tmp_path / "a", UpscaleOptions(method="bicubic", max_size=15))
+    with pytest.raises(InvalidOptions, match="x4 and x2; optimiser steps"):
+        upscale_asset(
+            src, tmp_path / "b", UpscaleOptions(prior="bicubic", iterations=2, max_size=64)
+        )
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    with pytest.raises(InvalidOptions, match=r"x2 and x1 \(kept\); optimiser steps"):
+        upscale_asset(
+            src, tmp_path / "b", UpscaleOptions(prior="bicubic", iterations=2, max_size=32)
+        )
+    # steps run where max_size leaves every map at one factor: x8 asked, x4 for a 16² albedo
+    one = make_quad_asset(tmp_path / "one" / "q.gltf", size=16)
+    report = upscale_asset(
+        one, tmp_path / "c", UpscaleOptions(prior="bicubic", iterations=2, max_size=64, scale=8)
+    )
+    assert [i["scale"] for i in report["images"]] == [4] and report["history"]
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="max_size"):
+        UpscaleOptions(max_size=1)

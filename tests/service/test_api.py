@@ -149,6 +149,8 @@ def _bad_cases(tmp_path: Path) -> list[tuple[str, bytes, str | dict | None, int,
         ("envmap path", glb, {"envmap": "/etc/passwd"}, 422, "invalid-options"),
         ("prior path", glb, {"prior": "spandrel:../../x.pth"}, 422, "invalid-options"),
         ("nothing to upscale", bare, None, 422, "unprocessable-asset"),
+        ("max_size 1", glb, {"max_size": 1}, 422, "invalid-options"),
+        ("max_size under every x2", glb, {"max_size": 3}, 422, "unprocessable-asset"),
     ]
 
 
@@ -365,6 +367,32 @@ def test_large_jobs_go_to_the_large_queue(tmp_path):
         ]  # fmt: skip
         assert settings.queue_for(0.0001, "high") == f"{q}-high"
         assert settings.queue_for(1.0, "low") == f"{big}-low"
+    finally:
+        next(gen, None)
+
+
+def test_max_size_is_stored_and_sizes_the_job_for_its_queue(tmp_path):
+    """A job's size (output megapixels, which picks the queue) counts each map at the factor
+    max_size leaves it."""
+    from pbrsr_core.asset import load_asset
+
+    data = asset_bytes(tmp_path)
+    (tmp_path / "a.glb").write_bytes(data)
+    sides = [max(i.width, i.height) for i in load_asset(tmp_path / "a.glb").images if i.roles]
+    cap = 2 * max(sides)  # the largest maps at x2, none kept
+    gen = settings_scope(tmp_path, large_job_mpix=sum(s * s for s in sides) * 8 / 1e6)
+    settings = next(gen)
+    try:
+        with TestClient(create_app(settings), raise_server_exceptions=False) as c:
+            full = post_asset(c, data, options={"scale": 4, "method": "bicubic"}).json()["id"]
+            capped = post_asset(
+                c, data, options={"scale": 4, "method": "bicubic", "max_size": cap}
+            ).json()["id"]
+        redis = redis_client()
+        assert Job.fetch(full, connection=redis).origin == settings.large_queue
+        assert Job.fetch(capped, connection=redis).origin == settings.queue
+        manifest = JobFiles(FilesystemStore(settings.storage_dir)).read_manifest(capped)
+        assert manifest.options["max_size"] == cap
     finally:
         next(gen, None)
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import base64
 import io
+import json
 import time
 import zipfile
 from collections.abc import Iterator
@@ -115,6 +116,7 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
             page.select_option("#opt-preset", "quality")
             page.fill("#opt-iterations", "20")
             page.select_option("#opt-scale", "2")
+            page.fill("#opt-max-size", "64")  # the 32² maps at x2 all the same
             page.click("#submit")
             page.wait_for_selector("#job-view:not([hidden])")
             page.wait_for_selector(".job-row[data-status]")
@@ -162,6 +164,9 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
             assert info.value.suggested_filename.endswith("-pbrsr-x2.zip")
             names = zipfile.ZipFile(io.BytesIO(Path(path).read_bytes())).namelist()
             assert "asset.glb" in names and "report.json" in names
+            report = json.loads(zipfile.ZipFile(path).read("report.json"))
+            assert report["options"]["max_size"] == 64
+            assert {i["scale"] for i in report["images"]} == {2} and report["kept"] == []
             assert errors == []
     finally:
         cleanup_redis(settings)

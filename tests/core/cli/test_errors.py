@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from pbrsr_core.asset import make_quad_asset
-from pbrsr_core.errors import InvalidAsset, InvalidOptions, LimitExceeded
+from pbrsr_core.errors import InvalidAsset, InvalidOptions, LimitExceeded, UnprocessableAsset
 from pbrsr_core.limits import Limits
 from tests.clirun import run_cli
 from tests.hostile import hostile_cases, zip_with_zeros
@@ -101,12 +101,15 @@ def test_missing_input_file(tmp_path, capfd):
         (["--method", "direct", "--prior", "no-such-prior"], "no-such-prior"),
         (["--method", "pbrsr", "--prior", "bicubic", "--preset", "no-such-preset"], "preset"),
         (["--prior", "bicubic", "--iterations", "-1"], "iterations"),
+        (["--max-size", "1"], "max_size"),
+        (["--method", "bicubic", "--max-size", "15"], "nothing to upscale"),
     ],
 )
 def test_bad_options(quad, tmp_path, capfd, extra, says):
     out = tmp_path / "o"
     code, err = run_cli(["upscale", str(quad), "-o", str(out), "-q", *extra], capfd)
-    assert code == InvalidOptions.exit_code, err
+    want = UnprocessableAsset if says == "nothing to upscale" else InvalidOptions
+    assert code == want.exit_code, err
     assert_one_line(err, says)
     assert not out.exists() or not any(out.iterdir())
 
