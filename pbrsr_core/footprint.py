@@ -1,11 +1,18 @@
 """How much memory a run will need, from the sizes an asset declares, before anything is
 allocated for it; and how much this process may use.
 
-The estimate is deliberately above the peaks measured by ``pbrsr bench upscale`` (peak RSS of
-the method's own process; x4 on the shared assets, 2048² maps): bicubic 12 bytes per output
-value (texel x channel) over the process's base, the fast preset 31, the direct prior 58-78,
-balanced 67-101 (quality's larger renders add a fixed share). A worker refuses a job whose
-estimate exceeds its memory instead of being killed by the kernel half-way through it.
+The estimate is a base, a fixed working set and a cost per output value (texel x channel),
+each set above the peaks measured (peak RSS of ``pbrsr upscale``'s process, ``/usr/bin/time
+-f %M``; 2 cores, about 20 GiB free, so the prior's tiles at their largest): x4 of the
+Avocado's three 512² maps (37.7 M output values) and of the cabinet's three 1024² maps (151 M),
+x2 of the Avocado's three 2048² maps (151 M) and of the BoomBox's four (201 M).
+Bicubic: 1014 and 2245 MiB, 11 bytes per value over the base. The fast preset at x4 (the
+prior at x2): 1349 and 3961 MiB, 23 bytes per value. The prior at the full scale (balanced,
+quality, fast at x2): 2696-3178 MiB at 37.7 M values and 4209-5336 MiB at 151-201 M, 17 bytes
+per value over a working set of about 2 GiB (a 512² tile's activations at the second x2
+pass); the direct prior 2743 and 3306-3367 MiB, 6 bytes per value. A worker and the CLI
+refuse a run whose estimate exceeds the memory it may use instead of being killed by the
+kernel half-way through it.
 """
 
 from __future__ import annotations
@@ -19,9 +26,12 @@ from .errors import LimitExceeded
 MIB = 1024 * 1024
 BASE_BYTES = 600 * MIB
 """The process before the run: torch, numba, the prior's weights."""
-BYTES_PER_VALUE = {"bicubic": 16, "prior_part": 40, "prior_full": 100}
-"""Per output value: bicubic; a prior run at part of the scale (the rest bicubic); a prior at
-the full scale (its tiles, the intermediate passes, the back-projection)."""
+WORKING_BYTES = {"bicubic": 0, "prior_part": 0, "prior_full": 2048 * MIB, "direct": 2048 * MIB}
+"""The working set that does not grow with the maps: a prior's tiles at their passes."""
+BYTES_PER_VALUE = {"bicubic": 14, "prior_part": 28, "prior_full": 22, "direct": 12}
+"""Per output value: bicubic; a PBR-SR preset that runs the prior at part of the scale (the
+rest bicubic), or at the full scale (the maps, the check's candidates, the blends, the
+back-projection); the direct prior."""
 RENDER_BYTES_PER_PIXEL = 48
 """G-buffer bytes per rendered pixel of a training view (bounded by the G-buffer cache)."""
 STEP_BYTES_PER_PIXEL = 400
@@ -34,11 +44,13 @@ def estimate_peak_bytes(
     """Peak memory of a run over images of ``sizes`` (width, height, channels) at ``scale``;
     ``config``: the PBR-SR preset (``PbrsrConfig``) when ``method`` is pbrsr."""
     values = sum(w * h * c for w, h, c in sizes) * scale * scale
-    if method == "bicubic":
-        return BASE_BYTES + BYTES_PER_VALUE["bicubic"] * values
-    part = config is not None and (config.max_prior_scale or scale) < scale
-    per_value = BYTES_PER_VALUE["prior_part" if part else "prior_full"]
-    total = BASE_BYTES + per_value * values
+    if method in ("bicubic", "direct"):
+        kind = method
+    elif config is not None and (config.max_prior_scale or scale) < scale:
+        kind = "prior_part"
+    else:
+        kind = "prior_full"
+    total = BASE_BYTES + WORKING_BYTES[kind] + BYTES_PER_VALUE[kind] * values
     if method == "pbrsr" and config is not None and config.iterations > 0:
         res = config.max_render_res
         pixels = res * res
@@ -97,8 +109,8 @@ def check_memory(estimate: int, budget: int | None, what: str) -> None:
     if budget is not None and estimate > budget:
         raise LimitExceeded(
             f"{what} needs about {estimate / 2**30:.1f} GiB of memory and this machine has "
-            f"{budget / 2**30:.1f} GiB for it: try a lower scale, the fast preset or a "
-            "machine with more memory"
+            f"{budget / 2**30:.1f} GiB for it: try a lower scale, a max_size, the fast preset "
+            "or a machine with more memory"
         )
 
 

@@ -67,6 +67,14 @@ def register(app: typer.Typer) -> None:
             ),
         ] = "same",
         device: Annotated[str, typer.Option(help="auto, cpu, cuda, cuda:N")] = "auto",
+        memory_mb: Annotated[
+            int,
+            typer.Option(
+                min=0,
+                help="memory the run may use (MiB); a run estimated above it is refused before "
+                "it starts. 0: what the machine has free",
+            ),
+        ] = 0,
         overwrite: Annotated[bool, typer.Option(help="replace an existing output folder")] = False,
         quiet: Annotated[bool, typer.Option("-q", "--quiet")] = False,
     ) -> None:
@@ -74,6 +82,7 @@ def register(app: typer.Typer) -> None:
         from pydantic import ValidationError
 
         from ..errors import InvalidOptions
+        from ..footprint import memory_budget
         from ..pipeline import upscale_asset
 
         if not input.is_file():
@@ -97,7 +106,9 @@ def register(app: typer.Typer) -> None:
         if overwrite and out.exists():
             shutil.rmtree(out)
         with progress_bar(not quiet) as cb:
-            report = upscale_asset(input, out, options, progress=cb)
+            report = upscale_asset(
+                input, out, options, progress=cb, memory_budget=memory_budget(memory_mb)
+            )
         if not quiet:
             _print_report(report, out)
 

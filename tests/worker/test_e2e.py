@@ -181,7 +181,7 @@ def test_failing_job_keeps_a_clear_error(env):
 
 
 def test_a_job_larger_than_the_workers_memory_is_refused_not_killed(env):
-    """x8 of 2048² maps: an estimate of hundreds of GiB, over the worker's 8 GiB budget
+    """x8 of 2048² maps: an estimate of tens of GiB, over the worker's 8 GiB budget
     (PBRSR_WORKER_MEMORY_MB), refused before it allocates the output (the worker lives on and
     takes the next job)."""
     from pbrsr_core.footprint import MIB, estimate_peak_bytes

@@ -137,3 +137,15 @@ def test_real_binary_prints_no_traceback(corpus, tmp_path):
     )
     assert proc.returncode == InvalidAsset.exit_code, proc.stderr
     assert_one_line(proc.stderr, "truncated", quiet=False)
+
+
+def test_a_run_over_the_memory_it_may_use_is_refused(quad, tmp_path, capfd):
+    out = tmp_path / "o"
+    args = ["upscale", str(quad), "-o", str(out), "--method", "bicubic", "-q"]
+    code, err = run_cli([*args, "--memory-mb", "100"], capfd)
+    assert code == LimitExceeded.exit_code, err
+    assert_one_line(err, "GiB of memory and this machine has 0.1 GiB for it")
+    assert "max_size" in err
+    assert not out.exists() or not any(out.iterdir())
+    code, err = run_cli(args, capfd)  # by default, what the machine has free
+    assert code == 0, err
