@@ -73,7 +73,7 @@ def _time_passes(size: int, images: int, channels: int, scale: int, steps: int) 
         for p in params.values():
             p.grad = torch.randn(p.shape, generator=gen) * 1e-3  # the renderer's gradient
         t0 = time.perf_counter()
-        regularize_grads(params, lr, targets, groups, masks, config, scale)
+        regularize_grads(params, lr, targets, groups, masks, config)
         t1 = time.perf_counter()
         opt.step()
         t2 = time.perf_counter()

@@ -10,6 +10,7 @@ import torch
 
 from .asset.model import MIRRORED_REPEAT, NORMAL_ROLES, REPEAT, SRGB_ROLES, Asset, ImageData
 from .colour import linear_to_srgb, srgb_to_linear
+from .errors import UnprocessableAsset
 from .prior.direct import HIDDEN_ALPHA
 
 
@@ -91,13 +92,18 @@ def upscalable_images(asset: Asset) -> list[ImageData]:
 def map_scales(images: list[ImageData], scale: int, max_size: int | None) -> dict[int, int]:
     """Per image index, the factor its map is upscaled by: ``scale``, or with ``max_size`` the
     largest of ``scale``, ``scale / 2``, ... whose output is at most ``max_size`` px on a side;
-    1 (the map kept as it is) where even x2 would be larger."""
+    1 (the map kept as it is) where even x2 would be larger. Refused (UnprocessableAsset) when
+    that keeps every map."""
     out = {}
     for img in images:
         f = scale
         while max_size is not None and f > 1 and max(img.width, img.height) * f > max_size:
             f //= 2
         out[img.index] = f
+    if out and all(f == 1 for f in out.values()):
+        raise UnprocessableAsset(
+            f"nothing to upscale: every map would be over max_size ({max_size} px) at x2"
+        )
     return out
 
 

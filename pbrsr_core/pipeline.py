@@ -34,7 +34,7 @@ from .asset import (
 from .asset.model import MAP_ROLES, Asset
 from .crops import write_map_crops
 from .device import resolve_device
-from .errors import InvalidOptions, PbrsrError, StorageError, UnprocessableAsset
+from .errors import PbrsrError, StorageError, UnprocessableAsset
 from .footprint import check_memory, estimate_peak_bytes
 from .initial_maps import (
     blended_channels,
@@ -54,6 +54,7 @@ from .maps import (
     map_scales,
     param_to_encoded,
     role_label,
+    to_param,
     upscalable_images,
 )
 from .metrics import seam_ratio
@@ -97,7 +98,7 @@ def _check_footprint(images, options: UpscaleOptions, config, budget: int) -> No
 
     if options.method == "pbrsr" and config is None:
         config = run_config(options.preset, options.iterations)
-    factors = checked_map_scales(images, options, config)
+    factors = map_scales(images, options.scale, options.max_size)
     sizes = {img.index: (img.width, img.height, int(img.pixels.shape[2])) for img in images}
     largest = max(max(w, h) for w, h, _ in sizes.values())
     what = f"x{options.scale} of {len(images)} maps (largest {largest} px)"
@@ -120,62 +121,59 @@ def load_light(envmap: str | None) -> EnvLight:
 def _upscale_maps(
     asset: Asset,
     options: UpscaleOptions,
-    config: PbrsrConfig | None,
-    run: Callable[[list[ImageData], UpscaleOptions], tuple[dict[int, np.ndarray], dict]],
+    device: torch.device,
+    timer: StageTimer,
+    progress: ProgressFn | None,
+    work_dir: Path,
+    snapshots: Snapshots | None = None,
+    config: PbrsrConfig | None = None,
 ) -> tuple[dict[int, np.ndarray], dict]:
-    """HR maps (stored encoding) for every used image ``options.max_size`` does not keep, and
-    method-specific report fields. The maps of each factor (:func:`map_scales`) go to
-    ``run(images, options at that scale)`` (:func:`_upscale_group`) as one group, the larger
-    factors first (a metallic-roughness map whose colour map runs at another factor is blended
-    without it as guide); a map kept at its size has no HR map."""
+    """HR maps (stored encoding) for every used image ``options.max_size`` does not keep, each
+    at its factor (:func:`~.maps.map_scales`), and method-specific report fields. The prior's
+    check, init and blends run on the maps of each factor together, the larger factors first
+    (a metallic-roughness map whose colour map has another factor is blended without it as
+    guide); PBR-SR's optimisation and export take every map at once, a kept map rendered as it
+    is."""
     images = upscalable_images(asset)
-    factors = checked_map_scales(images, options, config)
-    groups: dict[int, list[ImageData]] = {}
-    for img in images:
-        groups.setdefault(factors[img.index], []).append(img)
-    if list(groups) == [options.scale]:
-        return run(images, options)
-    out: dict[int, np.ndarray] = {}
-    report: dict = {}
-    for f in sorted((f for f in groups if f > 1), reverse=True):
-        hr, part = run(groups[f], options.model_copy(update={"scale": f}))
-        out.update(hr)
-        _merge_report(report, part)
-    return out, report
+    factors = map_scales(images, options.scale, options.max_size)
+    groups = {
+        f: [img for img in images if factors[img.index] == f]
+        for f in sorted(set(factors.values()) - {1}, reverse=True)
+    }
+    kept = [img for img in images if factors[img.index] == 1]
+    wraps = {img.index: image_wrap(asset, img.index) for img in images}  # tiling maps
+    cutouts = {img.index: image_cutout(asset, img.index) for img in images}
+    if options.method == "bicubic":
+        with timer("upscale"):
+            return {
+                img.index: bicubic_map(
+                    img.pixels, kind_of(img.roles), f, wraps[img.index], cutouts[img.index]
+                )  # fmt: skip
+                for f, group in groups.items()
+                for img in group
+            }, {}
 
-
-def checked_map_scales(
-    images: list[ImageData], options: UpscaleOptions, config: PbrsrConfig | None = None
-) -> dict[int, int]:
-    """Per image index, the factor ``options`` upscales it by (:func:`map_scales`). Refused
-    (UnprocessableAsset) when ``max_size`` keeps every map, and (InvalidOptions) when it puts
-    the maps at several factors and the run takes optimiser steps: their renders take every
-    map of a material at one factor."""
+    with timer("load_prior"):
+        emit(progress, Progress(stage="load_prior", message=options.prior))
+        prior = load_prior(options.prior, device)
+    if options.method == "direct":
+        out: dict[int, np.ndarray] = {}
+        report: dict = {}
+        for f, group in groups.items():
+            hr, part = _direct_maps(asset, group, prior, f, wraps, cutouts, timer, progress)
+            out.update(hr)
+            _merge_report(report, part)
+        return out, report
     from .optim.presets import run_config
 
-    factors = map_scales(images, options.scale, options.max_size)
-    upscaled = sorted({f for f in factors.values() if f > 1}, reverse=True)
-    if not upscaled:
-        raise UnprocessableAsset(
-            f"nothing to upscale: every map would be over max_size ({options.max_size} px) at x2"
-        )
-    steps = options.method == "pbrsr" and bool(
-        (config or run_config(options.preset, options.iterations)).iterations
-    )
-    if steps and len(set(factors.values())) > 1:
-        at = sorted(set(factors.values()), reverse=True)
-        raise InvalidOptions(
-            f"max_size {options.max_size} puts the maps at "
-            + " and ".join(f"x{f}" if f > 1 else "x1 (kept)" for f in at)
-            + "; optimiser steps render every map at one factor: raise max_size, choose a "
-            "smaller scale, or run a preset without steps (fast, balanced, quality)"
-        )
-    return factors
+    config = config or run_config(options.preset, options.iterations)
+    return _pbrsr_maps(asset, groups, kept, prior, options, config, device, timer, progress,
+                       work_dir, snapshots, wraps, cutouts)  # fmt: skip
 
 
 def _merge_report(into: dict, part: dict) -> None:
-    """One factor group's method report into the run's: lists joined, mappings merged, the
-    first group's other values kept."""
+    """One factor group's report into the run's: lists joined, mappings merged, the first
+    group's other values kept."""
     for k, v in part.items():
         if isinstance(v, list) and isinstance(into.get(k), list):
             into[k] = into[k] + v
@@ -185,90 +183,81 @@ def _merge_report(into: dict, part: dict) -> None:
             into.setdefault(k, v)
 
 
-def _upscale_group(
-    asset: Asset,
-    images: list[ImageData],
-    options: UpscaleOptions,
-    device: torch.device,
-    timer: StageTimer,
-    progress: ProgressFn | None,
-    work_dir: Path,
-    snapshots: Snapshots | None = None,
-    config: PbrsrConfig | None = None,
-) -> tuple[dict[int, np.ndarray], dict]:
-    """HR maps of ``images``, all at ``options.scale``, and the method's report fields."""
-    s = options.scale
-    wraps = {img.index: image_wrap(asset, img.index) for img in images}  # tiling maps
-    cutouts = {img.index: image_cutout(asset, img.index) for img in images}
-    if options.method == "bicubic":
-        with timer("upscale"):
-            return {
-                img.index: bicubic_map(
-                    img.pixels, kind_of(img.roles), s, wraps[img.index], cutouts[img.index]
-                )
-                for img in images
-            }, {}
+def _direct_maps(asset, images, prior, s, wraps, cutouts, timer, progress):
+    """The direct method on ``images`` at ``s``: JPEG maps deblocked with their own tables,
+    as every preset does; where the prior offers candidates, the self-check picks one per
+    colour and data map. Returns (HR maps, report fields)."""
+    from .optim.presets import BALANCED, CHECK_PRIOR_CPU
 
-    with timer("load_prior"):
-        emit(progress, Progress(stage="load_prior", message=options.prior))
-        prior = load_prior(options.prior, device)
-    if options.method == "direct":
-        from .optim.presets import BALANCED, CHECK_PRIOR_CPU
+    lr_pixels, deblocked = deblocked_lr(images, BALANCED, timer)
+    offered = [img for img in images if len(prior.candidates(kind_of(img.roles))) > 1]
+    found = self_checks(asset, offered, prior, lr_pixels, s, CHECK_PRIOR_CPU, None, timer,
+                        progress)  # fmt: skip
+    picks = {img.index: _direct_picks(prior, img, found.get(img.index)) for img in offered}
+    out = {}
+    with timer("prior"):
+        tiles = MapProgress(progress, "prior", images)
+        for img in images:
+            kind = kind_of(img.roles)
+            sources = picks.get(img.index, [prior])
+            px, wrap, cutout = lr_pixels[img.index], wraps[img.index], cutouts[img.index]
+            base = None if any(sources) else bicubic_map(px, kind, s, wrap, cutout)
+            out[img.index] = upscale_channels(
+                sources, px, kind, s, base, wrap=wrap, cutout=cutout, progress=tiles.on(img)
+            )
+    names = {img.index: img.name for img in images}
+    picked = {names[i]: [p.name if p else "bicubic" for p in ps] for i, ps in picks.items()}
+    checked = [{"image": names[i], "index": i, **c} for i, c in found.items() if c]
+    return out, {
+        "prior_precision": _precisions(prior, images),
+        "jpeg_deblocked": deblocked,
+        **({"prior_picks": picked, "prior_check": checked} if picks else {}),
+    }
 
-        # JPEG maps deblocked with their own tables, as every preset does; where the prior
-        # offers candidates, the self-check picks one per colour and data map
-        lr_pixels, deblocked = deblocked_lr(images, BALANCED, timer)
-        offered = [img for img in images if len(prior.candidates(kind_of(img.roles))) > 1]
-        found = self_checks(asset, offered, prior, lr_pixels, s, CHECK_PRIOR_CPU, None, timer,
-                            progress)  # fmt: skip
-        picks = {img.index: _direct_picks(prior, img, found.get(img.index)) for img in offered}
-        out = {}
-        with timer("prior"):
-            tiles = MapProgress(progress, "prior", images)
-            for img in images:
-                kind = kind_of(img.roles)
-                sources = picks.get(img.index, [prior])
-                px, wrap, cutout = lr_pixels[img.index], wraps[img.index], cutouts[img.index]
-                base = None if any(sources) else bicubic_map(px, kind, s, wrap, cutout)
-                out[img.index] = upscale_channels(
-                    sources, px, kind, s, base, wrap=wrap, cutout=cutout, progress=tiles.on(img)
-                )
-        names = {img.index: img.name for img in images}
-        picked = {names[i]: [p.name if p else "bicubic" for p in ps] for i, ps in picks.items()}
-        checked = [{"image": names[i], "index": i, **c} for i, c in found.items() if c]
-        return out, {
-            "prior_precision": _precisions(prior, images),
-            "jpeg_deblocked": deblocked,
-            **({"prior_picks": picked, "prior_check": checked} if picks else {}),
-        }
 
-    from .optim.presets import run_config
-
-    config = config or run_config(options.preset, options.iterations)
+def _pbrsr_maps(asset, groups, kept, prior, options, config, device, timer, progress, work_dir,
+                snapshots, wraps, cutouts):  # fmt: skip
+    """PBR-SR: each factor's maps checked, blended and initialised together, then every map
+    optimised and exported at once (``kept`` maps rendered from their LR pixels)."""
     from .prior.symmetry import averaged
 
     map_prior = averaged(prior, config.self_ensemble)  # the check, init and blends
-    lr_pixels, deblocked = deblocked_lr(images, config, timer)
-    for img in images:  # a cutout's hidden colour takes no part (init, losses, projection)
-        if (seen_from := cutouts[img.index]) is not None:
-            lr_pixels[img.index] = filled_cutout(lr_pixels[img.index], seen_from)
-    kept: dict[int, dict] | None = {} if config.blend_data else None
-    channels, checks, sources = prior_channels_checked(asset, images, map_prior, lr_pixels, s,
-                                                        config, timer, progress, kept)  # fmt: skip
-    blends = blended_channels(asset, images, map_prior, channels, checks, sources, kept,
-                              lr_pixels, config, timer)  # fmt: skip
-    del kept
-    init_encoded, init, lr = initial_maps(images, sources, blends, lr_pixels, s, wraps, config,
-                                          timer, progress)  # fmt: skip
+    images = [img for group in groups.values() for img in group]
+    init_encoded, init, lr, lr_pixels, channels = {}, {}, {}, {}, {}  # over every factor
+    checks, deblocked = None, []
+    for s, group in groups.items():
+        px, names = deblocked_lr(group, config, timer)
+        for img in group:  # a cutout's hidden colour takes no part (init, losses, projection)
+            if (seen_from := cutouts[img.index]) is not None:
+                px[img.index] = filled_cutout(px[img.index], seen_from)
+        blend_kept = {} if config.blend_data else None
+        ch, found, sources = prior_channels_checked(asset, group, map_prior, px, s, config,
+                                                    timer, progress, blend_kept)  # fmt: skip
+        blends = blended_channels(asset, group, map_prior, ch, found, sources, blend_kept, px,
+                                  config, timer)  # fmt: skip
+        del blend_kept
+        enc, par, low = initial_maps(group, sources, blends, px, s, wraps, config, timer,
+                                     progress)  # fmt: skip
+        init_encoded.update(enc)
+        init.update(par)
+        lr.update(low)
+        lr_pixels.update(px)
+        channels.update(ch)
+        deblocked += names
+        if found is not None:
+            checks = (checks or []) + found
+    for img in kept:  # rendered as they are, never optimised
+        lr[img.index] = to_param(img)
     if checks is not None and not any(any(c) for c in channels.values()):
         prior = load_prior("bicubic", device)  # for the pseudo-GT
     out, report = _optimise(
-        asset, images, init_encoded, init, lr, lr_pixels, channels, prior, options, config,
-        device, timer, progress, work_dir, snapshots, wraps,
+        asset, images, init_encoded, init, lr, lr_pixels, channels, prior, max(groups), config,
+        options, device, timer, progress, work_dir, snapshots, wraps,
     )  # fmt: skip
     for img in images:
         if cutouts[img.index] is not None:
-            out[img.index] = restore_hidden(out[img.index], img.pixels, s)
+            f = _factor(out[img.index], img.pixels)
+            out[img.index] = restore_hidden(out[img.index], img.pixels, f)
     return out, {
         **report,
         "prior_check": checks,
@@ -277,6 +266,11 @@ def _upscale_group(
         "prior_init": sorted(img.name for img in images if any(channels[img.index])),
         "jpeg_deblocked": deblocked,
     }
+
+
+def _factor(hr: np.ndarray | torch.Tensor, lr: np.ndarray) -> int:
+    """The factor of an HR map over its LR map (their heights)."""
+    return int(hr.shape[0]) // int(lr.shape[0])
 
 
 def _direct_picks(prior: Prior, img: ImageData, check: dict | None) -> list[Prior | None]:
@@ -307,15 +301,16 @@ def _precisions(prior: Prior, images: list[ImageData]) -> dict[str, str]:
     return {kind: prior.for_kind(kind).precision_in_use() for kind in kinds}
 
 
-def _optimise(asset, images, init_encoded, init, lr, lr_pixels, channels, prior, options, config,
-              device, timer, progress, work_dir, snapshots, wraps):  # fmt: skip
-    """PBR-SR's optimisation from ``init_encoded``, then each map's export: back-projection
+def _optimise(asset, images, init_encoded, init, lr, lr_pixels, channels, prior, s, config,
+              options, device, timer, progress, work_dir, snapshots, wraps):  # fmt: skip
+    """PBR-SR's optimisation from ``init_encoded`` (renders and pseudo-GT at ``s``, the largest
+    factor; each map held to its LR map at its own), then each map's export: back-projection
     onto its LR map where the preset says so, and island padding. A map the scene repeats
-    (``wraps``) keeps its TV across the wrap edge. Returns (HR maps, report)."""
+    (``wraps``) keeps its TV across the wrap edge. ``lr`` may hold maps without an init,
+    rendered as they are. Returns (HR maps, report)."""
     from .optim.pbrsr import optimize_pbrsr
     from .optim.whole_map import pad_update
 
-    s = options.scale
     kinds = {img.index: kind_of(img.roles) for img in images}
     with timer("load_light"):
         light = load_light(options.envmap).to(device)
@@ -329,7 +324,7 @@ def _optimise(asset, images, init_encoded, init, lr, lr_pixels, channels, prior,
     }
 
     def export(i: int, t: torch.Tensor) -> np.ndarray:
-        return _export_map(t, kinds[i], lr_pixels[i], s, projected[i])
+        return _export_map(t, kinds[i], lr_pixels[i], _factor(t, lr_pixels[i]), projected[i])
 
     result = optimize_pbrsr(
         scene.mesh,
@@ -359,7 +354,13 @@ def _optimise(asset, images, init_encoded, init, lr, lr_pixels, channels, prior,
         sizes = {i: tuple(t.shape[:2]) for i, t in final.items()}
         islands = coverage_masks(asset, sizes)
         out = {
-            i: pad_update(t, init_encoded[i], islands[i], 2 * s, normal=kinds[i] == "normal")
+            i: pad_update(
+                t,
+                init_encoded[i],
+                islands[i],
+                2 * _factor(t, lr_pixels[i]),
+                normal=kinds[i] == "normal",
+            )  # fmt: skip
             for i, t in final.items()
         }
     return out, result.report()
@@ -438,17 +439,12 @@ def upscale_asset(
                 raise UnprocessableAsset(
                     "nothing to upscale: no material of this asset uses a texture"
                 )
-            check_output_size(images, checked_map_scales(images, options, config), limits)
+            check_output_size(images, map_scales(images, options.scale, options.max_size), limits)
             if memory_budget is not None:
                 _check_footprint(images, options, config, memory_budget)
         with reuse_large_blocks():
             hr, method_report = _upscale_maps(
-                asset,
-                options,
-                config,
-                lambda imgs, opts: _upscale_group(
-                    asset, imgs, opts, device, timer, progress, work, snapshots, config
-                ),
+                asset, options, device, timer, progress, work, snapshots, config
             )
         emit(progress, Progress(stage="export"))
         with timer("export"):

@@ -73,8 +73,7 @@ def check_asset(path: Path, options: dict[str, Any], settings: Settings) -> floa
     megapixels of all output maps (the job's size, for queue routing)."""
     from pbrsr_core.asset import load_asset
     from pbrsr_core.limits import check_output_size
-    from pbrsr_core.maps import upscalable_images
-    from pbrsr_core.pipeline import checked_map_scales
+    from pbrsr_core.maps import map_scales, upscalable_images
 
     limits = settings.limits()
     with _VALIDATION_SLOTS:
@@ -85,7 +84,7 @@ def check_asset(path: Path, options: dict[str, Any], settings: Settings) -> floa
                 raise UnprocessableAsset(
                     "nothing to upscale: no material of this asset uses a texture"
                 )
-            factors = checked_map_scales(images, UpscaleOptions(**options))
+            factors = map_scales(images, int(options["scale"]), options["max_size"])
             check_output_size(images, factors, limits)
             return sum(img.width * img.height * factors[img.index] ** 2 for img in images) / 1e6
         finally:

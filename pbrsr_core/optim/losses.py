@@ -136,6 +136,11 @@ def robust_pixel_loss(
 # ---------------------------------------------------------------------------------------------
 
 
+def map_factor(hr: torch.Tensor, lr: torch.Tensor) -> int:
+    """The factor an HR map (H, W, C) has over its LR map (its height over the LR's)."""
+    return int(hr.shape[0]) // int(lr.shape[0])
+
+
 def avg_pool_map(hr: torch.Tensor, scale: int) -> torch.Tensor:
     """AvgPool with kernel = stride = ``scale`` of an (H, W, C) map -> (H/s, W/s, C)."""
     if hr.ndim != 3:

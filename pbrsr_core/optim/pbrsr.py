@@ -124,7 +124,7 @@ def optimize_pbrsr(
     normal = {i: "normal" in roles[i] for i in images}
     run = Optimisation(
         params, fixed, static, lr_dev, groups, rates, normal, views, targets, scene, config,
-        scale, gen, device, repeats,
+        gen, device, repeats,
     )  # fmt: skip
     snapshot = Snapshots(snapshot_at, on_snapshot, run.maps)
     history = _iterate(run, lr_dev, groups, config, scale, snapshot, progress, t0)
@@ -144,7 +144,7 @@ def _iterate(run: Optimisation, lr_dev, groups, config, scale, snapshot, progres
         done = it + 1
         if logged(done, config):
             losses = step.report(config)
-            metrics = consistency_metrics(run.maps(), lr_dev, groups, scale)
+            metrics = consistency_metrics(run.maps(), lr_dev, groups)
             history.append(
                 {
                     "it": done,
@@ -193,10 +193,12 @@ def _check_inputs(lr_maps, init_maps, roles, scale):
         lr = lr_maps[i]
         if t.ndim != 3 or lr.ndim != 3:
             raise UnprocessableAsset(f"image {i}: maps must be (H, W, C)")
-        want = (lr.shape[0] * scale, lr.shape[1] * scale, lr.shape[2])
+        f = max(1, min(scale, int(t.shape[0]) // max(int(lr.shape[0]), 1)))  # its own factor
+        want = (lr.shape[0] * f, lr.shape[1] * f, lr.shape[2])
         if tuple(t.shape) != want:
             raise UnprocessableAsset(
-                f"image {i}: the init map is {tuple(t.shape)}, expected {want} (LR x{scale})"
+                f"image {i}: the init map is {tuple(t.shape)}, expected {want} (LR x{f}, "
+                f"x1 to x{scale})"
             )
         if not roles.get(i):
             raise UnprocessableAsset(f"image {i} has no material role")

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from .losses import MapGroup, consistency_psnr
+from .losses import MapGroup, consistency_psnr, map_factor
 from .presets import PbrsrConfig
 from .training_views import camera_dict
 from .whole_map import project_
@@ -48,10 +48,11 @@ class PbrsrResult:
         }
 
 
-def consistency_metrics(maps, lr_maps, groups: dict[int, list[MapGroup]], scale: int):
-    """``"<image>:<map>"`` -> PSNR (dB) of AvgPool_s(HR) against the LR map."""
+def consistency_metrics(maps, lr_maps, groups: dict[int, list[MapGroup]]):
+    """``"<image>:<map>"`` -> PSNR (dB) of AvgPool_s(HR) against the LR map, ``s`` the map's
+    own factor."""
     return {
-        f"{i}:{g.name}": consistency_psnr(maps[i], lr_maps[i], scale, g)
+        f"{i}:{g.name}": consistency_psnr(maps[i], lr_maps[i], map_factor(maps[i], lr_maps[i]), g)
         for i in maps
         for g in groups[i]
     }
@@ -72,7 +73,7 @@ def unoptimised_result(init_maps, lr_maps, roles, groups, images, scale, config,
     lr_dev = {i: lr_maps[i].detach().to(device, torch.float32) for i in images}
     return PbrsrResult(
         maps=maps,
-        consistency_psnr=consistency_metrics(maps, lr_dev, groups, scale),
+        consistency_psnr=consistency_metrics(maps, lr_dev, groups),
         optimized={i: [] for i in images},
         config=run_config(config, {"mode": "none"}, seed, scale),
     )
@@ -90,7 +91,7 @@ def optimised_result(run, views, history, timings, lr_maps, groups, rates, confi
             {**camera_dict(c), "pixels": n} for c, n in zip(views.cameras, views.npix, strict=True)
         ],
         coverage=views.coverage,
-        consistency_psnr=consistency_metrics(maps, lr_maps, groups, scale),
+        consistency_psnr=consistency_metrics(maps, lr_maps, groups),
         render_res=views.res,
         optimized={
             i: [g.name for g in groups[i] if bool(rates[i][list(g.channels)].any())] for i in maps

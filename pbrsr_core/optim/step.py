@@ -14,7 +14,7 @@ import torch
 from .adam import FusedAdam
 from .batch_loss import pixel_batch_loss, view_batch_loss
 from .gbuffers import RenderScene
-from .losses import MapGroup, avg_pool_map, pooled_consistency, ssim_target
+from .losses import MapGroup, avg_pool_map, map_factor, pooled_consistency, ssim_target
 from .presets import PbrsrConfig
 from .schedule import ViewBatches
 from .ssim import SsimTarget
@@ -52,7 +52,6 @@ def regularize_grads(
     groups: dict[int, list[MapGroup]],
     grad_masks: dict[int, tuple[torch.Tensor, torch.Tensor]],
     config: PbrsrConfig,
-    scale: int,
     repeats: dict[int, Repeats] | None = None,
 ) -> tuple[float, float]:
     """The step's whole-map part, after the pixel loss's backward: add the PBR-consistency
@@ -66,6 +65,7 @@ def regularize_grads(
     for i, p in params.items():
         if p.grad is None:  # no view of this batch samples the image
             p.grad = torch.zeros_like(p)
+        scale = map_factor(p, lr_maps[i])  # each map at its own factor (max_size)
         pooled = avg_pool_map(p.detach(), scale).requires_grad_(True)
         l_pbr = pooled_consistency(
             pooled, lr_maps[i], groups[i], config.lambda_ssim, ssim_targets[i]
@@ -125,7 +125,6 @@ class Optimisation:
         targets,
         scene: RenderScene,
         config: PbrsrConfig,
-        scale: int,
         gen: torch.Generator,
         device,
         repeats: dict[int, Repeats] | None = None,
@@ -134,7 +133,7 @@ class Optimisation:
         self.repeats = repeats or {}
         self.lr_maps, self.groups, self.views, self.targets = lr_maps, groups, views, targets
         self.scene = scene
-        self.config, self.scale, self.gen, self.device = config, scale, gen, device
+        self.config, self.gen, self.device = config, gen, device
         self.grad_masks = grad_masks(params, groups, views.seen, config.mask_unseen)
         self.ssim_targets = {i: ssim_target(lr_maps[i]) for i in params}
         wres = config.weight_map_res
@@ -195,7 +194,6 @@ class Optimisation:
             self.groups,
             self.grad_masks,
             cfg,
-            self.scale,
             self.repeats,
         )
         wmaps = self.wmaps

@@ -385,22 +385,35 @@ def test_max_size_refuses_what_it_cannot_run(tmp_path):
     src = _three_sizes(tmp_path)
     with pytest.raises(UnprocessableAsset, match=r"over max_size \(15 px\) at x2"):
         upscale_asset(src, tmp_path / "a", UpscaleOptions(method="bicubic", max_size=15))
-    with pytest.raises(InvalidOptions, match="x4 and x2; optimiser steps"):
-        upscale_asset(
-            src, tmp_path / "b", UpscaleOptions(prior="bicubic", iterations=2, max_size=64)
-        )
-    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
-    with pytest.raises(InvalidOptions, match=r"x2 and x1 \(kept\); optimiser steps"):
-        upscale_asset(
-            src, tmp_path / "b", UpscaleOptions(prior="bicubic", iterations=2, max_size=32)
-        )
-    # steps run where max_size leaves every map at one factor: x8 asked, x4 for a 16² albedo
-    one = make_quad_asset(tmp_path / "one" / "q.gltf", size=16)
-    report = upscale_asset(
-        one, tmp_path / "c", UpscaleOptions(prior="bicubic", iterations=2, max_size=64, scale=8)
-    )
-    assert [i["scale"] for i in report["images"]] == [4] and report["history"]
+    assert not (tmp_path / "a").exists()
     from pydantic import ValidationError
 
     with pytest.raises(ValidationError, match="max_size"):
         UpscaleOptions(max_size=1)
+
+
+def test_optimiser_steps_take_every_map_at_its_own_factor(tmp_path):
+    """With steps, max_size's factors meet in one optimisation: each map held to its LR map at
+    its own factor, a kept map rendered as it is and its file left alone."""
+    src = _three_sizes(tmp_path)
+    options = UpscaleOptions(prior="bicubic", iterations=3, max_size=64)
+    report = upscale_asset(src, tmp_path / "a", options)
+    assert [i["scale"] for i in report["images"]] == [2, 4, 4] and len(report["history"]) >= 1
+    # each map as close to its LR map as in a run with every map at its factor
+    for f, keys in ((2, ["0:base_color"]), (4, ["1:normal", "2:roughness", "2:metallic"])):
+        uniform = options.model_copy(update={"scale": f, "max_size": None})
+        alone = upscale_asset(src, tmp_path / f"x{f}", uniform)
+        for k in keys:
+            assert report["consistency_psnr_db"][k] == pytest.approx(
+                alone["consistency_psnr_db"][k], abs=0.1
+            ), (k, f)
+    out, lr = load_asset(tmp_path / "a" / "q.gltf"), load_asset(src)
+    for img, f in zip(out.images, (2, 4, 4), strict=True):
+        assert img.pixels.shape[:2] == tuple(f * n for n in lr.images[img.index].pixels.shape[:2])
+        assert np.isfinite(img.pixels).all()
+
+    kept = upscale_asset(src, tmp_path / "k", options.model_copy(update={"max_size": 32}))
+    assert [i["scale"] for i in kept["images"]] == [2, 4] and kept["history"]
+    assert [k["size"] for k in kept["kept"]] == [[32, 32]]
+    uri = json.loads(src.read_text())["images"][0]["uri"]
+    assert (tmp_path / "k" / uri).read_bytes() == (src.parent / uri).read_bytes()
