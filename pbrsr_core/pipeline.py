@@ -58,6 +58,7 @@ from .maps import (
     upscalable_images,
 )
 from .metrics import seam_ratio
+from .optim.losses import map_factor
 from .options import UpscaleOptions
 from .preview import write_previews
 from .prior import load_prior
@@ -148,7 +149,7 @@ def _upscale_maps(
             return {
                 img.index: bicubic_map(
                     img.pixels, kind_of(img.roles), f, wraps[img.index], cutouts[img.index]
-                )  # fmt: skip
+                )
                 for f, group in groups.items()
                 for img in group
             }, {}
@@ -256,7 +257,7 @@ def _pbrsr_maps(asset, groups, kept, prior, options, config, device, timer, prog
     )  # fmt: skip
     for img in images:
         if cutouts[img.index] is not None:
-            f = _factor(out[img.index], img.pixels)
+            f = map_factor(out[img.index], img.pixels)
             out[img.index] = restore_hidden(out[img.index], img.pixels, f)
     return out, {
         **report,
@@ -266,11 +267,6 @@ def _pbrsr_maps(asset, groups, kept, prior, options, config, device, timer, prog
         "prior_init": sorted(img.name for img in images if any(channels[img.index])),
         "jpeg_deblocked": deblocked,
     }
-
-
-def _factor(hr: np.ndarray | torch.Tensor, lr: np.ndarray) -> int:
-    """The factor of an HR map over its LR map (their heights)."""
-    return int(hr.shape[0]) // int(lr.shape[0])
 
 
 def _direct_picks(prior: Prior, img: ImageData, check: dict | None) -> list[Prior | None]:
@@ -324,7 +320,7 @@ def _optimise(asset, images, init_encoded, init, lr, lr_pixels, channels, prior,
     }
 
     def export(i: int, t: torch.Tensor) -> np.ndarray:
-        return _export_map(t, kinds[i], lr_pixels[i], _factor(t, lr_pixels[i]), projected[i])
+        return _export_map(t, kinds[i], lr_pixels[i], map_factor(t, lr_pixels[i]), projected[i])
 
     result = optimize_pbrsr(
         scene.mesh,
@@ -358,7 +354,7 @@ def _optimise(asset, images, init_encoded, init, lr, lr_pixels, channels, prior,
                 t,
                 init_encoded[i],
                 islands[i],
-                2 * _factor(t, lr_pixels[i]),
+                2 * map_factor(t, lr_pixels[i]),
                 normal=kinds[i] == "normal",
             )  # fmt: skip
             for i, t in final.items()

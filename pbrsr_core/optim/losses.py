@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -136,7 +137,7 @@ def robust_pixel_loss(
 # ---------------------------------------------------------------------------------------------
 
 
-def map_factor(hr: torch.Tensor, lr: torch.Tensor) -> int:
+def map_factor(hr: torch.Tensor | np.ndarray, lr: torch.Tensor | np.ndarray) -> int:
     """The factor an HR map (H, W, C) has over its LR map (its height over the LR's)."""
     return int(hr.shape[0]) // int(lr.shape[0])
 
