@@ -152,7 +152,7 @@ def _upscale_maps(
                 )
                 for f, group in groups.items()
                 for img in group
-            }, {}
+            }, {"made_by": {img.index: ["bicubic"] for group in groups.values() for img in group}}
 
     with timer("load_prior"):
         emit(progress, Progress(stage="load_prior", message=options.prior))
@@ -207,13 +207,54 @@ def _direct_maps(asset, images, prior, s, wraps, cutouts, timer, progress):
                 sources, px, kind, s, base, wrap=wrap, cutout=cutout, progress=tiles.on(img)
             )
     names = {img.index: img.name for img in images}
-    picked = {names[i]: [p.name if p else "bicubic" for p in ps] for i, ps in picks.items()}
     checked = [{"image": names[i], "index": i, **c} for i, c in found.items() if c]
+    made_by = {
+        img.index: [
+            p.name if p else _bicubic_why(found.get(img.index), c)
+            for c, p in enumerate(picks.get(img.index, [prior.for_kind(kind_of(img.roles))]))
+        ]
+        for img in images
+    }
     return out, {
         "prior_precision": _precisions(prior, images),
         "jpeg_deblocked": deblocked,
-        **({"prior_picks": picked, "prior_check": checked} if picks else {}),
+        "made_by": made_by,
+        **({"prior_check": checked} if picks else {}),
     }
+
+
+def _bicubic_why(check: dict | None, c: int) -> str:
+    """How a map's channel entry ``c`` that no prior upscales is named in ``made_by``."""
+    return "bicubic (flat)" if check and check.get("flat", [])[c : c + 1] == [True] else "bicubic"
+
+
+def _made_by(images, channels, sources, blends, checks) -> dict[int, list[str]]:
+    """Per image, per channel entry: what PBR-SR's init made it from (a prior's name, a blend
+    of upscales with their weights, or bicubic), before the projection and the steps."""
+    found = {c["index"]: c for c in checks or [] if "index" in c}
+    out = {}
+    for img in images:
+        i = img.index
+        names, weights, _ = blends.get(i, ([], [], None))
+        srcs = sources.get(i) or [None] * len(channels[i])
+        row = []
+        for c in range(len(channels[i])):
+            w = weights[c] if c < len(weights) else []
+            if any(w):
+                parts = [
+                    f"{p if isinstance(p, str) else p.name} {x:.2f}"
+                    for p, x in zip(names, w, strict=True)
+                    if x
+                ]
+                if abs(rest := 1.0 - sum(w)) >= 0.005:
+                    parts.append(f"bicubic {rest:.2f}")
+                row.append("blend: " + " + ".join(parts))
+            else:
+                p = srcs[c] if c < len(srcs) else None
+                kind = kind_of(img.roles)
+                row.append(p.for_kind(kind).name if p else _bicubic_why(found.get(i), c))
+        out[i] = row
+    return out
 
 
 def _pbrsr_maps(asset, groups, kept, prior, options, config, device, timer, progress, work_dir,
@@ -225,7 +266,7 @@ def _pbrsr_maps(asset, groups, kept, prior, options, config, device, timer, prog
     map_prior = averaged(prior, config.self_ensemble)  # the check, init and blends
     images = [img for group in groups.values() for img in group]
     init_encoded, init, lr, lr_pixels, channels = {}, {}, {}, {}, {}  # over every factor
-    checks, deblocked = None, []
+    checks, deblocked, made_by = None, [], {}
     for s, group in groups.items():
         px, names = deblocked_lr(group, config, timer)
         for img in group:  # a cutout's hidden colour takes no part (init, losses, projection)
@@ -237,6 +278,7 @@ def _pbrsr_maps(asset, groups, kept, prior, options, config, device, timer, prog
         blends = blended_channels(asset, group, map_prior, ch, found, sources, blend_kept, px,
                                   config, timer)  # fmt: skip
         del blend_kept
+        made_by.update(_made_by(group, ch, sources, blends, found))
         enc, par, low = initial_maps(group, sources, blends, px, s, wraps, config, timer,
                                      progress)  # fmt: skip
         init_encoded.update(enc)
@@ -266,6 +308,7 @@ def _pbrsr_maps(asset, groups, kept, prior, options, config, device, timer, prog
         "prior_precision": _precisions(prior, images),
         "prior_init": sorted(img.name for img in images if any(channels[img.index])),
         "jpeg_deblocked": deblocked,
+        "made_by": made_by,
     }
 
 
@@ -477,6 +520,8 @@ def _write_bundle(
     t_start: float,
     progress: ProgressFn | None = None,
 ) -> dict:
+    method_report = dict(method_report)
+    made_by = method_report.pop("made_by", {})
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
     try:
@@ -517,6 +562,9 @@ def _write_bundle(
                     "scale": int(hr[img.index].shape[1]) // img.width,
                     "bit_depth": img.bit_depth,
                     "file": map_files[img.index],
+                    # per channel entry (one for colour and normal maps, one per channel of
+                    # a data map): the prior, blend or bicubic it was made from
+                    "made_by": made_by.get(img.index, []),
                     **_seams(asset, img, hr[img.index]),
                 }
                 for img in asset.images
@@ -524,7 +572,12 @@ def _write_bundle(
             ],
             # maps max_size keeps as they are: their files are the input's
             "kept": [
-                {"index": img.index, "name": img.name, "size": [img.width, img.height]}
+                {
+                    "index": img.index,
+                    "name": img.name,
+                    "label": role_label(img.roles),
+                    "size": [img.width, img.height],
+                }
                 for img in upscalable_images(asset)
                 if img.index not in hr
             ],

@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from pbrsr_core.errors import Cancelled, PbrsrError, StorageError
+from pbrsr_core.map_table import map_rows
 from pbrsr_jobs.objstore import StoreUnavailable, open_store
 from pbrsr_jobs.settings import Settings
 from pbrsr_jobs.store import JobFiles, JobIndex, JobLayout, JobState, resolve_options
@@ -219,6 +220,7 @@ def _summary(report: dict[str, Any]) -> dict[str, Any]:
     keys = ("wall_seconds", "device", "threads", "timings", "metrics", "final_losses")
     out = {k: report[k] for k in keys if k in report}
     out["maps"] = [img.get("file") for img in report.get("images", []) if isinstance(img, dict)]
+    out["map_rows"] = map_rows(report)
     return out
 
 

@@ -10,14 +10,35 @@ from typing import Annotated
 import typer
 from rich.console import Console
 from rich.table import Table
+from rich.text import Text
 
+from ..map_table import map_rows
 from ..options import DEFAULT_PRIOR, UpscaleOptions
 from .progressbar import progress_bar
 
 console = Console()
 
 
+def _size(wh: list[int]) -> str:
+    return f"{wh[0]}²" if wh[0] == wh[1] else f"{wh[0]}x{wh[1]}"
+
+
 def _print_report(report: dict, out_dir: Path) -> None:
+    maps = Table(title="maps")
+    for col in ("map", "role", "size", "made from", "consistency dB"):
+        maps.add_column(
+            col, justify="right" if col == "consistency dB" else "left", overflow="fold"
+        )
+    for row in map_rows(report):
+        lr, hr, f = row["lr_size"], row["size"], row["scale"]
+        maps.add_row(  # Text: names such as "pbr-srmd[data]" are not rich markup
+            Text(row["name"]),
+            Text(row["label"] or ""),
+            f"{_size(lr)} x{f} = {_size(hr)}" if f > 1 else f"{_size(lr)} kept",
+            Text(row["made_from"]),
+            " ".join(f"{db:.1f}" for db in row["consistency_db"].values()),
+        )
+    console.print(maps)
     t = Table(title="stage timings (s)")
     t.add_column("stage")
     t.add_column("seconds", justify="right")

@@ -259,6 +259,7 @@ function renderJob(job) {
   renderFiles(job);
   renderModel(job);
   renderCrops(job);
+  renderMapTable(job);
   renderTimings(job);
 }
 
@@ -407,6 +408,31 @@ async function wipeFigure(crop) {
   cap.title = crop.map;
   fig.append(cap, box, range, ends);
   return fig;
+}
+
+// One row per map of a finished job (pbrsr_core.map_table, in the job's summary).
+function renderMapTable(job) {
+  const rows = (job.summary && job.summary.map_rows) || [];
+  $("map-table-box").hidden = rows.length === 0;
+  const size = ([w, h]) => (w === h ? `${w}²` : `${w}×${h}`);
+  $("map-table").tBodies[0].replaceChildren(...rows.map((r) => {
+    const tr = document.createElement("tr");
+    tr.dataset.index = String(r.index);
+    const cells = [
+      r.name, r.label || "",
+      r.scale > 1 ? `${size(r.lr_size)} x${r.scale} = ${size(r.size)}` : `${size(r.lr_size)} kept`,
+      r.made_from,
+      Object.values(r.consistency_db || {}).map((db) => db.toFixed(1)).join(" "),
+    ];
+    tr.append(...cells.map((text) => {
+      const td = document.createElement("td");
+      td.textContent = text;
+      return td;
+    }));
+    // which role each consistency PSNR is of (a data map has one per channel it holds)
+    tr.cells[4].title = Object.entries(r.consistency_db || {}).map(([k, db]) => `${k} ${db.toFixed(2)} dB`).join(", ");
+    return tr;
+  }));
 }
 
 function renderTimings(job) {

@@ -333,8 +333,8 @@ def test_prior_stages_report_tiles_with_an_eta(tmp_path, set_runtime):
         assert any(e.eta_s is not None and e.eta_s >= 0 for e in mine)
 
 
-def _three_sizes(tmp_path: Path) -> Path:
-    """A quad whose albedo is 32², normal map 16² and metallic-roughness map 8²."""
+def three_sizes(tmp_path: Path, data_side: int = 8) -> Path:
+    """A quad whose albedo is 32², normal map 16² and metallic-roughness map ``data_side``²."""
     rng = np.random.default_rng(5)
     n = rng.normal(0, 0.3, (16, 16, 3))
     n[..., 2] = 1.0
@@ -342,7 +342,7 @@ def _three_sizes(tmp_path: Path) -> Path:
     maps = {
         "base_color": rng.random((32, 32, 3)).astype(np.float32),
         "normal": ((n + 1) / 2).astype(np.float32),
-        "metallic_roughness": rng.random((8, 8, 3)).astype(np.float32),
+        "metallic_roughness": rng.random((data_side, data_side, 3)).astype(np.float32),
     }
     return make_quad_asset(tmp_path / "in" / "q.gltf", maps)
 
@@ -359,7 +359,7 @@ def _three_sizes(tmp_path: Path) -> Path:
 def test_max_size_upscales_each_map_by_the_largest_factor_that_fits(tmp_path, options):
     """x4 with max_size 64: the 32² albedo at x2, the 16² normal and 8² data maps at x4, each
     map as a run at its own factor makes it; with max_size 32 the albedo keeps its file."""
-    src = _three_sizes(tmp_path)
+    src = three_sizes(tmp_path)
     capped = upscale_asset(src, tmp_path / "c", options.model_copy(update={"max_size": 64}))
     assert [(i["lr_size"][0], i["scale"]) for i in capped["images"]] == [(32, 2), (16, 4), (8, 4)]
     assert capped["kept"] == []
@@ -382,7 +382,7 @@ def test_max_size_upscales_each_map_by_the_largest_factor_that_fits(tmp_path, op
 
 
 def test_max_size_refuses_what_it_cannot_run(tmp_path):
-    src = _three_sizes(tmp_path)
+    src = three_sizes(tmp_path)
     with pytest.raises(UnprocessableAsset, match=r"over max_size \(15 px\) at x2"):
         upscale_asset(src, tmp_path / "a", UpscaleOptions(method="bicubic", max_size=15))
     assert not (tmp_path / "a").exists()
@@ -395,7 +395,7 @@ def test_max_size_refuses_what_it_cannot_run(tmp_path):
 def test_optimiser_steps_take_every_map_at_its_own_factor(tmp_path):
     """With steps, max_size's factors meet in one optimisation: each map held to its LR map at
     its own factor, a kept map rendered as it is and its file left alone."""
-    src = _three_sizes(tmp_path)
+    src = three_sizes(tmp_path)
     options = UpscaleOptions(prior="bicubic", iterations=3, max_size=64)
     report = upscale_asset(src, tmp_path / "a", options)
     assert [i["scale"] for i in report["images"]] == [2, 4, 4] and len(report["history"]) >= 1

@@ -11,6 +11,7 @@ from __future__ import annotations
 import base64
 import io
 import json
+import re
 import time
 import zipfile
 from collections.abc import Iterator
@@ -151,6 +152,15 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
             row = page.locator(".job-row").first
             assert row.get_attribute("data-status") == "finished"
             assert page.inner_text("#timings")  # per-stage timings listed
+            # one row per map: its size and factor, what made it, its consistency PSNR
+            cells = page.eval_on_selector_all(
+                "#map-table tbody tr", "trs => trs.map(tr => [...tr.cells].map(c => c.textContent))"
+            )
+            assert len(cells) == page.locator("#thumbs img").count(), cells
+            for _, role, size, made_from, db in cells:
+                lr, hr = re.fullmatch(r"(\d+)² x2 = (\d+)²", size).groups()  # under max_size
+                assert role and made_from and int(hr) == 2 * int(lr) <= 64, cells
+                assert all(float(v) > 20 for v in db.split()), cells
             # the steps' losses are drawn: one line per loss, no "no losses" text
             assert page.locator("#loss-chart svg path[data-series]").count() > 0
             assert "no losses" not in page.inner_text("#loss-chart")

@@ -92,6 +92,10 @@ def test_job_runs_to_finished_with_a_complete_bundle(env):
     assert report["options"]["scale"] == 2
     for img in report["images"]:
         assert img["hr_size"] == [2 * img["lr_size"][0], 2 * img["lr_size"][1]]
+    # the job's summary carries the report's table of maps (the dashboard shows it)
+    rows = job["summary"]["map_rows"]
+    assert [r["name"] for r in rows] == [img["name"] for img in report["images"]]
+    assert all(r["scale"] == 2 and r["made_from"] == "bicubic" for r in rows)
 
     previews = job["links"]["previews"]
     assert "preview.png" in previews

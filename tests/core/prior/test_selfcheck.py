@@ -68,6 +68,12 @@ class SelectivePrior(BlurringPrior):
         return super()._forward(x, scale)
 
 
+def _made_by(report: dict, name: str) -> list[str]:
+    """What the report says each channel entry of the map ``name`` was made from."""
+    (img,) = [img for img in report["images"] if img["name"] == name]
+    return img["made_by"]
+
+
 def _texture(size: int = 96, seed: int = 0) -> np.ndarray:
     g = np.random.default_rng(seed)
     base = g.random((size // 8, size // 8, 3)).astype(np.float32)
@@ -354,15 +360,16 @@ def test_direct_and_the_presets_upscale_each_map_with_the_candidate_the_check_ch
         return load_asset(next(out.glob("*.gltf"))).images[0].pixels, report
 
     picked, report = albedo_out("offering", method="direct")
-    assert report["prior_picks"] == {"base_color.png": ["selective"]}
+    assert _made_by(report, "base_color.png") == ["selective"]
     assert np.array_equal(picked, albedo_out("selective", method="direct")[0])
     assert not np.array_equal(picked, albedo_out("blurring", method="direct")[0])
     # where no candidate beats bicubic one scale down, direct keeps bicubic's upscale
     kept, report = albedo_out("blurs", method="direct")
-    assert report["prior_picks"] == {"base_color.png": ["bicubic"]}
+    assert _made_by(report, "base_color.png") == ["bicubic"]
     assert np.array_equal(kept, albedo_out("blurs", method="bicubic")[0])
     # a single-candidate prior is not checked by direct
-    assert "prior_picks" not in albedo_out("selective", method="direct")[1]
+    report = albedo_out("selective", method="direct")[1]
+    assert "prior_check" not in report and _made_by(report, "base_color.png") == ["selective"]
     monkeypatch.setitem(presets.PRESETS, "fast", presets.FAST.with_(max_prior_scale=None))
     picked, report = albedo_out("offering", preset="fast")
     (check,) = report["prior_check"]
@@ -424,15 +431,14 @@ def test_each_channel_of_a_packed_map_comes_from_the_candidate_that_won_it(tmp_p
         assert np.allclose(inner[..., 2], 0.5, atol=1 / 255)  # channel-2's
         assert not np.allclose(inner[..., 0], 0.25, atol=0.05)  # no prior's
         assert not np.allclose(inner[..., 0], 0.5, atol=0.05)
+        made_by = _made_by(report, "metallic_roughness.png")
         if method == "pbrsr":
             (c,) = report["prior_check"]
             assert c["channels"] == [False, True, True]
+            assert made_by[0] == "bicubic" and "channel-1" in made_by[1]
+            assert "channel-2" in made_by[2]
         else:
-            assert report["prior_picks"]["metallic_roughness.png"] == [
-                "bicubic",
-                "channel-1",
-                "channel-2",
-            ]
+            assert made_by == ["bicubic", "channel-1", "channel-2"]
             (c,) = report["prior_check"]  # what direct decided on, as the presets report it
             assert c["image"] == "metallic_roughness.png" and c["margins"] == check["margins"]
             assert c["priors"] == check["priors"] and c["channels"] == check["channels"]
@@ -462,9 +468,9 @@ def test_a_flat_channel_keeps_bicubic_even_where_a_network_wins_the_check(tmp_pa
             (c,) = report["prior_check"]
             assert c["channels"] == [False, True, False] and "blend" in c
             assert c["blend"]["margins"][2] is None  # not blended
-        else:
-            picks = report["prior_picks"]["metallic_roughness.png"]
-            assert picks == ["bicubic", "channel-1", "bicubic"]
+        made_by = _made_by(report, "metallic_roughness.png")
+        assert made_by[0] == "bicubic" and "channel-1" in made_by[1]
+        assert made_by[2] == "bicubic (flat)"
 
 
 def test_a_jpeg_maps_noise_raises_the_flat_floor(tmp_path):
