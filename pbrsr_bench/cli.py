@@ -300,7 +300,10 @@ def upscale_cmd(
         "geometry Draco-compressed) (repeatable); default: all, variants too.",
     ),
     methods: str = typer.Option(
-        "bicubic,direct,fast,balanced", help="bicubic, direct and preset names, comma-separated."
+        "bicubic,direct,fast,balanced",
+        help="bicubic, direct and preset names, comma-separated; each as NAME[@PRIOR]"
+        "[+key=value...]: a preset's numbers, or max_size for any method (its maps scored "
+        "as bicubic upscales to the ground truth's size).",
     ),
     scale: int = typer.Option(4, help="Upscaling factor (the LR input is degraded by it)."),
     prior: str = typer.Option(DEFAULT_PRIOR, help="Image prior for direct and PBR-SR."),

@@ -114,10 +114,16 @@ def eval_lights(shared: Path) -> tuple[list[EnvLight], list[str]]:
     ]
 
 
+OPTION_CHANGES = ("max_size",)
+"""``+key=value`` changes that are upscale options, which every method takes, not a preset's
+numbers: ``direct+max_size=512``."""
+
+
 def parse_method(method: str) -> tuple[str, str | None, dict]:
-    """``NAME[@PRIOR][+key=value...]`` -> (name, prior or None, preset changes). Values are
-    JSON (numbers, true/false, null) or else strings: ``balanced+lambda_pix=0``,
-    ``balanced@pbr-upconv7+pseudo_gt_prior=bicubic``."""
+    """``NAME[@PRIOR][+key=value...]`` -> (name, prior or None, changes: a preset's numbers or
+    :data:`OPTION_CHANGES`). Values are JSON (numbers, true/false, null) or else strings:
+    ``balanced+lambda_pix=0``, ``balanced@pbr-upconv7+pseudo_gt_prior=bicubic``,
+    ``direct+max_size=512``."""
     head, *changes = method.split("+")
     name, _, prior = head.partition("@")
     config = {}
@@ -136,34 +142,51 @@ def method_options(method: str, scale: int, prior: str) -> dict:
     """Upscale options of one benchmark method: ``bicubic``, ``direct`` or a PBR-SR preset,
     optionally with its own prior as ``METHOD@PRIOR`` (``direct@waifu2x-photo``), so one run
     compares priors."""
-    name, own_prior, _ = parse_method(method)
+    name, own_prior, changes = parse_method(method)
     prior = own_prior or prior
+    options = {k: v for k, v in changes.items() if k in OPTION_CHANGES}
     if name in ("bicubic", "direct"):
-        return {"method": name, "scale": scale, "prior": prior}
-    return {"method": "pbrsr", "preset": name, "scale": scale, "prior": prior}
+        return {"method": name, "scale": scale, "prior": prior, **options}
+    return {"method": "pbrsr", "preset": name, "scale": scale, "prior": prior, **options}
+
+
+def preset_changes(method: str) -> dict:
+    """The changes of ``method`` to its preset's numbers (``PbrsrConfig.with_``)."""
+    return {k: v for k, v in parse_method(method)[2].items() if k not in OPTION_CHANGES}
 
 
 def check_methods(methods: tuple[str, ...], prior: str) -> None:
     """Raise ValueError naming the first method (its prior or a preset change) that is
     unknown."""
+    from pydantic import ValidationError
+
     from pbrsr_core.errors import PbrsrError
     from pbrsr_core.optim.presets import PRESETS
+    from pbrsr_core.options import UpscaleOptions
     from pbrsr_core.prior.registry import check_name
 
     for m in methods:
-        name, own_prior, changes = parse_method(m)
+        name, own_prior, _ = parse_method(m)
+        changes = preset_changes(m)
         if name not in ("bicubic", "direct") and name not in PRESETS:
             raise ValueError(
                 f"unknown method {name!r}: use bicubic, direct or {', '.join(PRESETS)}"
             )
         if changes and name not in PRESETS:
-            raise ValueError(f"method {m!r}: only a PBR-SR preset takes +key=value changes")
+            raise ValueError(
+                f"method {m!r}: only a PBR-SR preset takes +key=value changes other than "
+                + ", ".join(OPTION_CHANGES)
+            )
         try:
             check_name(own_prior or prior)
+            UpscaleOptions(**method_options(m, 4, prior))
             if changes:
                 PRESETS[name].with_(**changes)
         except PbrsrError as exc:
             raise ValueError(f"method {m!r}: {exc.message}") from None
+        except ValidationError as exc:
+            e = exc.errors()[0]
+            raise ValueError(f"method {m!r}: {'.'.join(map(str, e['loc']))}: {e['msg']}") from None
         except TypeError as exc:
             raise ValueError(f"method {m!r}: {exc}") from None
 
@@ -188,16 +211,34 @@ def run_subprocess(spec: dict, work: Path) -> dict:
     return result
 
 
-def _with_pixels(gt: Asset, pixels: dict[int, np.ndarray]) -> Asset:
+def _with_pixels(asset: Asset, pixels: dict[int, np.ndarray]) -> Asset:
     images = [
         dataclasses.replace(im, pixels=pixels[im.index]) if im.index in pixels else im
-        for im in gt.images
+        for im in asset.images
     ]
-    return dataclasses.replace(gt, images=images)
+    return dataclasses.replace(asset, images=images)
 
 
 def _score(pred: Asset, gt: Asset, evaluator: RenderEvaluator) -> dict[str, float]:
-    return {**map_metrics(pred, gt), **evaluator(pred)}
+    """Map PSNR/SSIM and render PSNR of ``pred``. The renders take its maps as they are; a
+    map made smaller than the ground truth's (``max_size``) is compared as a bicubic upscale
+    of it to the ground truth's size, as a renderer magnifying it would see it."""
+    return {**map_metrics(at_gt_size(pred, gt), gt), **evaluator(pred)}
+
+
+def at_gt_size(pred: Asset, gt: Asset) -> Asset:
+    """``pred`` with each map smaller than the ground truth's by a whole factor upscaled to
+    its size by bicubic interpolation (as the pipeline's bicubic method upscales it)."""
+    from pbrsr_core.maps import kind_of
+    from pbrsr_core.prior.direct import bicubic_map
+
+    resized = {}
+    for img, ref in zip(pred.images, gt.images, strict=False):
+        h, w = img.pixels.shape[:2]
+        H, W = ref.pixels.shape[:2]
+        if (h, w) != (H, W) and H % h == 0 and H // h == W / w and H // h > 1:
+            resized[img.index] = bicubic_map(img.pixels, kind_of(ref.roles), H // h)
+    return _with_pixels(pred, resized) if resized else pred
 
 
 def run(
@@ -259,7 +300,7 @@ def run(
                     "out": str(work / "out"),
                     "work": str(work),
                     "options": method_options(method, scale, prior),
-                    "config": parse_method(method)[2],
+                    "config": preset_changes(method),
                 }
                 log(f"   {method} ...")
                 res = run_subprocess(spec, work)
@@ -268,7 +309,9 @@ def run(
                 curve = []
                 for snap in res.get("snapshots", []):
                     px = dict(np.load(work / snap["file"]))
-                    s = _score(_with_pixels(gt, {int(k): v for k, v in px.items()}), gt, evaluator)
+                    # a snapshot holds the maps being optimised; the rest are the output's
+                    snap_asset = _with_pixels(pred, {int(k): v for k, v in px.items()})
+                    s = _score(snap_asset, gt, evaluator)
                     curve.append({"it": snap["it"], "seconds": snap["seconds"], **s})
                 row = {
                     "asset": name,

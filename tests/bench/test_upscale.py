@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -40,6 +41,39 @@ def test_bench_upscale_small_run(tmp_path: Path):
     assert len(saved["rows"]) == 2
     assert (tmp_path / "out" / "speed_vs_error.png").stat().st_size > 0
     assert "| procedural | fast |" in (tmp_path / "out" / "results.md").read_text()
+
+
+def test_max_size_runs_are_scored_at_the_ground_truths_size(tmp_path: Path):
+    """x4 of 64² maps with max_size 32: each map at x2, its map PSNR taken of a bicubic x2 of
+    it, its renders of the map as it is; close to the uncapped run, not above it."""
+    rows = run(
+        out_dir=tmp_path / "out",
+        methods=("bicubic", "bicubic+max_size=32"),
+        eval_res=64,
+        eval_views=4,
+        procedural_size=64,
+        include_shared=False,
+        log=lambda m: None,
+    )
+    full, capped = rows[0], rows[1]
+    assert capped["method"] == "bicubic+max_size=32"
+    for key in ("render.psnr", "maps.albedo.psnr", "maps.normal.psnr"):
+        assert full[key] - 3.0 < capped[key] < full[key] + 0.2, key
+
+
+def test_at_gt_size_upscales_only_maps_smaller_by_a_whole_factor(tmp_path: Path):
+    from pbrsr_bench.upscale import at_gt_size
+    from pbrsr_core.maps import kind_of
+    from pbrsr_core.prior.direct import bicubic_map
+
+    gt = load_asset(make_demo_asset(tmp_path / "d.glb", size=32))
+    small = dataclasses.replace(gt.images[0], pixels=gt.images[0].pixels[::2, ::2])
+    pred = dataclasses.replace(gt, images=[small, *gt.images[1:]])
+    out = at_gt_size(pred, gt)
+    kind = kind_of(gt.images[0].roles)
+    assert np.array_equal(out.images[0].pixels, bicubic_map(small.pixels, kind, 2))
+    assert all(a is b for a, b in zip(out.images[1:], gt.images[1:], strict=True))
+    assert at_gt_size(gt, gt) is gt
 
 
 def test_each_run_takes_the_pbrsr_settings_of_the_bench(tmp_path: Path, monkeypatch):
@@ -176,7 +210,7 @@ def test_methods_may_name_their_prior_and_unknown_ones_are_refused():
 
 
 def test_methods_take_preset_changes():
-    from pbrsr_bench.upscale import check_methods, parse_method
+    from pbrsr_bench.upscale import check_methods, method_options, parse_method, preset_changes
 
     name, prior, changes = parse_method("balanced@pbr-upconv7+lambda_pix=0+pseudo_gt_prior=bicubic")
     assert (name, prior) == ("balanced", "pbr-upconv7")
@@ -187,6 +221,12 @@ def test_methods_take_preset_changes():
         check_methods(("balanced+lambda_pix",), "bicubic")
     with pytest.raises(ValueError, match="only a PBR-SR preset"):
         check_methods(("direct+lambda_pix=0",), "bicubic")
+    # max_size is an upscale option: every method takes it, and it is checked as one
+    check_methods(("direct+max_size=512", "bicubic+max_size=64", "fast+max_size=64"), "bicubic")
+    assert method_options("direct+max_size=512", 4, "bicubic")["max_size"] == 512
+    assert preset_changes("balanced+max_size=512+lambda_pix=0") == {"lambda_pix": 0}
+    with pytest.raises(ValueError, match="max_size: Input should be greater than or equal to 2"):
+        check_methods(("direct+max_size=1",), "bicubic")
     with pytest.raises(ValueError, match="no_such_field"):
         check_methods(("balanced+no_such_field=1",), "bicubic")
     with pytest.raises(ValueError, match="unknown prior 'nope'"):
