@@ -4,7 +4,9 @@ Runs :func:`pbrsr_core.pipeline.upscale_asset` and, for PBR-SR, saves the maps a
 intermediate iterations (``snap_<it>.npz``, as they would be exported) with the wall time at
 which they existed (time spent making and saving snapshots is not counted; ``"snapshots":
 false`` in the spec saves none). ``"config"`` in the spec changes numbers of the options'
-preset (``PbrsrConfig.with_``). Writes ``result.json`` beside the spec.
+preset (``PbrsrConfig.with_``). Writes ``result.json`` beside the spec; for options the
+pipeline refuses on this asset (``UnprocessableAsset``: a ``max_size`` that keeps every map,
+say) only ``{"refused": message}``.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from pbrsr_core.cli.environment import configure_from_env
+from pbrsr_core.errors import UnprocessableAsset
 from pbrsr_core.optim.presets import get_preset
 from pbrsr_core.options import UpscaleOptions
 from pbrsr_core.pipeline import upscale_asset
@@ -54,14 +57,18 @@ def main(spec_path: str) -> None:
 
     options = UpscaleOptions(**spec["options"])
     changes = spec.get("config")
-    report = upscale_asset(
-        Path(spec["input"]),
-        Path(spec["out"]),
-        options,
-        work_dir=work / "job",
-        snapshots=(SNAPSHOT_AT, on_snapshot) if spec.get("snapshots", True) else None,
-        config=get_preset(options.preset).with_(**changes) if changes else None,
-    )
+    try:
+        report = upscale_asset(
+            Path(spec["input"]),
+            Path(spec["out"]),
+            options,
+            work_dir=work / "job",
+            snapshots=(SNAPSHOT_AT, on_snapshot) if spec.get("snapshots", True) else None,
+            config=get_preset(options.preset).with_(**changes) if changes else None,
+        )
+    except UnprocessableAsset as exc:  # these options cannot run on this asset
+        (work / "result.json").write_text(json.dumps({"refused": exc.message}))
+        return
     run_s = time.perf_counter() - t0 - overhead
     peak = peak_rss_mib()
     (work / "result.json").write_text(

@@ -191,8 +191,13 @@ def check_methods(methods: tuple[str, ...], prior: str) -> None:
             raise ValueError(f"method {m!r}: {exc}") from None
 
 
+class Refused(RuntimeError):
+    """The pipeline refused a run's options on its asset (the message says why)."""
+
+
 def run_subprocess(spec: dict, work: Path) -> dict:
-    """Run one upscale in a child process; return its result JSON plus peak RSS."""
+    """Run one upscale in a child process; return its result JSON plus peak RSS. Raises
+    :class:`Refused` where the pipeline refused the options on the asset."""
     spec_path = work / "spec.json"
     spec_path.write_text(json.dumps(spec))
     t0 = time.perf_counter()
@@ -207,6 +212,8 @@ def run_subprocess(spec: dict, work: Path) -> dict:
     if proc.returncode != 0:
         raise RuntimeError(f"run {spec['label']} failed:\n{err[-3000:]}")
     result = json.loads((work / "result.json").read_text())
+    if "refused" in result:
+        raise Refused(result["refused"])
     result["wall_s"] = wall
     return result
 
@@ -303,7 +310,11 @@ def run(
                     "config": preset_changes(method),
                 }
                 log(f"   {method} ...")
-                res = run_subprocess(spec, work)
+                try:
+                    res = run_subprocess(spec, work)
+                except Refused as exc:  # no row: nothing of this method ran on the asset
+                    log(f"   {method}: refused: {exc}")
+                    continue
                 pred = load_asset(work / "out" / lr_path.name)
                 scores = _score(pred, gt, evaluator)
                 curve = []

@@ -234,7 +234,8 @@ function renderJob(job) {
   $("job-name").textContent = job.name;
   const o = job.options || {};
   $("job-meta").textContent = [
-    `x${o.scale}`, o.method, o.method === "pbrsr" ? o.preset : "", `created ${fmtTime(job.created_at)}`,
+    `x${o.scale}`, o.max_size ? `at most ${o.max_size} px` : "", o.method, o.method === "pbrsr" ? o.preset : "",
+    `created ${fmtTime(job.created_at)}`,
     job.attempt > 1 ? `attempt ${job.attempt}` : "",
   ].filter(Boolean).join(" · ");
   const badge = $("job-status");

@@ -45,16 +45,22 @@ def test_bench_upscale_small_run(tmp_path: Path):
 
 def test_max_size_runs_are_scored_at_the_ground_truths_size(tmp_path: Path):
     """x4 of 64² maps with max_size 32: each map at x2, its map PSNR taken of a bicubic x2 of
-    it, its renders of the map as it is; close to the uncapped run, not above it."""
+    it, its renders of the map as it is; close to the uncapped run, not above it. A max_size
+    that keeps every map is refused on the asset and the bench goes on."""
+    said: list[str] = []
     rows = run(
         out_dir=tmp_path / "out",
-        methods=("bicubic", "bicubic+max_size=32"),
+        methods=("bicubic", "bicubic+max_size=32", "bicubic+max_size=8"),
         eval_res=64,
         eval_views=4,
         procedural_size=64,
         include_shared=False,
-        log=lambda m: None,
+        log=said.append,
     )
+    # max_size 8 keeps every 16² map: refused on each asset, said so, no row, the bench goes on
+    assert [r["method"] for r in rows] == ["bicubic", "bicubic+max_size=32"] * 2
+    refused = [s for s in said if "refused" in s]
+    assert len(refused) == 2 and all("over max_size (8 px)" in s for s in refused)
     full, capped = rows[0], rows[1]
     assert capped["method"] == "bicubic+max_size=32"
     for key in ("render.psnr", "maps.albedo.psnr", "maps.normal.psnr"):

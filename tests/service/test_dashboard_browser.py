@@ -124,6 +124,7 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
             # the view's status is set when the job's detail has arrived, with its name
             page.wait_for_selector("#job-view[data-status]")
             assert page.inner_text("#job-name") == "chair.glb"
+            assert page.inner_text("#job-meta").startswith("x2 · at most 64 px · pbrsr · quality")
 
             # watch the bar until the job ends
             widths, statuses = [], []
