@@ -243,7 +243,7 @@ def at_gt_size(pred: Asset, gt: Asset) -> Asset:
     for img, ref in zip(pred.images, gt.images, strict=False):
         h, w = img.pixels.shape[:2]
         H, W = ref.pixels.shape[:2]
-        if (h, w) != (H, W) and H % h == 0 and H // h == W / w and H // h > 1:
+        if h < H and H % h == 0 and W * h == H * w:  # smaller by a whole factor
             resized[img.index] = bicubic_map(img.pixels, kind_of(ref.roles), H // h)
     return _with_pixels(pred, resized) if resized else pred
 

@@ -208,13 +208,8 @@ def _direct_maps(asset, images, prior, s, wraps, cutouts, timer, progress):
             )
     names = {img.index: img.name for img in images}
     checked = [{"image": names[i], "index": i, **c} for i, c in found.items() if c]
-    made_by = {
-        img.index: [
-            p.name if p else _bicubic_why(found.get(img.index), c)
-            for c, p in enumerate(picks.get(img.index, [prior.for_kind(kind_of(img.roles))]))
-        ]
-        for img in images
-    }
+    made_by = _made_by(images, {img.index: picks.get(img.index, [prior]) for img in images}, {},
+                       checked)  # fmt: skip
     return out, {
         "prior_precision": _precisions(prior, images),
         "jpeg_deblocked": deblocked,
@@ -228,17 +223,18 @@ def _bicubic_why(check: dict | None, c: int) -> str:
     return "bicubic (flat)" if check and check.get("flat", [])[c : c + 1] == [True] else "bicubic"
 
 
-def _made_by(images, channels, sources, blends, checks) -> dict[int, list[str]]:
-    """Per image, per channel entry: what PBR-SR's init made it from (a prior's name, a blend
-    of upscales with their weights, or bicubic), before the projection and the steps."""
+def _made_by(images, sources, blends, checks) -> dict[int, list[str]]:
+    """Per image, per channel entry of ``sources`` (the prior or None for bicubic): what it
+    was made from (a prior's network, a blend of upscales with their weights, as ``blends``
+    gives them, or bicubic; for PBR-SR before the projection and the steps)."""
     found = {c["index"]: c for c in checks or [] if "index" in c}
     out = {}
     for img in images:
         i = img.index
         names, weights, _ = blends.get(i, ([], [], None))
-        srcs = sources.get(i) or [None] * len(channels[i])
+        srcs = sources[i]
         row = []
-        for c in range(len(channels[i])):
+        for c in range(len(srcs)):
             w = weights[c] if c < len(weights) else []
             if any(w):
                 parts = [
@@ -250,7 +246,7 @@ def _made_by(images, channels, sources, blends, checks) -> dict[int, list[str]]:
                     parts.append(f"bicubic {rest:.2f}")
                 row.append("blend: " + " + ".join(parts))
             else:
-                p = srcs[c] if c < len(srcs) else None
+                p = srcs[c]
                 kind = kind_of(img.roles)
                 row.append(p.for_kind(kind).name if p else _bicubic_why(found.get(i), c))
         out[i] = row
@@ -278,7 +274,8 @@ def _pbrsr_maps(asset, groups, kept, prior, options, config, device, timer, prog
         blends = blended_channels(asset, group, map_prior, ch, found, sources, blend_kept, px,
                                   config, timer)  # fmt: skip
         del blend_kept
-        made_by.update(_made_by(group, ch, sources, blends, found))
+        every = {i: sources.get(i) or [None] * len(c) for i, c in ch.items()}
+        made_by.update(_made_by(group, every, blends, found))
         enc, par, low = initial_maps(group, sources, blends, px, s, wraps, config, timer,
                                      progress)  # fmt: skip
         init_encoded.update(enc)
