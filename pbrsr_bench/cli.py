@@ -317,6 +317,11 @@ def upscale_cmd(
     lr_format: str = typer.Option(
         "same", help="LR image format (pbrsr degrade --format): same, png, png16, exr."
     ),
+    kernel: str = typer.Option(
+        "gaussian",
+        help="How the LR input is made (pbrsr degrade --kernel): gaussian (the protocol), "
+        "area, bicubic, lanczos.",
+    ),
     docs: list[Path] = typer.Option(  # noqa: B006
         [], "--docs", help="Markdown file whose bench:upscale section gets the summary."
     ),
@@ -346,6 +351,7 @@ def upscale_cmd(
         include_shared=shared,
         procedural_size=procedural_size,
         lr_format=lr_format,
+        kernel=kernel,
     )
     _publish(out, docs)
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from pbrsr_core.asset import load_asset, make_cutout_asset, make_demo_asset
 from pbrsr_core.asset.model import Asset
-from pbrsr_core.degrade import degrade_asset
+from pbrsr_core.degrade import check_kernels, degrade_asset
 from pbrsr_core.metrics import RenderEvaluator, eval_cameras, map_metrics
 from pbrsr_core.options import DEFAULT_PRIOR
 from pbrsr_core.render.light import EnvLight
@@ -261,12 +261,14 @@ def run(
     include_procedural: bool = True,
     include_shared: bool = True,
     lr_format: str = "same",
+    kernel: str = "gaussian",
     shared: Path = SHARED_ASSETS,
     log=print,
 ) -> list[dict]:
     """Run the benchmark; write ``results.json``, ``results.md`` and ``speed_vs_error.png``."""
 
     check_methods(methods, prior)
+    check_kernels((kernel,))
     out_dir.mkdir(parents=True, exist_ok=True)
     lights, light_names = eval_lights(shared)
     work_root = Path(tempfile.mkdtemp(prefix="pbrsr-bench-"))
@@ -278,6 +280,7 @@ def run(
         "eval_views": eval_views,
         "lights": light_names,
         "lr_format": lr_format,
+        "kernel": kernel,
         "machine": machine(),
     }
     try:
@@ -292,9 +295,13 @@ def run(
             variants=True,
         )
         for name, gt_path in todo:
-            log(f"== {name}: degrade x{scale}")
+            log(f"== {name}: degrade x{scale} ({kernel})")
             lr_path = degrade_asset(
-                gt_path, work_root / name / "lr" / gt_path.name, scale, image_format=lr_format
+                gt_path,
+                work_root / name / "lr" / gt_path.name,
+                scale,
+                image_format=lr_format,
+                kernel=kernel,
             )[0]
             gt = load_asset(gt_path)
             evaluator = cpu_evaluator(gt, eval_res, eval_views, lights)
@@ -460,10 +467,15 @@ def published_summary(out_dir: Path) -> str:
         command += f" --scale {data['scale']}"
     if data["prior"] != DEFAULT_PRIOR:
         command += f" --prior {data['prior']}"
+    kernel = data.get("kernel", "gaussian")
+    lr = "" if kernel == "gaussian" else f", LR by the {kernel} kernel (`pbrsr degrade --kernel`)"
+    if kernel != "gaussian":
+        command += f" --kernel {kernel}"
     shared = sorted({r["asset"] for r in rows} - {*PROCEDURAL_ASSETS, *BENCH_VARIANTS})
     return (
-        f"x{data['scale']}, prior `{data['prior']}`, render PSNR over {data['eval_views']} views "
-        f"at {data['eval_res']}² under {' and '.join(data['lights'])}, mean over "
+        f"x{data['scale']}{lr}, prior `{data['prior']}`, render PSNR over "
+        f"{data['eval_views']} views at {data['eval_res']}² under "
+        f"{' and '.join(data['lights'])}, mean over "
         f"{len(shared)} shared assets ({', '.join(shared)}); run time is the method's own "
         f"(load to save), on {data.get('machine') or machine()}. Measured by `{command}`.\n\n"
         + summary_table(rows)

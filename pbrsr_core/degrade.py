@@ -7,6 +7,11 @@ bicubic decimation alias high-frequency texture detail into moire; wider ones re
 the LR grid could still hold. Borders are reflected. Images are degraded as stored (sRGB maps
 stay sRGB-encoded, as an artist's LR export would be); normal maps are degraded encoded and
 then decoded, renormalised (z >= 0) and re-encoded.
+
+Real LR maps are not always made so: a mip chain averages blocks, an image editor resizes
+with an antialiased bicubic or Lanczos filter. :func:`degrade_image` takes those as
+``kernel`` (``KERNELS``) to measure how the method holds on inputs its priors were not
+trained for; ``gaussian`` is the protocol, and the only one the priors train on.
 """
 
 from __future__ import annotations
@@ -20,6 +25,21 @@ import torch.nn.functional as F
 
 from .errors import InvalidOptions
 from .limits import Limits
+
+KERNELS = ("gaussian", "area", "bicubic", "lanczos")
+"""gaussian: the protocol (blur, then bicubic interpolation at the LR texel centres); area:
+the mean of each LR texel's HR texels (a box filter, as mipmaps are made); bicubic and
+lanczos: antialiased resizing with the Keys cubic (a = -0.5) or Lanczos-3 kernel stretched
+by the scale (Pillow's BICUBIC and LANCZOS, ImageMagick's default Lanczos for shrinking)."""
+
+
+def check_kernels(kernels: tuple[str, ...]) -> None:
+    """Refuse an empty or unknown list of LR kernels."""
+    bad = [k for k in kernels if k not in KERNELS]
+    if not kernels or bad:
+        raise InvalidOptions(
+            f"unknown LR kernel(s) {', '.join(bad) or '(none given)'}: use {', '.join(KERNELS)}"
+        )
 
 
 def degrade_sigma(scale: int) -> float:
@@ -55,17 +75,58 @@ def degrade_tensor(x: torch.Tensor, scale: int) -> torch.Tensor:
     return F.interpolate(x, size=(out_h, out_w), mode="bicubic", align_corners=False)
 
 
-def degrade_image(image: np.ndarray, scale: int, *, normal_map: bool = False) -> np.ndarray:
-    """(H, W, C) float32 [0, 1] -> (max(1, round(H/s)), max(1, round(W/s)), C) float32."""
+def _filter(kernel: str, x: np.ndarray) -> np.ndarray:
+    """The bicubic or lanczos resizing filter at ``x`` (in LR texels)."""
+    a = np.abs(x)
+    if kernel == "bicubic":  # Keys, a = -0.5
+        return np.where(
+            a <= 1, (1.5 * a - 2.5) * a * a + 1,
+            np.where(a < 2, ((-0.5 * a + 2.5) * a - 4) * a + 2, 0.0),
+        )  # fmt: skip
+    return np.where(a < 3, np.sinc(x) * np.sinc(x / 3), 0.0)  # lanczos
+
+
+def resize_matrix(n_in: int, n_out: int, kernel: str) -> torch.Tensor:
+    """(n_out, n_in) float64 weights of a resize along one axis: for area, the overlap of
+    each input texel with output texel i's footprint; otherwise the filter, stretched by
+    ``n_in / n_out`` when shrinking (antialiased), centred on output texel i's centre. Each
+    row's weights, over the input texels inside the axis, sum to 1 (Pillow's border rule)."""
+    s = n_in / n_out
+    i, j = np.arange(n_out)[:, None], np.arange(n_in)[None, :]
+    if kernel == "area":  # each input texel's overlap with the output texel's footprint
+        w = np.clip(np.minimum(j + 1, (i + 1) * s) - np.maximum(j, i * s), 0.0, None)
+    else:
+        w = _filter(kernel, (j + 0.5 - (i + 0.5) * s) / max(s, 1.0))
+    return torch.from_numpy(w / w.sum(axis=1, keepdims=True))
+
+
+def resize_tensor(x: torch.Tensor, size: tuple[int, int], kernel: str) -> torch.Tensor:
+    """(N, C, H, W) -> (N, C, *size) by ``kernel`` (one of ``KERNELS`` but gaussian)."""
+    rows = resize_matrix(x.shape[2], size[0], kernel).to(x)
+    cols = resize_matrix(x.shape[3], size[1], kernel).to(x)
+    return rows @ x @ cols.T
+
+
+def degrade_image(
+    image: np.ndarray, scale: int, *, normal_map: bool = False, kernel: str = "gaussian"
+) -> np.ndarray:
+    """(H, W, C) float32 [0, 1] -> (max(1, round(H/s)), max(1, round(W/s)), C) float32, by the
+    protocol or another ``kernel`` (``KERNELS``)."""
     if not isinstance(scale, int) or scale < 1:
         raise InvalidOptions(f"the degradation scale must be a positive integer, not {scale!r}")
+    check_kernels((kernel,))
     arr = np.asarray(image, dtype=np.float32)
     if arr.ndim != 3:
         raise ValueError(f"image must be (H, W, C), got shape {arr.shape}")
     if scale == 1:
         return arr.copy()
     x = torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1)[None]  # (1, C, H, W)
-    y = degrade_tensor(x, scale)[0].permute(1, 2, 0).clamp(0.0, 1.0).numpy()
+    if kernel == "gaussian":
+        low = degrade_tensor(x, scale)
+    else:
+        h, w = arr.shape[:2]
+        low = resize_tensor(x, (max(1, round(h / scale)), max(1, round(w / scale))), kernel)
+    y = low[0].permute(1, 2, 0).clamp(0.0, 1.0).numpy()
     if normal_map and arr.shape[2] >= 3:
         n = y[..., :3] * 2.0 - 1.0
         n[..., 2] = np.maximum(n[..., 2], 0.0)
@@ -82,20 +143,24 @@ def degrade_asset(
     scale: int,
     limits: Limits = Limits(),
     image_format: str = "same",
+    kernel: str = "gaussian",
 ) -> list[Path]:
     """Write ``out_path`` (.glb/.gltf): the asset at ``in_path`` with every material image
     degraded by ``scale``, stored as ``image_format`` ("same" keeps each image's format, so
     JPEG textures are JPEG-compressed again; "png", "png16", "exr": lossless, the protocol's
-    LR values as they are; see ``asset.images.output_format``). Returns the written paths,
-    main file first."""
+    LR values as they are; see ``asset.images.output_format``), each made by ``kernel``
+    (``KERNELS``; gaussian: the protocol). Returns the written paths, main file first."""
     from .asset.gltf import load_asset, save_asset
 
     if scale not in (2, 3, 4, 8, 16):
         raise InvalidOptions(f"scale must be 2, 3, 4, 8 or 16, not {scale}")
+    check_kernels((kernel,))
     asset = load_asset(Path(in_path), limits)
     new = {}
     for im in asset.images:
         if not im.roles or im.pixels.size == 0:
             continue
-        new[im.index] = degrade_image(im.pixels, scale, normal_map="normal" in im.roles)
+        new[im.index] = degrade_image(
+            im.pixels, scale, normal_map="normal" in im.roles, kernel=kernel
+        )
     return save_asset(asset, Path(out_path), new, image_format)

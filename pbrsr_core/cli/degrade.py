@@ -19,10 +19,17 @@ def register(app: typer.Typer) -> None:
             help="LR image format: same (JPEG stays JPEG, compressed again; KTX2, WebP, AVIF "
             "keep their encodings), png, png16, exr, jpeg, ktx2, webp, avif.",
         ),
+        kernel: str = typer.Option(
+            "gaussian",
+            "--kernel",
+            help="gaussian: the evaluation protocol; area: the mean of each LR texel's HR "
+            "texels (mipmaps); bicubic, lanczos: antialiased resizing (image editors).",
+        ),
     ) -> None:
         """Make the LR input of the evaluation protocol: Gaussian blur (sigma = 0.375 x
-        scale) then bicubic downsampling of every texture; everything else unchanged."""
+        scale) then bicubic downsampling of every texture, or another downsampling filter
+        (--kernel); everything else unchanged."""
         from ..degrade import degrade_asset
 
-        written = degrade_asset(input, output, scale, image_format=image_format)
+        written = degrade_asset(input, output, scale, image_format=image_format, kernel=kernel)
         typer.echo(f"wrote {written[0]} ({len(written) - 1} extra files)")

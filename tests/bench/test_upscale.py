@@ -296,3 +296,24 @@ def test_docs_without_markers_are_refused_before_the_bench_runs(tmp_path):
     assert not out.exists() and doc.read_text() == "# no markers\n"
     res = CliRunner().invoke(_bench_cli(), ["bench", "publish", str(out), "--docs", str(doc)])
     assert res.exit_code == 2 and "no results.json" in res.output
+
+
+def test_the_lr_kernel_is_checked_first_and_named_in_the_summary(tmp_path):
+    """An unknown kernel is refused before anything runs; a run on LR maps made by another
+    kernel than the protocol's says so, and its command names it."""
+    from pbrsr_bench.upscale import published_summary
+    from pbrsr_core.errors import InvalidOptions
+    from pbrsr_core.options import DEFAULT_PRIOR
+
+    with pytest.raises(InvalidOptions, match="unknown LR kernel.s. box"):
+        run(out_dir=tmp_path / "never", kernel="box", include_shared=False)
+    assert not (tmp_path / "never").exists()
+    rows = [_row("a", "bicubic", 28.0, 27.0, 1.0), _row("a", "fast", 28.4, 27.5, 10.0)]
+    meta = {"scale": 4, "prior": DEFAULT_PRIOR, "eval_res": 256, "eval_views": 40}
+    meta.update(lights=["a.hdr"], machine="a test CPU")
+    for kernel, named in (("area", True), ("gaussian", False), (None, False)):
+        data = {**meta, "rows": rows, **({"kernel": kernel} if kernel else {})}
+        (tmp_path / "results.json").write_text(json.dumps(data))
+        text = published_summary(tmp_path)
+        assert ("x4, LR by the area kernel" in text) is named
+        assert ("--eval-views 40 --kernel area`" in text) is named

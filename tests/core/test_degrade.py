@@ -8,14 +8,16 @@ import numpy as np
 import pytest
 
 from pbrsr_core.asset import load_asset, make_test_asset
-from pbrsr_core.degrade import degrade_asset, degrade_image, degrade_sigma
+from pbrsr_core.degrade import KERNELS, degrade_asset, degrade_image, degrade_sigma, resize_matrix
+from pbrsr_core.errors import InvalidOptions
 
 
 @pytest.mark.parametrize("scale", [2, 4, 8])
 @pytest.mark.parametrize("shape", [(64, 48, 3), (30, 17, 4), (5, 3, 1)])
-def test_shapes_and_constant(scale, shape):
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_shapes_and_constant(scale, shape, kernel):
     img = np.full(shape, 0.3125, np.float32)
-    out = degrade_image(img, scale)
+    out = degrade_image(img, scale, kernel=kernel)
     assert out.shape == (max(1, round(shape[0] / scale)), max(1, round(shape[1] / scale)), shape[2])
     np.testing.assert_allclose(out, 0.3125, atol=1e-6)
 
@@ -102,3 +104,75 @@ def test_degrade_asset_format(tmp_path):
         want = degrade_image(a.pixels, 4, normal_map="normal" in a.roles)
         assert np.abs(c.pixels - want).max() <= 0.5 / 255 + 1e-6  # 8-bit rounding only
         assert np.abs(b.pixels - want).max() > 0.5 / 255  # JPEG changes more than rounding
+
+
+@pytest.mark.parametrize("scale", [2, 3, 4, 8])
+@pytest.mark.parametrize("shape", [(64, 48), (37, 29), (9, 17)])
+@pytest.mark.parametrize("kernel", ["bicubic", "lanczos"])
+def test_resize_kernels_against_pillow(scale, shape, kernel):
+    """The antialiased kernels are Pillow's BICUBIC and LANCZOS resizes (float images), to
+    float32 rounding, borders included."""
+    from PIL import Image
+
+    img = np.random.default_rng(scale).random(shape, dtype=np.float32)
+    ours = degrade_image(img[..., None], scale, kernel=kernel)[..., 0]
+    filt = {"bicubic": Image.Resampling.BICUBIC, "lanczos": Image.Resampling.LANCZOS}[kernel]
+    size = (ours.shape[1], ours.shape[0])
+    pil = np.asarray(Image.fromarray(img, mode="F").resize(size, filt)).clip(0.0, 1.0)
+    np.testing.assert_allclose(ours, pil, atol=1e-6)
+
+
+def test_area_is_the_mean_of_each_texels_footprint():
+    """area: at a whole factor the mean of each s x s block; at any ratio each row of the
+    resize matrix holds the fractions of the input texels inside the output texel, so the
+    image's mean is kept exactly."""
+    img = np.random.default_rng(0).random((64, 48, 2), dtype=np.float32)
+    out = degrade_image(img, 4, kernel="area")
+    np.testing.assert_allclose(out, img.reshape(16, 4, 12, 4, 2).mean(axis=(1, 3)), atol=1e-6)
+    m = resize_matrix(10, 4, "area").numpy()  # footprints of 2.5 input texels
+    np.testing.assert_allclose(m[0], [0.4, 0.4, 0.2] + [0.0] * 7)
+    np.testing.assert_allclose(m[1], [0.0, 0.0, 0.2, 0.4, 0.4] + [0.0] * 5)
+    np.testing.assert_allclose(m.sum(axis=0), 0.4)  # every input texel weighs the same
+    odd = np.random.default_rng(1).random((33, 47, 1), dtype=np.float32)
+    assert degrade_image(odd, 3, kernel="area").mean() == pytest.approx(odd.mean(), abs=1e-6)
+
+
+def test_kernels_keep_less_blur_than_the_protocol():
+    """A sinusoid at half the LR Nyquist frequency keeps 0.84 of its amplitude through the
+    protocol's Gaussian, 0.90 through area and more through the antialiased kernels (the
+    inputs their priors were not trained for are sharper)."""
+    n, s = 256, 4
+    x = np.arange(n)
+    wave = 0.5 + 0.25 * np.cos(2 * np.pi * x / (4 * s))  # 1/(4s) cycles per HR texel
+    img = np.repeat(wave[None, :, None], 32, axis=0).astype(np.float32)
+    centres = ((np.arange(n // s) + 0.5) * s - 0.5)[8:-8]  # whole periods, away from borders
+    phase = np.exp(-2j * np.pi * centres / (4 * s))
+    amp = {}
+    for k in KERNELS:
+        row = degrade_image(img, s, kernel=k)[4, 8:-8, 0]
+        amp[k] = abs(2 * np.mean((row - row.mean()) * phase)) / 0.25
+    assert amp["gaussian"] == pytest.approx(
+        math.exp(-2 * math.pi**2 * degrade_sigma(s) ** 2 / (4 * s) ** 2), abs=0.02
+    )
+    assert amp["area"] == pytest.approx(math.sin(math.pi / 4) / (math.pi / 4), abs=0.02)
+    assert amp["gaussian"] < amp["area"] < amp["bicubic"] < amp["lanczos"] <= 1.05
+
+
+def test_unknown_kernel_is_refused(tmp_path):
+    with pytest.raises(InvalidOptions, match="unknown LR kernel.s. nearest"):
+        degrade_image(np.zeros((8, 8, 3), np.float32), 2, kernel="nearest")
+    src = make_test_asset(tmp_path / "hr.glb", size=32)
+    with pytest.raises(InvalidOptions, match="use gaussian, area, bicubic, lanczos"):
+        degrade_asset(src, tmp_path / "lr" / "lr.glb", 4, kernel="nearest")
+    assert not (tmp_path / "lr").exists()
+
+
+def test_degrade_asset_with_a_kernel(tmp_path):
+    """Every map of the asset made by the kernel (normal maps renormalised as the protocol's)."""
+    src = make_test_asset(tmp_path / "hr.glb", size=32)
+    lr = load_asset(
+        degrade_asset(src, tmp_path / "lr.glb", 4, image_format="png16", kernel="area")[0]
+    )
+    for a, b in zip(load_asset(src).images, lr.images, strict=True):
+        want = degrade_image(a.pixels, 4, normal_map="normal" in a.roles, kernel="area")
+        assert np.abs(b.pixels - want).max() <= 0.5 / 65535 + 1e-6

@@ -122,6 +122,14 @@ def test_degrade_rejects_unknown_format(quad, tmp_path, capfd):
     assert not out.exists()
 
 
+def test_degrade_rejects_unknown_kernel(quad, tmp_path, capfd):
+    out = tmp_path / "lr.glb"
+    code, err = run_cli(["degrade", str(quad), "-o", str(out), "--kernel", "box"], capfd)
+    assert code == InvalidOptions.exit_code, err
+    assert_one_line(err, "unknown LR kernel(s) box: use gaussian, area, bicubic, lanczos")
+    assert not out.exists()
+
+
 def test_real_binary_prints_no_traceback(corpus, tmp_path):
     """The installed console script, as a user runs it (one subprocess: torch import cost)."""
     exe = REPO / ".venv" / "bin" / "pbrsr"
