@@ -118,6 +118,7 @@ def _run_training(
     quiet: bool,
     jpeg: str | None = None,
     jpeg_share: float | None = None,
+    lr_kernels: str = "gaussian",
     arch: str | None = None,
     first: str | None = None,
     residual: bool | None = None,
@@ -192,6 +193,7 @@ def _run_training(
                 init=start,
                 jpeg=qualities,
                 jpeg_share=TrainConfig.jpeg_share if jpeg_share is None else jpeg_share,
+                kernels=tuple(k.strip() for k in lr_kernels.split(",") if k.strip()),
                 residual=start_residual if residual is None else residual,
                 first=None if first is None else resolve_start(first, g[0], 2),
                 distill=distill,
@@ -290,6 +292,13 @@ _JPEG = typer.Option(
 _JPEG_SHARE = typer.Option(
     None, help="Share of the LR crops the JPEG stage compresses (with --jpeg; default 0.5)."
 )
+_KERNELS_OPT = typer.Option(
+    "gaussian",
+    "--kernels",
+    help="How the LR crops are downsampled (pbrsr degrade --kernel), one drawn per crop: "
+    "gaussian (the evaluation protocol), area, bicubic, lanczos, comma-separated; validation "
+    "takes them in turn.",
+)
 _FIRST = typer.Option(
     None,
     "--first",
@@ -340,6 +349,7 @@ def train_cmd(
     seed: int = _SEED,
     jpeg: str | None = _JPEG,
     jpeg_share: float | None = _JPEG_SHARE,
+    lr_kernels: str = _KERNELS_OPT,
     arch: str = typer.Option("upconv7", help="Network: upconv7, compact or span."),
     widths: str = typer.Option(
         None,
@@ -389,6 +399,7 @@ def finetune_cmd(
     seed: int = _SEED,
     jpeg: str | None = _JPEG,
     jpeg_share: float | None = _JPEG_SHARE,
+    lr_kernels: str = _KERNELS_OPT,
     first: str | None = _FIRST,
     distill: bool = _DISTILL,
     graphics: float = _GRAPHICS,
@@ -424,6 +435,11 @@ def report_cmd(
     textures: Path | None = _TEXTURES,
     scales: str = typer.Option("2,4,8", help="Scales, comma-separated."),
     device: str = typer.Option("auto", help="Where the priors run: auto, cpu, cuda, cuda:N."),
+    kernel: str = typer.Option(
+        "gaussian",
+        help="How the held-out LR crops are made (pbrsr degrade --kernel): gaussian (the "
+        "evaluation protocol), area, bicubic, lanczos.",
+    ),
 ) -> None:
     """Score trained priors side by side with bicubic and waifu2x-photo on the held-out
     materials (x2/x4/x8, per map kind), with their training curves and a model card."""
@@ -445,13 +461,17 @@ def report_cmd(
         raise InvalidOptions(f"--scales must be integers, not {scales!r}") from exc
     if not set(scale_t) <= {2, 4, 8}:
         raise InvalidOptions(f"--scales must be among 2, 4, 8, not {scales!r}")
+    from ..degrade import check_kernels
+
+    check_kernels((kernel,))
     root = texture_folder(textures)
     manifest = read_manifest(root)
     held = split_materials(manifest)[1]
     from ..device import resolve_device
 
     held_m = load_materials(root, held, manifest)
-    md = write_report(out, held_m, scale_t, folders=folders, device=resolve_device(device))
+    dev = resolve_device(device)
+    md = write_report(out, held_m, scale_t, folders=folders, device=dev, kernel=kernel)
     typer.echo(md.read_text())
 
 

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from ...asset.jpeg import compress, standard_quant
-from ...degrade import degrade_tensor
+from ...degrade import check_kernels, degrade_tensor, resize_tensor
 from ...errors import InvalidOptions
 from ..symmetry import dihedral
 from .graphics import DRAWN_KINDS, graphics_crop, normal_graphics_crop
@@ -156,10 +156,14 @@ def normalize_encoded(t: torch.Tensor) -> torch.Tensor:
     return (n + 1.0) * 0.5
 
 
-def degrade_pair(hr: torch.Tensor, scale: int, kind: str) -> torch.Tensor:
-    """The LR input for HR crops (N, 3, H, W): blur + bicubic down, clamped (normal maps
-    renormalised)."""
-    lr = degrade_tensor(hr, scale).clamp_(0.0, 1.0)
+def degrade_pair(hr: torch.Tensor, scale: int, kind: str, kernel: str = "gaussian") -> torch.Tensor:
+    """The LR input for HR crops (N, 3, H, W): blur + bicubic down (the protocol), or another
+    ``kernel`` of :data:`~pbrsr_core.degrade.KERNELS`, clamped (normal maps renormalised)."""
+    if kernel == "gaussian":
+        lr = degrade_tensor(hr, scale).clamp_(0.0, 1.0)
+    else:
+        size = (max(1, round(hr.shape[2] / scale)), max(1, round(hr.shape[3] / scale)))
+        lr = resize_tensor(hr, size, kernel).clamp_(0.0, 1.0)
     return normalize_encoded(lr) if kind == "normal" else lr
 
 
@@ -181,8 +185,10 @@ class CropSampler:
     ``batch(step)`` returns ``(lr, hr, kinds)``: lr (B, 3, P/s, P/s), hr (B, 3, P, P) float32
     in [0, 1], and the kind of each sample. Kinds are drawn in turn from ``kinds`` (one kind
     per sample, a joint model sees all three), materials uniformly among those that have the
-    kind, crop positions uniformly, and one of the eight symmetries; ``jpeg`` (a quality
-    range) adds :func:`jpeg_lr` after the degradation for ``jpeg_share`` of the crops."""
+    kind, crop positions uniformly, and one of the eight symmetries; ``kernels``: the LR
+    crop's downsampling kernel (:func:`degrade_pair`), drawn uniformly per crop where there
+    are several; ``jpeg`` (a quality range) adds :func:`jpeg_lr` after the degradation for
+    ``jpeg_share`` of the crops."""
 
     def __init__(
         self,
@@ -195,10 +201,12 @@ class CropSampler:
         jpeg: tuple[int, int] | None = None,
         jpeg_share: float = 0.5,
         graphics: float = 0.0,
+        kernels: tuple[str, ...] = ("gaussian",),
     ) -> None:
         for k in kinds:
             if k not in KINDS:
                 raise InvalidOptions(f"unknown map kind {k!r}: use {', '.join(KINDS)}")
+        check_kernels(kernels)
         if patch % scale:
             raise InvalidOptions(f"the patch ({patch}) must be a multiple of the scale ({scale})")
         self.by_kind = {k: [m for m in materials if m.has(k)] for k in kinds}
@@ -212,7 +220,7 @@ class CropSampler:
         self.kinds, self.scale, self.patch = kinds, scale, patch
         self.batch_size, self.seed = batch_size, seed
         self.jpeg, self.jpeg_share = jpeg, jpeg_share
-        self.graphics = graphics
+        self.graphics, self.kernels = graphics, kernels
 
     def _crop(self, rng: np.random.Generator, kind: str) -> np.ndarray:
         if kind in DRAWN_KINDS and self.graphics and rng.random() < self.graphics:
@@ -242,7 +250,10 @@ class CropSampler:
             crop = torch.from_numpy(self._crop(rng, kind)).permute(2, 0, 1)[None].float() / 255.0
             hr = dihedral(crop, int(rng.integers(8)), kind).contiguous()
             hrs.append(hr)
-            lr = degrade_pair(hr, self.scale, kind)
+            kernel = self.kernels[0]
+            if len(self.kernels) > 1:  # one draw more only then: the protocol's runs repeat
+                kernel = self.kernels[int(rng.integers(len(self.kernels)))]
+            lr = degrade_pair(hr, self.scale, kind, kernel)
             lrs.append(lr if self.jpeg is None else jpeg_lr(lr, rng, self.jpeg, self.jpeg_share))
         return torch.cat(lrs), torch.cat(hrs), kinds
 

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import torch
 
+from ...degrade import check_kernels
 from ...errors import InvalidOptions, PriorUnavailable
 from .. import compact, srmd
 from ..backproject import back_project
@@ -99,6 +100,11 @@ class TrainConfig:
     crops (:func:`~pbrsr_core.prior.train.data.jpeg_lr`); None: the protocol's blur + bicubic
     only."""
     jpeg_share: float = 0.5
+    kernels: tuple[str, ...] = ("gaussian",)
+    """Downsampling kernels of the LR crops (:data:`~pbrsr_core.degrade.KERNELS`), one drawn
+    per crop; validation takes them in turn over its crops. The protocol's Gaussian alone
+    trains for inputs made as the benchmark makes them; a mix, for LR maps made otherwise
+    (mipmaps, image editors)."""
     graphics: float = 0.0
     """Share of the colour and normal crops drawn procedurally (text, shapes, lines in colour,
     or raised and sunk as a normal map: :mod:`~pbrsr_core.prior.train.graphics`) instead of
@@ -144,6 +150,7 @@ class TrainConfig:
             raise InvalidOptions(f"JPEG qualities must be LOW-HIGH within 1..100, not {self.jpeg}")
         if not 0.0 < self.jpeg_share <= 1.0:
             raise InvalidOptions(f"the JPEG share must be in (0, 1], not {self.jpeg_share}")
+        check_kernels(self.kernels)
         if not 0.0 <= self.graphics <= 1.0:
             raise InvalidOptions(f"the graphics share must be in [0, 1], not {self.graphics}")
         if self.graphics and not DRAWN_KINDS & set(self.kinds):
@@ -308,6 +315,7 @@ def build_network(config: TrainConfig, materials: list[Material] | None = None) 
                 config.jpeg,
                 config.jpeg_share,
                 config.graphics,
+                config.kernels,
             )
             batches = -(-CALIBRATION_CROPS // config.batch_size)
             calibration = torch.cat([sampler.batch(i)[0] for i in range(batches)])
@@ -375,8 +383,9 @@ class Validator:
 
     With ``first`` (a later-pass run's frozen network) the network runs behind one pass of it.
     With ``distill`` too, the network is scored as what it learns: its pass on ``first``'s
-    output against ``first``'s own second pass; "bicubic" is then a bicubic second pass. The
-    crops are kept on ``device``, the networks'."""
+    output against ``first``'s own second pass; "bicubic" is then a bicubic second pass. With
+    several ``kernels``, crop i's LR is made by kernel i modulo their number, so the score
+    weighs each alike. The crops are kept on ``device``, the networks'."""
 
     def __init__(
         self,
@@ -387,6 +396,7 @@ class Validator:
         first: weights.Network | None = None,
         distill: bool = False,
         device: torch.device | str = "cpu",
+        kernels: tuple[str, ...] = ("gaussian",),
     ) -> None:
         self.scale, self.sets, self.first = scale, {}, first
         self.teacher = teacher = first if distill else None
@@ -395,7 +405,11 @@ class Validator:
             if not crops:
                 continue
             hr = torch.stack([torch.from_numpy(c).permute(2, 0, 1).float() / 255 for _, c in crops])
-            lr, hr = degrade_pair(hr, scale, kind).to(device), hr.to(device)
+            lr = torch.cat(
+                [degrade_pair(hr[i : i + 1], scale, kind, kernels[i % len(kernels)])
+                 for i in range(len(hr))]
+            ).to(device)  # fmt: skip
+            hr = hr.to(device)
             if teacher is not None:  # its first pass, and its second pass on that
                 with torch.no_grad():
                     lr = _in_fours(lambda t: teacher(t).clamp(0, 1), lr)
@@ -498,9 +512,17 @@ def train(
         config.jpeg,
         config.jpeg_share,
         config.graphics,
+        config.kernels,
     )
     validator = Validator(
-        val_materials, config.kinds, config.scale, config.val_patch, first, config.distill, device
+        val_materials,
+        config.kinds,
+        config.scale,
+        config.val_patch,
+        first,
+        config.distill,
+        device,
+        config.kernels,
     )
     best_file = out_dir / f"{name}.safetensors"
     state: dict = {}

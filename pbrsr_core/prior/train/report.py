@@ -38,12 +38,17 @@ def angular_error(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 def score_prior(
-    prior: Prior, kind: str, crops: list[tuple[str, np.ndarray]], scale: int
+    prior: Prior,
+    kind: str,
+    crops: list[tuple[str, np.ndarray]],
+    scale: int,
+    kernel: str = "gaussian",
 ) -> dict[str, float]:
     """PSNR (and for normals the angular error) of ``prior`` on HR crops degraded by
-    ``scale``; ``seconds`` is its run time over all crops."""
+    ``scale`` (the protocol, or another ``kernel``); ``seconds`` is its run time over all
+    crops."""
     hr = torch.stack([torch.from_numpy(c).permute(2, 0, 1).float() / 255 for _, c in crops])
-    lr = degrade_pair(hr, scale, kind)
+    lr = degrade_pair(hr, scale, kind, kernel)
     p = prior.for_kind(kind)
     t0 = time.perf_counter()
     up = torch.cat([p.upscale(lr[i : i + 1], scale) for i in range(len(lr))])
@@ -68,10 +73,11 @@ def evaluate(
     scales: tuple[int, ...] = (2, 4, 8),
     baselines: tuple[str, ...] = ("bicubic", "waifu2x-photo"),
     device: torch.device | str = "cpu",
+    kernel: str = "gaussian",
 ) -> dict:
     """{kind: {scale: {prior label: scores}}} on the held-out crops, for the kinds the
-    trained sets in ``folders`` have networks for (every kind when there are none); the
-    priors run on ``device``."""
+    trained sets in ``folders`` have networks for (every kind when there are none), their LR
+    made by ``kernel``; the priors run on ``device``."""
     from ..registry import load_prior
     from ..texture import TexturePrior
 
@@ -92,7 +98,7 @@ def evaluate(
         results[kind] = {"crops": len(crops), "materials": len({n.split("#")[0] for n, _ in crops})}
         for s in scales:
             results[kind][str(s)] = {  # a set without the networks for a scale has no entry
-                label: score_prior(p, kind, crops, s)
+                label: score_prior(p, kind, crops, s, kernel)
                 for label, p in priors.items()
                 if s in p.for_kind(kind).scales
             }
@@ -161,16 +167,19 @@ def write_report(
     scale_list: tuple[int, ...] = (2, 4, 8),
     folders: list[Path] | None = None,
     device: torch.device | str = "cpu",
+    kernel: str = "gaussian",
 ) -> Path:
-    """Evaluate the trained sets in ``folders`` (default: ``out``) on ``device`` and write
-    report.png, report.json, report.md and MODEL_CARD.md into ``out``. Returns report.md's
-    path."""
+    """Evaluate the trained sets in ``folders`` (default: ``out``) on ``device``, the LR
+    crops made by ``kernel`` (the protocol's by default), and write report.png, report.json,
+    report.md and MODEL_CARD.md into ``out``. Returns report.md's path."""
     out.mkdir(parents=True, exist_ok=True)
     folders = folders or [out]
-    results = evaluate(folders, val_materials, scale_list, device=device)
+    results = evaluate(folders, val_materials, scale_list, device=device, kernel=kernel)
     (out / "report.json").write_text(json.dumps(results, indent=1))
     _plot(folders, out / "report.png")
     table = _table(results)
+    if kernel != "gaussian":
+        table = f"\nLR crops made by the {kernel} kernel (`pbrsr degrade --kernel`).\n" + table
     md = out / "report.md"
     md.write_text("# Texture prior report\n\n![curves](report.png)\n" + table)
     (out / "MODEL_CARD.md").write_text(model_card(folders, results, table))
@@ -190,6 +199,21 @@ def _jpeg_line(nets: list) -> str:
     return (
         " Then a JPEG stage, the LR crops compressed as a JPEG file stores them (4:4:4 or 4:2:0 "
         "at random, `pbrsr_core/asset/jpeg.py`): " + "; ".join(parts) + "."
+    )
+
+
+def _kernels_line(nets: list) -> str:
+    """The LR kernels of the networks trained on more than the protocol's (or nothing)."""
+    parts = [
+        f"{f.name}: {', '.join(cfg['kernels'])}"
+        for f, _, cfg, _ in nets
+        if list(cfg.get("kernels") or ["gaussian"]) != ["gaussian"]
+    ]
+    if not parts:
+        return ""
+    return (
+        " LR crops downsampled by a kernel drawn per crop (`pbrsr degrade --kernel`; "
+        "validation takes them in turn): " + "; ".join(parts) + "."
     )
 
 
@@ -273,7 +297,9 @@ def model_card(folders: list[Path], results: dict, table: str) -> str:
         "## Training",
         "",
         "- Degradation: the evaluation protocol (Gaussian blur sigma = 0.375 s, bicubic down; "
-        "`pbrsr_core/degrade.py`); normal LR crops renormalised." + _jpeg_line(nets),
+        "`pbrsr_core/degrade.py`); normal LR crops renormalised."
+        + _kernels_line(nets)
+        + _jpeg_line(nets),
         f"- Crops: {cfg.get('patch')}² HR, batch {cfg.get('batch_size')}, the eight "
         "flips/rotations (normal vectors rotated with the pixels)." + _graphics_line(nets),
         f"- Loss: {_loss_words(cfg)} AdamW lr {cfg.get('lr')}, betas (0.9, 0.99), "

@@ -181,6 +181,40 @@ def test_jpeg_stage_compresses_half_the_lr_crops_and_stays_deterministic(materia
         assert not torch.equal(lr, degrade_pair(hr[None], 2, kind)[0])
 
 
+def test_lr_kernels_are_drawn_per_crop_and_validation_takes_them_in_turn(materials):
+    """With one kernel the batches are the protocol's run's (no extra draw); with several,
+    each LR crop is its HR crop downsampled by one of them (normal maps renormalised), more
+    than one appears, and the batch is still a function of (seed, step). The validator's crop
+    i is made by kernel i modulo their number."""
+    from pbrsr_core.prior.train.loop import Validator
+
+    train_m, held_m = materials
+    kinds = ("colour", "data", "normal")
+    plain = CropSampler(train_m, kinds, 2, 32, 8, seed=5)
+    one = CropSampler(train_m, kinds, 2, 32, 8, seed=5, kernels=("gaussian",))
+    assert all(torch.equal(a, b) for a, b in zip(plain.batch(3), one.batch(3)[:2], strict=False))
+    ks = ("gaussian", "area", "lanczos")
+    mixed = CropSampler(train_m, kinds, 2, 32, 8, seed=5, kernels=ks)
+    lr_m, _, _ = mixed.batch(3)
+    assert torch.equal(mixed.batch(3)[0], lr_m)
+    used = []
+    for step in range(4):
+        for lr, hr, kind in zip(*mixed.batch(step), strict=True):
+            hit = [k for k in ks if torch.allclose(lr, degrade_pair(hr[None], 2, kind, k)[0])]
+            assert len(hit) == 1, (kind, hit)
+            used += hit
+    assert len(set(used)) == 3, used
+    area = degrade_pair(lr_m[:1], 2, "colour", "area")[0]
+    assert torch.allclose(area, lr_m[0].reshape(3, 8, 2, 8, 2).mean(dim=(2, 4)), atol=1e-6)
+    val = Validator(held_m, ("colour",), 2, 32, kernels=("gaussian", "area"))
+    lr_v, hr_v = val.sets["colour"]
+    for i in range(len(hr_v)):
+        k = ("gaussian", "area")[i % 2]
+        assert torch.allclose(lr_v[i], degrade_pair(hr_v[i : i + 1], 2, "colour", k)[0])
+    with pytest.raises(InvalidOptions, match="unknown LR kernel"):
+        TrainConfig(kernels=("nearest",)).check()
+
+
 def test_graphics_crops_are_flat_coloured_drawings_drawn_from_the_generator():
     a = graphics_crop(np.random.default_rng(3), 64)
     assert a.shape == (64, 64, 3) and a.dtype == np.uint8
@@ -546,6 +580,8 @@ def test_cli_trains_reports_and_the_result_is_a_prior(tmp_path, capfd):
             "4,8",
             "--jpeg",
             "80-95",
+            "--kernels",
+            "gaussian,lanczos",
             "-q",
         ],
         capfd,
@@ -560,6 +596,7 @@ def test_cli_trains_reports_and_the_result_is_a_prior(tmp_path, capfd):
     card = (out / "MODEL_CARD.md").read_text()
     assert "CC0" in card and "priors train" in card and (out / "report.png").is_file()
     assert "JPEG stage" in card and "50% of the LR crops at quality 80-95" in card
+    assert "pbr-upconv7-colour.safetensors: gaussian, lanczos" in card
     prior = TexturePrior(out)  # the training output folder is a prior as it is written
     assert set(prior.nets) == {"colour", "normal"}
     assert prior.for_kind("normal").upscale(torch.rand(1, 3, 16, 16), 4).shape[-1] == 64
@@ -573,8 +610,16 @@ def test_cli_trains_reports_and_the_result_is_a_prior(tmp_path, capfd):
     assert again["colour"]["4"]["out"] == report["colour"]["4"]["out"] | {
         "seconds": again["colour"]["4"]["out"]["seconds"]
     }
+    area_args = ["priors", "report", str(out), "-o", str(tmp_path / "a"), "--textures", str(folder)]
+    code, err = run_cli([*area_args, "--scales", "4", "--kernel", "area"], capfd)
+    assert code == 0, err
+    assert "LR crops made by the area kernel" in (tmp_path / "a" / "report.md").read_text()
+    area = json.loads((tmp_path / "a" / "report.json").read_text())["colour"]["4"]
+    assert area["bicubic"]["psnr"] != again["colour"]["4"]["bicubic"]["psnr"]
     code, err = run_cli([*args, "--scales", "3"], capfd)
     assert code == InvalidOptions.exit_code and "among 2, 4, 8" in err
+    code, err = run_cli([*args, "--kernel", "box"], capfd)
+    assert code == InvalidOptions.exit_code and "unknown LR kernel(s) box" in err
     code, err = run_cli(["priors", "report", str(tmp_path), "-o", str(cmp)], capfd)
     assert code == InvalidOptions.exit_code and "no trained networks" in err
 
@@ -591,6 +636,8 @@ def test_cli_trains_reports_and_the_result_is_a_prior(tmp_path, capfd):
         (["--jpeg-share", "1"], "--jpeg-share needs --jpeg"),
         (["--graphics", "2"], "graphics share"),
         (["--graphics", "0.5", "--kinds", "data"], "colour or normal network"),
+        (["--kernels", "area,box"], "unknown LR kernel(s) box"),
+        (["--kernels", ","], "(none given)"),
     ],
 )
 def test_cli_refuses_bad_training_input(tmp_path, capfd, extra, says):
