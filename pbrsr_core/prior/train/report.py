@@ -63,8 +63,9 @@ def score_prior(
 
 
 def network_files(folder: Path) -> list[Path]:
-    """The trained networks of a training folder (one subfolder per network)."""
-    return sorted(folder.glob("*/*.safetensors"))
+    """The trained networks of a training folder (one subfolder per network), or of a
+    texture set's folder (the files in it: a shipped set, ``texture:<folder>``)."""
+    return sorted(folder.glob("*/*.safetensors")) or sorted(folder.glob("*.safetensors"))
 
 
 def evaluate(

@@ -5,6 +5,7 @@ weights file, the texture prior that loads it, and `pbrsr priors train` end to e
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -616,11 +617,20 @@ def test_cli_trains_reports_and_the_result_is_a_prior(tmp_path, capfd):
     assert "LR crops made by the area kernel" in (tmp_path / "a" / "report.md").read_text()
     area = json.loads((tmp_path / "a" / "report.json").read_text())["colour"]["4"]
     assert area["bicubic"]["psnr"] != again["colour"]["4"]["bicubic"]["psnr"]
+    flat = tmp_path / "set"  # a texture set's folder, its files side by side, as shipped
+    flat.mkdir()
+    for f in out.glob("*/*.safetensors"):
+        shutil.copy(f, flat / f.name)
+    code, err = run_cli(["priors", "report", str(flat), "-o", str(tmp_path / "s"), "--textures",
+                         str(folder), "--scales", "4"], capfd)  # fmt: skip
+    assert code == 0, err
+    as_set = json.loads((tmp_path / "s" / "report.json").read_text())["colour"]["4"]["set"]
+    assert as_set["psnr"] == again["colour"]["4"]["out"]["psnr"]
     code, err = run_cli([*args, "--scales", "3"], capfd)
     assert code == InvalidOptions.exit_code and "among 2, 4, 8" in err
     code, err = run_cli([*args, "--kernel", "box"], capfd)
     assert code == InvalidOptions.exit_code and "unknown LR kernel(s) box" in err
-    code, err = run_cli(["priors", "report", str(tmp_path), "-o", str(cmp)], capfd)
+    code, err = run_cli(["priors", "report", str(folder), "-o", str(cmp)], capfd)
     assert code == InvalidOptions.exit_code and "no trained networks" in err
 
 
