@@ -114,9 +114,9 @@ def eval_lights(shared: Path) -> tuple[list[EnvLight], list[str]]:
     ]
 
 
-OPTION_CHANGES = ("max_size",)
+OPTION_CHANGES = ("max_size", "lr_kernel")
 """``+key=value`` changes that are upscale options, which every method takes, not a preset's
-numbers: ``direct+max_size=512``."""
+numbers: ``direct+max_size=512``, ``direct+lr_kernel=area``."""
 
 
 def parse_method(method: str) -> tuple[str, str | None, dict]:

@@ -17,6 +17,9 @@ trained for; ``gaussian`` is the protocol, and the only one the priors train on.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +34,33 @@ KERNELS = ("gaussian", "area", "bicubic", "lanczos")
 the mean of each LR texel's HR texels (a box filter, as mipmaps are made); bicubic and
 lanczos: antialiased resizing with the Keys cubic (a = -0.5) or Lanczos-3 kernel stretched
 by the scale (Pillow's BICUBIC and LANCZOS, ImageMagick's default Lanczos for shrinking)."""
+
+
+_RUN_KERNEL: ContextVar[str] = ContextVar("lr_kernel", default="gaussian")
+
+
+@contextmanager
+def lr_model(kernel: str) -> Iterator[None]:
+    """Within it, the kernel that made the run's LR maps: the LR model the prior's
+    back-projection (:func:`lr_downsample`) and the self-check and guided upscale one scale
+    down (:func:`run_kernel`) invert. The pipeline sets it from ``UpscaleOptions.lr_kernel``."""
+    check_kernels((kernel,))
+    token = _RUN_KERNEL.set(kernel)
+    try:
+        yield
+    finally:
+        _RUN_KERNEL.reset(token)
+
+
+def run_kernel() -> str:
+    """The kernel of the run's LR model (:func:`lr_model`; the protocol's outside one)."""
+    return _RUN_KERNEL.get()
+
+
+def lr_downsample(x: torch.Tensor, scale: int) -> torch.Tensor:
+    """The run's LR model (:func:`lr_model`) on (N, C, H, W): :func:`downsample` by its
+    kernel."""
+    return downsample(x, scale, run_kernel())
 
 
 def check_kernels(kernels: tuple[str, ...]) -> None:
@@ -100,7 +130,16 @@ def resize_matrix(n_in: int, n_out: int, kernel: str) -> torch.Tensor:
     return torch.from_numpy(w / w.sum(axis=1, keepdims=True))
 
 
-def resize_tensor(x: torch.Tensor, size: tuple[int, int], kernel: str) -> torch.Tensor:
+def downsample(x: torch.Tensor, scale: int, kernel: str) -> torch.Tensor:
+    """(N, C, H, W) -> (N, C, max(1, round(H/s)), max(1, round(W/s))), unclamped, on ``x``'s
+    device and dtype, by ``kernel``: the protocol's :func:`degrade_tensor` for gaussian."""
+    if kernel == "gaussian":
+        return degrade_tensor(x, scale)
+    h, w = x.shape[2:]
+    return _resize_tensor(x, (max(1, round(h / scale)), max(1, round(w / scale))), kernel)
+
+
+def _resize_tensor(x: torch.Tensor, size: tuple[int, int], kernel: str) -> torch.Tensor:
     """(N, C, H, W) -> (N, C, *size) by ``kernel`` (one of ``KERNELS`` but gaussian)."""
     rows = resize_matrix(x.shape[2], size[0], kernel).to(x)
     cols = resize_matrix(x.shape[3], size[1], kernel).to(x)
@@ -121,12 +160,7 @@ def degrade_image(
     if scale == 1:
         return arr.copy()
     x = torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1)[None]  # (1, C, H, W)
-    if kernel == "gaussian":
-        low = degrade_tensor(x, scale)
-    else:
-        h, w = arr.shape[:2]
-        low = resize_tensor(x, (max(1, round(h / scale)), max(1, round(w / scale))), kernel)
-    y = low[0].permute(1, 2, 0).clamp(0.0, 1.0).numpy()
+    y = downsample(x, scale, kernel)[0].permute(1, 2, 0).clamp(0.0, 1.0).numpy()
     if normal_map and arr.shape[2] >= 3:
         n = y[..., :3] * 2.0 - 1.0
         n[..., 2] = np.maximum(n[..., 2], 0.0)

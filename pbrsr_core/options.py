@@ -12,6 +12,7 @@ DEFAULT_PRIOR = "pbr-srmd"
 whose kinds without trained weights use waifu2x-photo."""
 
 Method = Literal["pbrsr", "direct", "bicubic"]
+LrKernel = Literal["gaussian", "area", "bicubic", "lanczos"]
 ImageFormat = Literal["same", "png", "png16", "exr", "jpeg", "ktx2", "webp", "avif"]
 
 
@@ -64,6 +65,13 @@ class UpscaleOptions(BaseModel):
         "encoding (KTX2 codec, supercompression and transfer function; lossless WebP; bit "
         "depth never below the input's). ktx2, webp and avif put the textures in "
         "KHR_texture_basisu, EXT_texture_webp and EXT_texture_avif.",
+    )
+    lr_kernel: LrKernel = Field(
+        "gaussian",
+        description="How the input's maps were made from larger ones: the LR model the "
+        "prior's back-projection and its checks one scale down invert. gaussian: blur, then "
+        "bicubic (the evaluation protocol, pbrsr degrade); area: each texel the mean of its "
+        "footprint (mipmaps); bicubic, lanczos: an image editor's antialiased resize.",
     )
     device: str = Field("auto", description="auto, cpu, cuda or cuda:N.")
     unwrap_missing_uvs: bool = Field(

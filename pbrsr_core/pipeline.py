@@ -33,6 +33,7 @@ from .asset import (
 )
 from .asset.model import MAP_ROLES, Asset
 from .crops import write_map_crops
+from .degrade import lr_model
 from .device import resolve_device
 from .errors import PbrsrError, StorageError, UnprocessableAsset
 from .footprint import check_memory, estimate_peak_bytes
@@ -478,7 +479,7 @@ def upscale_asset(
             check_output_size(images, map_scales(images, options.scale, options.max_size), limits)
             if memory_budget is not None:
                 _check_footprint(images, options, config, memory_budget)
-        with reuse_large_blocks():
+        with reuse_large_blocks(), lr_model(options.lr_kernel):
             hr, method_report = _upscale_maps(
                 asset, options, device, timer, progress, work, snapshots, config
             )

@@ -87,6 +87,14 @@ def register(app: typer.Typer) -> None:
                 help="same, png, png16, exr, jpeg, ktx2, webp, avif",
             ),
         ] = "same",
+        lr_kernel: Annotated[
+            str,
+            typer.Option(
+                help="how the input's maps were made smaller, the LR model the prior's "
+                "back-projection inverts: gaussian (pbrsr degrade's protocol), area "
+                "(mipmaps), bicubic or lanczos (image editors)"
+            ),
+        ] = "gaussian",
         device: Annotated[str, typer.Option(help="auto, cpu, cuda, cuda:N")] = "auto",
         memory_mb: Annotated[
             int,
@@ -119,6 +127,7 @@ def register(app: typer.Typer) -> None:
                 envmap=envmap,
                 seed=seed,
                 image_format=image_format,
+                lr_kernel=lr_kernel,
                 device=device,
             )
         except ValidationError as exc:

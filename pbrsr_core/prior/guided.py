@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from ..asset.model import Asset
-from ..degrade import degrade_image
+from ..degrade import degrade_image, run_kernel
 from .backproject import back_project
 from .selfcheck import CROP, _centre
 
@@ -140,7 +140,7 @@ def guided_check_upscale(
     with torch.inference_mode():
         g = _resize(_t(guide_lr[..., :3]), size)[0].permute(1, 2, 0).numpy().astype(np.float32)
     f = kept["factor"]
-    g_small = degrade_image(_centre(g, CROP), f)
+    g_small = degrade_image(_centre(g, CROP), f, kernel=run_kernel())
     up = guided_upscale(kept["small"][..., channels], g_small, upscale_guide(g_small, f), f)
     h, w = kept["mask"].shape
     return up[:h, :w]

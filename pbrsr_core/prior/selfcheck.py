@@ -34,7 +34,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from ..degrade import degrade_image
+from ..degrade import degrade_image, run_kernel
 from .base import Prior
 from .direct import bicubic_map, upscale_map
 
@@ -148,7 +148,7 @@ def prior_self_check(
     scale = check_factor(min(crop.shape[:2]), scale, candidates)
     if covered is not None and covered.shape != a.shape[:2]:
         raise ValueError(f"coverage mask {covered.shape} does not match the map {a.shape[:2]}")
-    small = degrade_image(crop, scale, normal_map=kind == "normal")
+    small = degrade_image(crop, scale, normal_map=kind == "normal", kernel=run_kernel())
     ups = [
         upscale_map(c, small, kind, scale, max_prior_scale=max_prior_scale, cutout=cutout)
         for c in candidates

@@ -102,6 +102,7 @@ function options() {
     preset: $("opt-preset").value,
     ...(steps !== "" && $("opt-method").value === "pbrsr" ? { iterations: Number(steps) } : {}),
     image_format: $("opt-format").value,
+    lr_kernel: $("opt-lr-kernel").value,
     seed: Math.max(0, Number($("opt-seed").value) || 0),
   };
 }
@@ -234,7 +235,8 @@ function renderJob(job) {
   $("job-name").textContent = job.name;
   const o = job.options || {};
   $("job-meta").textContent = [
-    `x${o.scale}`, o.max_size ? `at most ${o.max_size} px` : "", o.method, o.method === "pbrsr" ? o.preset : "",
+    `x${o.scale}`, o.max_size ? `at most ${o.max_size} px` : "",
+    o.lr_kernel && o.lr_kernel !== "gaussian" ? `input by ${o.lr_kernel}` : "", o.method, o.method === "pbrsr" ? o.preset : "",
     `created ${fmtTime(job.created_at)}`,
     job.attempt > 1 ? `attempt ${job.attempt}` : "",
   ].filter(Boolean).join(" · ");

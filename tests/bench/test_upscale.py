@@ -233,6 +233,12 @@ def test_methods_take_preset_changes():
     assert preset_changes("balanced+max_size=512+lambda_pix=0") == {"lambda_pix": 0}
     with pytest.raises(ValueError, match="max_size: Input should be greater than or equal to 2"):
         check_methods(("direct+max_size=1",), "bicubic")
+    # so is lr_kernel, the LR model the run inverts
+    check_methods(("direct+lr_kernel=area", "balanced+lr_kernel=lanczos"), "bicubic")
+    assert method_options("direct+lr_kernel=area", 4, "bicubic")["lr_kernel"] == "area"
+    assert preset_changes("balanced+lr_kernel=area") == {}
+    with pytest.raises(ValueError, match="lr_kernel: Input should be 'gaussian'"):
+        check_methods(("direct+lr_kernel=box",), "bicubic")
     with pytest.raises(ValueError, match="no_such_field"):
         check_methods(("balanced+no_such_field=1",), "bicubic")
     with pytest.raises(ValueError, match="unknown prior 'nope'"):

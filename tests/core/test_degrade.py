@@ -8,7 +8,17 @@ import numpy as np
 import pytest
 
 from pbrsr_core.asset import load_asset, make_test_asset
-from pbrsr_core.degrade import KERNELS, degrade_asset, degrade_image, degrade_sigma, resize_matrix
+from pbrsr_core.degrade import (
+    KERNELS,
+    degrade_asset,
+    degrade_image,
+    degrade_sigma,
+    degrade_tensor,
+    lr_downsample,
+    lr_model,
+    resize_matrix,
+    run_kernel,
+)
 from pbrsr_core.errors import InvalidOptions
 
 
@@ -176,3 +186,24 @@ def test_degrade_asset_with_a_kernel(tmp_path):
     for a, b in zip(load_asset(src).images, lr.images, strict=True):
         want = degrade_image(a.pixels, 4, normal_map="normal" in a.roles, kernel="area")
         assert np.abs(b.pixels - want).max() <= 0.5 / 65535 + 1e-6
+
+
+def test_the_runs_lr_model_holds_within_its_scope_only():
+    """Outside :func:`lr_model` the run's LR model is the protocol's; within, the kernel it
+    names, nested scopes restoring the outer one on the way out, errors included."""
+    import torch
+
+    x = torch.rand(1, 3, 32, 24)
+    assert run_kernel() == "gaussian" and torch.equal(lr_downsample(x, 4), degrade_tensor(x, 4))
+    with lr_model("area"):
+        assert run_kernel() == "area"
+        blocks = x.reshape(1, 3, 8, 4, 6, 4).mean(dim=(3, 5))
+        assert torch.allclose(lr_downsample(x, 4), blocks, atol=1e-6)
+        with pytest.raises(RuntimeError), lr_model("lanczos"):
+            assert run_kernel() == "lanczos"
+            raise RuntimeError
+        assert run_kernel() == "area"
+    assert run_kernel() == "gaussian"
+    with pytest.raises(InvalidOptions, match="unknown LR kernel.s. box"), lr_model("box"):
+        pass
+    assert run_kernel() == "gaussian"

@@ -97,6 +97,39 @@ def test_gltf_keeps_form_and_direct_with_bicubic_prior(tmp_path: Path):
     assert [i["hr_size"] for i in rb["images"]] == [i["hr_size"] for i in rd["images"]]
 
 
+def test_direct_inverts_the_lr_model_the_options_name(tmp_path: Path):
+    """An asset whose maps were made smaller by the area kernel: with ``lr_kernel`` "area",
+    each map a network made in both runs, downsampled by that kernel, comes closer to its LR
+    map than with the protocol's model (back-projection inverts the model it is given); the
+    report records the option, and after the run the protocol's model holds again."""
+    from pbrsr_core.degrade import degrade_asset, degrade_image, run_kernel
+
+    hr = make_test_asset(tmp_path / "hr.glb", size=64)
+    src = degrade_asset(hr, tmp_path / "lr" / "a.glb", 4, image_format="png16", kernel="area")[0]
+    lr = load_asset(src)
+    err, made_by = {}, {}
+    for kernel in ("gaussian", "area"):
+        options = UpscaleOptions(method="direct", scale=4, lr_kernel=kernel)
+        report = upscale_asset(src, tmp_path / kernel, options)
+        assert report["options"]["lr_kernel"] == kernel and run_kernel() == "gaussian"
+        made_by[kernel] = [img["made_by"] for img in report["images"]]
+        out = load_asset(tmp_path / kernel / "a.glb")
+        err[kernel] = [
+            np.abs(
+                degrade_image(o.pixels, 4, kernel="area", normal_map="normal" in i.roles) - i.pixels
+            ).mean()
+            for o, i in zip(out.images, lr.images, strict=True)
+        ]
+    networks = [
+        i
+        for i, (a, b) in enumerate(zip(made_by["gaussian"], made_by["area"], strict=True))
+        if "bicubic" not in a + b
+    ]
+    assert len(networks) >= 2, made_by  # the normal map and a data map at least
+    for i in networks:
+        assert err["area"][i] < 0.7 * err["gaussian"][i], (i, err)
+
+
 def test_the_report_names_the_precision_each_map_kind_ran_in(tmp_path: Path, set_runtime):
     from pbrsr_core.prior.base import native_int8
 

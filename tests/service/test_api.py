@@ -150,6 +150,7 @@ def _bad_cases(tmp_path: Path) -> list[tuple[str, bytes, str | dict | None, int,
         ("prior path", glb, {"prior": "spandrel:../../x.pth"}, 422, "invalid-options"),
         ("nothing to upscale", bare, None, 422, "unprocessable-asset"),
         ("max_size 1", glb, {"max_size": 1}, 422, "invalid-options"),
+        ("unknown LR kernel", glb, {"lr_kernel": "box"}, 422, "invalid-options"),
         ("max_size under every x2", glb, {"max_size": 3}, 422, "unprocessable-asset"),
     ]
 

@@ -118,13 +118,15 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
             page.fill("#opt-iterations", "20")
             page.select_option("#opt-scale", "2")
             page.fill("#opt-max-size", "64")  # the 32² maps at x2 all the same
+            page.select_option("#opt-lr-kernel", "area")
             page.click("#submit")
             page.wait_for_selector("#job-view:not([hidden])")
             page.wait_for_selector(".job-row[data-status]")
             # the view's status is set when the job's detail has arrived, with its name
             page.wait_for_selector("#job-view[data-status]")
             assert page.inner_text("#job-name") == "chair.glb"
-            assert page.inner_text("#job-meta").startswith("x2 · at most 64 px · pbrsr · quality")
+            meta = page.inner_text("#job-meta")
+            assert meta.startswith("x2 · at most 64 px · input by area · pbrsr · quality")
 
             # watch the bar until the job ends
             widths, statuses = [], []
@@ -177,6 +179,7 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
             assert "asset.glb" in names and "report.json" in names
             report = json.loads(zipfile.ZipFile(path).read("report.json"))
             assert report["options"]["max_size"] == 64
+            assert report["options"]["lr_kernel"] == "area"
             assert {i["scale"] for i in report["images"]} == {2} and report["kept"] == []
             assert errors == []
     finally:

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from ...asset.jpeg import compress, standard_quant
-from ...degrade import check_kernels, degrade_tensor, resize_tensor
+from ...degrade import check_kernels, downsample
 from ...errors import InvalidOptions
 from ..symmetry import dihedral
 from .graphics import DRAWN_KINDS, graphics_crop, normal_graphics_crop
@@ -159,11 +159,7 @@ def normalize_encoded(t: torch.Tensor) -> torch.Tensor:
 def degrade_pair(hr: torch.Tensor, scale: int, kind: str, kernel: str = "gaussian") -> torch.Tensor:
     """The LR input for HR crops (N, 3, H, W): blur + bicubic down (the protocol), or another
     ``kernel`` of :data:`~pbrsr_core.degrade.KERNELS`, clamped (normal maps renormalised)."""
-    if kernel == "gaussian":
-        lr = degrade_tensor(hr, scale).clamp_(0.0, 1.0)
-    else:
-        size = (max(1, round(hr.shape[2] / scale)), max(1, round(hr.shape[3] / scale)))
-        lr = resize_tensor(hr, size, kernel).clamp_(0.0, 1.0)
+    lr = downsample(hr, scale, kernel).clamp_(0.0, 1.0)
     return normalize_encoded(lr) if kind == "normal" else lr
 
 

@@ -57,9 +57,10 @@ class SelectivePrior(BlurringPrior):
     name = "selective"
     scales = (4,)  # knows the x4 check's crop: no x2 to check a small map at (check_factor)
 
-    def __init__(self, lr_map: np.ndarray, scale: int = 4):
+    def __init__(self, lr_map: np.ndarray, scale: int = 4, kernel: str = "gaussian"):
         super().__init__()
-        self.small = torch.from_numpy(degrade_image(lr_map[..., :3], scale)).permute(2, 0, 1)
+        small = degrade_image(lr_map[..., :3], scale, kernel=kernel)
+        self.small = torch.from_numpy(small).permute(2, 0, 1)
         self.hr = torch.from_numpy(np.ascontiguousarray(lr_map[..., :3])).permute(2, 0, 1)
 
     def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
@@ -126,6 +127,18 @@ class HalfOraclePrior(OraclePrior):
         half = out.shape[-1] // 2
         out[..., half:] = 1.0 - out[..., half:]
         return out
+
+
+def test_the_check_goes_one_scale_down_by_the_runs_lr_model():
+    """A prior that knows the map's crop made by the area kernel one scale down is perfect on
+    the check that makes it so, within ``lr_model("area")``, and blurs the protocol's crop."""
+    from pbrsr_core.degrade import lr_model
+
+    tex = _texture(128, seed=4)
+    knows_area = SelectivePrior(tex, kernel="area")
+    with lr_model("area"):
+        assert prior_self_check(knows_area, tex, 4)["use_prior"]
+    assert not prior_self_check(knows_area, tex, 4)["use_prior"]
 
 
 def test_the_check_compares_only_covered_texels():
