@@ -133,6 +133,7 @@ def resize_matrix(n_in: int, n_out: int, kernel: str) -> torch.Tensor:
 def downsample(x: torch.Tensor, scale: int, kernel: str) -> torch.Tensor:
     """(N, C, H, W) -> (N, C, max(1, round(H/s)), max(1, round(W/s))), unclamped, on ``x``'s
     device and dtype, by ``kernel``: the protocol's :func:`degrade_tensor` for gaussian."""
+    check_kernels((kernel,))
     if kernel == "gaussian":
         return degrade_tensor(x, scale)
     h, w = x.shape[2:]

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
 from pbrsr_core.asset import load_asset, make_test_asset
 from pbrsr_core.degrade import (
@@ -14,6 +15,7 @@ from pbrsr_core.degrade import (
     degrade_image,
     degrade_sigma,
     degrade_tensor,
+    downsample,
     lr_downsample,
     lr_model,
     resize_matrix,
@@ -171,6 +173,8 @@ def test_kernels_keep_less_blur_than_the_protocol():
 def test_unknown_kernel_is_refused(tmp_path):
     with pytest.raises(InvalidOptions, match="unknown LR kernel.s. nearest"):
         degrade_image(np.zeros((8, 8, 3), np.float32), 2, kernel="nearest")
+    with pytest.raises(InvalidOptions, match="unknown LR kernel.s. nearest"):  # not Lanczos
+        downsample(torch.zeros(1, 3, 8, 8), 2, "nearest")
     src = make_test_asset(tmp_path / "hr.glb", size=32)
     with pytest.raises(InvalidOptions, match="use gaussian, area, bicubic, lanczos"):
         degrade_asset(src, tmp_path / "lr" / "lr.glb", 4, kernel="nearest")
