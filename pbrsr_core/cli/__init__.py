@@ -21,7 +21,7 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
-_COMMAND_MODULES: list[str] = ["upscale", "priors", "degrade", "render"]
+_COMMAND_MODULES: list[str] = ["upscale", "priors", "degrade", "kernel", "render"]
 
 
 def _register_all() -> None:
