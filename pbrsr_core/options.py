@@ -12,7 +12,7 @@ DEFAULT_PRIOR = "pbr-srmd"
 whose kinds without trained weights use waifu2x-photo."""
 
 Method = Literal["pbrsr", "direct", "bicubic"]
-LrKernel = Literal["gaussian", "area", "bicubic", "lanczos"]
+LrKernel = Literal["gaussian", "area", "bicubic", "lanczos", "auto"]
 ImageFormat = Literal["same", "png", "png16", "exr", "jpeg", "ktx2", "webp", "avif"]
 
 
@@ -71,7 +71,8 @@ class UpscaleOptions(BaseModel):
         description="How the input's maps were made from larger ones: the LR model the "
         "prior's back-projection and its checks one scale down invert. gaussian: blur, then "
         "bicubic (the evaluation protocol, pbrsr degrade); area: each texel the mean of its "
-        "footprint (mipmaps); bicubic, lanczos: an image editor's antialiased resize.",
+        "footprint (mipmaps); bicubic, lanczos: an image editor's antialiased resize; auto: "
+        "the one the maps' spectra point to (pbrsr kernel estimate), named in the report.",
     )
     device: str = Field("auto", description="auto, cpu, cuda or cuda:N.")
     unwrap_missing_uvs: bool = Field(

@@ -46,6 +46,7 @@ from .initial_maps import (
     read_channels_only,
     self_checks,
 )
+from .kernel_estimate import estimate_kernel
 from .limits import Limits, check_output_size
 from .maps import (
     image_cutout,
@@ -479,10 +480,15 @@ def upscale_asset(
             check_output_size(images, map_scales(images, options.scale, options.max_size), limits)
             if memory_budget is not None:
                 _check_footprint(images, options, config, memory_budget)
-        with reuse_large_blocks(), lr_model(options.lr_kernel):
+        lr_info: dict = {"kernel": options.lr_kernel, "estimated": False}
+        if options.lr_kernel == "auto":
+            with timer("lr_kernel"):
+                lr_info = estimate_kernel([img.pixels for img in images]).to_json()
+        with reuse_large_blocks(), lr_model(str(lr_info["kernel"])):
             hr, method_report = _upscale_maps(
                 asset, options, device, timer, progress, work, snapshots, config
             )
+        method_report = {**method_report, "lr_model": lr_info}
         emit(progress, Progress(stage="export"))
         with timer("export"):
             report = _write_bundle(

@@ -217,7 +217,7 @@ def _bundle_event():
 
 
 def _summary(report: dict[str, Any]) -> dict[str, Any]:
-    keys = ("wall_seconds", "device", "threads", "timings", "metrics", "final_losses")
+    keys = ("wall_seconds", "device", "threads", "timings", "metrics", "final_losses", "lr_model")
     out = {k: report[k] for k in keys if k in report}
     out["maps"] = [img.get("file") for img in report.get("images", []) if isinstance(img, dict)]
     out["map_rows"] = map_rows(report)

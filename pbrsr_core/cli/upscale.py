@@ -92,7 +92,8 @@ def register(app: typer.Typer) -> None:
             typer.Option(
                 help="how the input's maps were made smaller, the LR model the prior's "
                 "back-projection inverts: gaussian (pbrsr degrade's protocol), area "
-                "(mipmaps), bicubic or lanczos (image editors)"
+                "(mipmaps), bicubic or lanczos (image editors), auto (estimated from the maps: "
+                "pbrsr kernel estimate)"
             ),
         ] = "gaussian",
         device: Annotated[str, typer.Option(help="auto, cpu, cuda, cuda:N")] = "auto",

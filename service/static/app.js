@@ -230,13 +230,22 @@ async function refreshJob() {
   renderJob(job);
 }
 
+// The LR model the job inverts: the one it was told, or for "auto" the estimate once the
+// job's summary has it (the protocol's where no map was large or varied enough to tell);
+// nothing for the protocol's when told.
+function inputLine(o, lrModel) {
+  if (o.lr_kernel !== "auto") return o.lr_kernel && o.lr_kernel !== "gaussian" ? `input by ${o.lr_kernel}` : "";
+  if (!lrModel) return "input kernel to estimate";
+  return `input by ${lrModel.kernel} (${lrModel.estimated ? "estimated" : "no map to estimate from"})`;
+}
+
 function renderJob(job) {
   $("job-view").dataset.status = job.status;
   $("job-name").textContent = job.name;
   const o = job.options || {};
   $("job-meta").textContent = [
     `x${o.scale}`, o.max_size ? `at most ${o.max_size} px` : "",
-    o.lr_kernel && o.lr_kernel !== "gaussian" ? `input by ${o.lr_kernel}` : "", o.method, o.method === "pbrsr" ? o.preset : "",
+    inputLine(o, job.summary && job.summary.lr_model), o.method, o.method === "pbrsr" ? o.preset : "",
     `created ${fmtTime(job.created_at)}`,
     job.attempt > 1 ? `attempt ${job.attempt}` : "",
   ].filter(Boolean).join(" · ");

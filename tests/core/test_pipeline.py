@@ -130,6 +130,36 @@ def test_direct_inverts_the_lr_model_the_options_name(tmp_path: Path):
         assert err["area"][i] < 0.7 * err["gaussian"][i], (i, err)
 
 
+def test_auto_runs_the_kernel_the_maps_point_to_and_the_report_says_so(tmp_path: Path):
+    """lr_kernel "auto": the run estimates the kernel from the LR maps (what
+    ``estimate_kernel`` says of them), records it, and gives the maps a run told that kernel
+    gives; maps too small to tell leave the protocol's model, not marked estimated."""
+    from pbrsr_core.degrade import degrade_asset
+    from pbrsr_core.kernel_estimate import estimate_kernel
+
+    hr = make_test_asset(tmp_path / "hr.glb", size=512)
+    src = degrade_asset(hr, tmp_path / "lr" / "a.glb", 4, image_format="png16", kernel="area")[0]
+    want = estimate_kernel([img.pixels for img in load_asset(src).images if img.roles])
+    assert want.maps >= 2
+    auto = upscale_asset(src, tmp_path / "auto", UpscaleOptions(method="direct", lr_kernel="auto"))
+    assert auto["options"]["lr_kernel"] == "auto"
+    assert auto["lr_model"] == want.to_json() and auto["lr_model"]["estimated"] is True
+    assert "lr_kernel" in auto["timings"]
+    told_opts = UpscaleOptions(method="direct", lr_kernel=want.kernel)
+    told = upscale_asset(src, tmp_path / "told", told_opts)
+    assert told["lr_model"] == {"kernel": want.kernel, "estimated": False}
+    for a, b in zip(load_asset(tmp_path / "auto" / "a.glb").images,
+                    load_asset(tmp_path / "told" / "a.glb").images, strict=True):  # fmt: skip
+        assert np.array_equal(a.pixels, b.pixels)
+
+    small = make_test_asset(tmp_path / "small.glb", size=64)  # LR maps of 32 texels
+    lr_small = degrade_asset(small, tmp_path / "lr" / "s.glb", 2, image_format="png16")[0]
+    rep = upscale_asset(
+        lr_small, tmp_path / "s", UpscaleOptions(method="bicubic", lr_kernel="auto")
+    )
+    assert rep["lr_model"]["kernel"] == "gaussian" and rep["lr_model"]["estimated"] is False
+
+
 def test_the_report_names_the_precision_each_map_kind_ran_in(tmp_path: Path, set_runtime):
     from pbrsr_core.prior.base import native_int8
 

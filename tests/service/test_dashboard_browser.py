@@ -118,7 +118,7 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
             page.fill("#opt-iterations", "20")
             page.select_option("#opt-scale", "2")
             page.fill("#opt-max-size", "64")  # the 32² maps at x2 all the same
-            page.select_option("#opt-lr-kernel", "area")
+            page.select_option("#opt-lr-kernel", "auto")
             page.click("#submit")
             page.wait_for_selector("#job-view:not([hidden])")
             page.wait_for_selector(".job-row[data-status]")
@@ -126,7 +126,9 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
             page.wait_for_selector("#job-view[data-status]")
             assert page.inner_text("#job-name") == "chair.glb"
             meta = page.inner_text("#job-meta")
-            assert meta.startswith("x2 · at most 64 px · input by area · pbrsr · quality")
+            assert meta.startswith(
+                "x2 · at most 64 px · input kernel to estimate · pbrsr · quality"
+            )
 
             # watch the bar until the job ends
             widths, statuses = [], []
@@ -155,6 +157,9 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
             row = page.locator(".job-row").first
             assert row.get_attribute("data-status") == "finished"
             assert page.inner_text("#timings")  # per-stage timings listed
+            # the chair's 32² maps are too small to tell their kernel: the protocol's is run
+            meta = page.inner_text("#job-meta")
+            assert "input by gaussian (no map to estimate from) · pbrsr" in meta, meta
             # one row per map: its size and factor, what made it, its consistency PSNR
             cells = page.eval_on_selector_all(
                 "#map-table tbody tr", "trs => trs.map(tr => [...tr.cells].map(c => c.textContent))"
@@ -179,7 +184,8 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
             assert "asset.glb" in names and "report.json" in names
             report = json.loads(zipfile.ZipFile(path).read("report.json"))
             assert report["options"]["max_size"] == 64
-            assert report["options"]["lr_kernel"] == "area"
+            assert report["options"]["lr_kernel"] == "auto"
+            assert report["lr_model"]["kernel"] == "gaussian" and report["lr_model"]["maps"] == 0
             assert {i["scale"] for i in report["images"]} == {2} and report["kept"] == []
             assert errors == []
     finally:

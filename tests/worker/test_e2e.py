@@ -96,6 +96,12 @@ def test_job_runs_to_finished_with_a_complete_bundle(env):
     rows = job["summary"]["map_rows"]
     assert [r["name"] for r in rows] == [img["name"] for img in report["images"]]
     assert all(r["scale"] == 2 and r["made_from"] == "bicubic" for r in rows)
+    # and the LR model the run inverted (the protocol's, as told by default)
+    assert (
+        job["summary"]["lr_model"]
+        == report["lr_model"]
+        == {"kernel": "gaussian", "estimated": False}
+    )
 
     previews = job["links"]["previews"]
     assert "preview.png" in previews

@@ -102,7 +102,10 @@ def test_missing_input_file(tmp_path, capfd):
         (["--method", "pbrsr", "--prior", "bicubic", "--preset", "no-such-preset"], "preset"),
         (["--prior", "bicubic", "--iterations", "-1"], "iterations"),
         (["--max-size", "1"], "max_size"),
-        (["--lr-kernel", "box"], "lr_kernel: Input should be 'gaussian', 'area', 'bicubic' or"),
+        (
+            ["--lr-kernel", "box"],
+            "lr_kernel: Input should be 'gaussian', 'area', 'bicubic', 'lanczos' or 'auto'",
+        ),
         (["--method", "bicubic", "--max-size", "15"], "nothing to upscale"),
     ],
 )
