@@ -66,9 +66,10 @@ def _tiles(image: np.ndarray) -> torch.Tensor:
     t = min(TILE, h, w)
     ys = np.linspace(0, h - t, max(1, min(8, h // t))).astype(int)
     xs = np.linspace(0, w - t, max(1, min(8, w // t))).astype(int)
-    x = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float64)).permute(2, 0, 1)
-    tiles = torch.stack([x[:, y : y + t, x0 : x0 + t] for y in ys for x0 in xs])
-    return tiles - tiles.mean(dim=(2, 3), keepdim=True)
+    # the tiles cut first, then widened: a large map is never copied whole
+    tiles = np.stack([image[y : y + t, x0 : x0 + t] for y in ys for x0 in xs]).astype(np.float64)
+    out = torch.from_numpy(tiles).permute(0, 3, 1, 2)
+    return out - out.mean(dim=(2, 3), keepdim=True)
 
 
 def informative(image: np.ndarray) -> bool:
