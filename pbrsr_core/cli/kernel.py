@@ -54,28 +54,30 @@ def fit_cmd(
         None, "--textures", help="CC0 texture folder (default: $PBRSR_TEXTURES, shared/textures)."
     ),
     output: Path = typer.Option(
-        None, "-o", "--output", help="Where to write the classifier (default: the shipped file)."
+        ...,
+        "-o",
+        "--output",
+        help="Where to write the classifier (the shipped one is "
+        "pbrsr_core/prior/weights/lr-kernel/classifier.json).",
     ),
 ) -> None:
     """Fit the kernel estimator on the texture set's training materials (every map made LR
     at x2 and x4 by each kernel, half JPEG-compressed) and score it on the held-out ones."""
-    from ..kernel_estimate import CLASSIFIER
     from ..prior.train.data import texture_folder
     from ..prior.train.kernel_fit import fit_kernel_classifier
 
     root = texture_folder(textures)
     command = "pbrsr kernel fit" + "".join(f" {shlex.quote(a)}" for a in sys.argv[3:])
     clf = fit_kernel_classifier(root, command)
-    out = output or CLASSIFIER
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(clf.to_json(), indent=1) + "\n", encoding="utf-8")
+    output.parent.mkdir(parents=True, exist_ok=True)
+    output.write_text(json.dumps(clf.to_json(), indent=1) + "\n", encoding="utf-8")
     held = clf.meta.get("held_out")
     if held:
         typer.echo(
             f"held out: {held['map_accuracy']:.1%} of {held['maps']} maps, "
             f"{held['group_accuracy']:.1%} of {held['groups']} material groups"
         )
-    typer.echo(f"wrote {out}")
+    typer.echo(f"wrote {output}")
 
 
 def register(app: typer.Typer) -> None:

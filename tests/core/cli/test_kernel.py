@@ -59,5 +59,7 @@ def test_fit_writes_a_classifier_scored_on_held_out_materials(tmp_path, capfd):
 
 
 def test_fit_refuses_a_folder_without_textures(tmp_path, capfd):
-    code, err = run_cli(["kernel", "fit", "--textures", str(tmp_path / "nothing")], capfd)
+    args = ["kernel", "fit", "--textures", str(tmp_path / "nothing"), "-o", str(tmp_path / "c")]
+    code, err = run_cli(args, capfd)
     assert code == InvalidOptions.exit_code and "texture folder" in err
+    assert not (tmp_path / "c").exists()
