@@ -167,11 +167,13 @@ def load_classifier(path: Path = CLASSIFIER) -> KernelClassifier:
 @dataclass(frozen=True)
 class KernelEstimate:
     """An asset's estimate: the kernel, its posterior over ``KERNELS`` (:func:`pool` over the
-    maps, uniform prior), and how many maps told it; with none, the protocol's kernel."""
+    maps, uniform prior), and how many maps told it; with none, the protocol's kernel.
+    ``per_map``: each given map's own probabilities, None for a map that does not vote."""
 
     kernel: str
     posterior: dict[str, float]
     maps: int
+    per_map: tuple[dict[str, float] | None, ...] = ()
 
     def to_json(self) -> dict:
         return {
@@ -195,14 +197,20 @@ def estimate_kernel(
     """The kernel that most likely made all of ``images`` ((H, W, C) maps in [0, 1], as
     stored), from the informative ones (:func:`informative`)."""
     clf = classifier or load_classifier()
-    used = [im for im in images if informative(im)]
+    used = [i for i, im in enumerate(images) if informative(im)]
     if not used:
         uniform = {k: 1.0 / len(clf.kernels) for k in clf.kernels}
-        return KernelEstimate("gaussian", uniform, 0)
-    total = pool(clf.log_probs(np.stack([spectrum_features(im) for im in used])))
+        return KernelEstimate("gaussian", uniform, 0, (None,) * len(images))
+    log_probs = clf.log_probs(np.stack([spectrum_features(images[i]) for i in used]))
+    total = pool(log_probs)
     post = np.exp(total - total.max())
     post /= post.sum()
-    best = int(np.argmax(total))
+    per_map: list[dict[str, float] | None] = [None] * len(images)
+    for i, row in zip(used, np.exp(log_probs), strict=True):
+        per_map[i] = dict(zip(clf.kernels, row.tolist(), strict=True))
     return KernelEstimate(
-        clf.kernels[best], {k: float(p) for k, p in zip(clf.kernels, post, strict=True)}, len(used)
+        clf.kernels[int(np.argmax(total))],
+        dict(zip(clf.kernels, post.tolist(), strict=True)),
+        len(used),
+        tuple(per_map),
     )

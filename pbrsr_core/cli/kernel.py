@@ -23,27 +23,22 @@ def estimate_cmd(
 ) -> None:
     """Estimate the kernel (gaussian, area, bicubic, lanczos) that made the asset's maps from
     larger ones: each map's spectrum near its Nyquist frequency, pooled over the maps."""
-    import numpy as np
-
     from ..asset import load_asset
-    from ..kernel_estimate import estimate_kernel, informative, load_classifier
+    from ..kernel_estimate import estimate_kernel
     from ..maps import role_label, upscalable_images
 
-    clf = load_classifier()
     images = upscalable_images(load_asset(input))
-    est = estimate_kernel([im.pixels for im in images], clf)
+    est = estimate_kernel([im.pixels for im in images])
     if as_json:
         typer.echo(json.dumps(est.to_json(), indent=2))
         return
-    from ..kernel_estimate import spectrum_features
-
-    for im in images:
-        if informative(im.pixels):
-            lp = clf.log_probs(spectrum_features(im.pixels))[0]
-            probs = ", ".join(f"{k} {p:.2f}" for k, p in zip(clf.kernels, np.exp(lp), strict=True))
-        else:
-            probs = "not used (flat or under 64 texels)"
-        typer.echo(f"{role_label(im.roles)} {im.width}x{im.height}: {probs}")
+    for im, probs in zip(images, est.per_map, strict=True):
+        said = (
+            ", ".join(f"{k} {p:.2f}" for k, p in probs.items())
+            if probs is not None
+            else "not used (flat, non-finite or under 64 texels)"
+        )
+        typer.echo(f"{role_label(im.roles)} {im.width}x{im.height}: {said}")
     post = ", ".join(f"{k} {p:.2f}" for k, p in est.posterior.items())
     typer.echo(f"estimate: {est.kernel} ({est.maps} maps; {post})")
 

@@ -92,6 +92,11 @@ def test_the_shipped_classifier_names_the_kernel_that_made_a_procedural_asset(ke
     assert est.kernel == kernel, est
     assert est.maps == 4 and est.posterior[kernel] == max(est.posterior.values())
     assert abs(sum(est.posterior.values()) - 1.0) < 1e-9
+    # each map's own probabilities, in the order given
+    assert len(est.per_map) == 4
+    for probs, lr in zip(est.per_map, maps, strict=True):
+        assert probs is not None and abs(sum(probs.values()) - 1.0) < 1e-9
+        assert probs == pytest.approx(estimate_kernel([lr]).per_map[0], abs=1e-12)
 
 
 def test_flat_small_and_non_finite_maps_tell_nothing():
@@ -101,11 +106,12 @@ def test_flat_small_and_non_finite_maps_tell_nothing():
     bad[3, 3, 0] = np.nan
     assert not any(informative(m) for m in (flat, tiny, bad))
     est = estimate_kernel([flat, tiny, bad])
-    assert est.kernel == "gaussian" and est.maps == 0
+    assert est.kernel == "gaussian" and est.maps == 0 and est.per_map == (None, None, None)
     assert est.to_json()["estimated"] is False
     # a flat map beside an informative one does not change the estimate
     lr = degrade_image(power_law_texture(512, 2.0, seed=5), 2, kernel="area")
-    assert estimate_kernel([lr, flat]).posterior == estimate_kernel([lr]).posterior
+    both = estimate_kernel([lr, flat])
+    assert both.posterior == estimate_kernel([lr]).posterior and both.per_map[1] is None
 
 
 def test_the_classifier_file_round_trips_and_a_wrong_one_is_refused(tmp_path):
