@@ -480,11 +480,13 @@ def upscale_asset(
             check_output_size(images, map_scales(images, options.scale, options.max_size), limits)
             if memory_budget is not None:
                 _check_footprint(images, options, config, memory_budget)
-        lr_info: dict = {"kernel": options.lr_kernel, "estimated": False}
-        if options.lr_kernel == "auto":
+        kernel: str = options.lr_kernel
+        lr_info = {"kernel": kernel, "estimated": False}
+        if kernel == "auto":
             with timer("lr_kernel"):
-                lr_info = estimate_kernel([img.pixels for img in images]).to_json()
-        with reuse_large_blocks(), lr_model(str(lr_info["kernel"])):
+                estimate = estimate_kernel([img.pixels for img in images])
+            kernel, lr_info = estimate.kernel, estimate.to_json()
+        with reuse_large_blocks(), lr_model(kernel):
             hr, method_report = _upscale_maps(
                 asset, options, device, timer, progress, work, snapshots, config
             )

@@ -34,18 +34,17 @@ def _seed(*parts: object) -> int:
     return int(hashlib.sha256(repr(parts).encode()).hexdigest()[:8], 16)
 
 
-def samples(
-    materials: list[Material], jpeg_share: float = 0.5
-) -> Iterator[tuple[str, int, np.ndarray]]:
+def samples(materials: list[Material]) -> Iterator[tuple[str, int, np.ndarray]]:
     """(group, kernel index, features) of every informative LR map: a group is one material
-    at one scale by one kernel, JPEG-compressed with probability ``jpeg_share``."""
+    at one scale by one kernel, JPEG-compressed or not as a whole (even odds, seeded by its
+    name)."""
     for mat in materials:
         for s in SCALES:
             for ki, kernel in enumerate(KERNELS):
                 group = f"{mat.name}@x{s}/{kernel}"
                 rng = np.random.default_rng(_seed(group))
                 quant = None
-                if rng.random() < jpeg_share:
+                if rng.random() < 0.5:
                     quality = int(rng.integers(JPEG_QUALITIES[0], JPEG_QUALITIES[1] + 1))
                     quant = standard_quant(quality, subsampled=bool(rng.random() < 0.5))
                 for key, px in mat.maps.items():
