@@ -78,6 +78,7 @@ def main(spec_path: str) -> None:
                 "peak_rss_mib": peak,
                 "timings": report["timings"],
                 "num_views": report.get("num_views", 0),
+                "lr_model": report.get("lr_model"),
                 "snapshots": snaps,
             }
         )

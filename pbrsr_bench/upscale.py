@@ -18,6 +18,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -338,6 +339,7 @@ def run(
                     "run_s": round(res["run_s"], 2),
                     "peak_rss_mib": round(res["peak_rss_mib"], 1),
                     "timings": res["timings"],
+                    "lr_model": res.get("lr_model"),
                     **{k: round(v, 3) for k, v in scores.items()},
                     "curve": curve,
                 }
@@ -361,10 +363,17 @@ def _map_cell(row: dict, m: str) -> str:
     return "-" if v is None else f"{v:.2f}"
 
 
+def _method_cell(row: dict) -> str:
+    """The method, and for a run that estimated its LR kernel (``lr_kernel=auto``) the kernel
+    it picked from the maps."""
+    lr = row.get("lr_model") or {}
+    return f"{row['method']} ({lr['kernel']})" if lr.get("estimated") else row["method"]
+
+
 def _row_text(row: dict) -> str:
     maps = " ".join(f"{m}={_map_cell(row, m)}" for m in MAP_COLUMNS if f"maps.{m}.psnr" in row)
     return (
-        f"{row['method']:<9} {row['run_s']:8.1f}s {row['peak_rss_mib']:7.0f}MiB "
+        f"{_method_cell(row):<9} {row['run_s']:8.1f}s {row['peak_rss_mib']:7.0f}MiB "
         f"render={row.get('render.psnr', float('nan')):.2f} {maps}"
     )
 
@@ -378,7 +387,7 @@ def markdown_table(rows: list[dict]) -> str:
     for r in rows:
         cells = [
             r["asset"],
-            r["method"],
+            _method_cell(r),
             f"{r['run_s']:.1f}",
             f"{r['peak_rss_mib']:.0f}",
             f"{r.get('render.psnr', float('nan')):.2f}",
@@ -400,7 +409,8 @@ def summary(
     procedural assets, and the variants, which repeat their source's maps): mean
     render PSNR gain over bicubic, the worst map PSNR difference to bicubic (any asset, any
     map the two rows both score, occlusion and emissive included), mean run seconds and the
-    largest peak memory; the targets are stated on these."""
+    largest peak memory; the targets are stated on these. ``estimated_kernels``: for runs that
+    read their LR kernel off the maps, how many assets got each kernel."""
     bic = {r["asset"]: r for r in rows if r["method"] == "bicubic" and r["asset"] not in exclude}
     out = []
     for method in dict.fromkeys(r["method"] for r in rows):
@@ -414,10 +424,14 @@ def summary(
             for key in (k for k in r if k.startswith("maps.") and k.endswith(".psnr")):
                 if key in ref and r[key] - ref[key] < worst:
                     worst, worst_at = r[key] - ref[key], f"{r['asset']} {key[5:-5]}"
+        picked = [
+            r["lr_model"]["kernel"] for r in mine if (r.get("lr_model") or {}).get("estimated")
+        ]
         out.append(
             {
                 "method": method,
                 "assets": len(mine),
+                "estimated_kernels": dict(Counter(picked).most_common()),
                 "render_gain_db": round(float(np.mean(gains)), 3),
                 "worst_map_db": round(worst, 3),
                 "worst_map_at": worst_at,
@@ -444,6 +458,15 @@ def summary_table(rows: list[dict]) -> str:
             f"| {r['worst_map_db']:+.2f} dB ({r['worst_map_at']}) | {r['mean_run_s']:.1f} "
             f"| {r['max_peak_mib']} |"
         )
+    for r in s:
+        if r["estimated_kernels"]:
+            n = sum(r["estimated_kernels"].values())
+            picks = ", ".join(f"{k} on {c}" for k, c in r["estimated_kernels"].items())
+            lines += [
+                "",
+                f"{r['method']} estimated the LR kernel of {n} of its {r['assets']} assets: "
+                f"{picks}.",
+            ]
     by = {r["method"]: r for r in s}
     if "fast" in by and "balanced" in by and by["balanced"]["render_gain_db"] > 0:
         share = by["fast"]["render_gain_db"] / by["balanced"]["render_gain_db"]

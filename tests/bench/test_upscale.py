@@ -141,6 +141,52 @@ def test_summary_gains_worst_map_and_fast_share():
     )
 
 
+def test_a_run_that_estimates_its_kernel_says_which_it_picked(tmp_path: Path):
+    """Each row keeps the run's LR model: the kernel an ``lr_kernel=auto`` run read off the
+    maps, or the one a run was told; the tables name the estimated ones."""
+    from pbrsr_bench.upscale import markdown_table, summary_table
+    from pbrsr_core.degrade import KERNELS
+
+    rows = run(
+        out_dir=tmp_path / "out",
+        methods=("direct+lr_kernel=auto", "direct+lr_kernel=area"),
+        prior="bicubic",
+        eval_res=64,
+        eval_views=2,
+        procedural_size=256,
+        kernel="lanczos",
+        include_shared=False,
+        log=lambda _: None,
+    )
+    auto = [r for r in rows if r["method"] == "direct+lr_kernel=auto"]
+    told = [r for r in rows if r["method"] == "direct+lr_kernel=area"]
+    assert len(auto) == len(told) == 2
+    for r in told:
+        assert r["lr_model"] == {"kernel": "area", "estimated": False}
+    for r in auto:  # 64² LR maps with texture: each asset's maps vote
+        assert r["lr_model"]["estimated"] and r["lr_model"]["kernel"] in KERNELS
+        assert sum(r["lr_model"]["posterior"].values()) == pytest.approx(1.0, abs=1e-3)
+    saved = json.loads((tmp_path / "out" / "results.json").read_text())["rows"]
+    assert [r["lr_model"] for r in saved] == [r["lr_model"] for r in rows]
+    table = markdown_table(rows)
+    k = auto[0]["lr_model"]["kernel"]
+    assert f"| procedural | direct+lr_kernel=auto ({k}) |" in table
+    assert "| procedural | direct+lr_kernel=area |" in table
+
+    # the summary counts the picks over the assets it averages (the procedural ones renamed)
+    named = [{**r, "asset": r["asset"] + "-x"} for r in rows]
+    named += [
+        {**r, "asset": r["asset"] + "-x", "method": "bicubic", "lr_model": None} for r in told
+    ]
+    s = {r["method"]: r for r in summary(named)}
+    picks = [r["lr_model"]["kernel"] for r in auto]
+    assert s["direct+lr_kernel=auto"]["estimated_kernels"] == {k: picks.count(k) for k in picks}
+    assert s["direct+lr_kernel=area"]["estimated_kernels"] == {}
+    text = summary_table(named)
+    assert "direct+lr_kernel=auto estimated the LR kernel of 2 of its 2 assets: " in text
+    assert "direct+lr_kernel=area estimated" not in text
+
+
 def test_bench_assets_refuses_an_unknown_name(tmp_path: Path):
     shared = tmp_path / "shared"
     (shared / "Chair").mkdir(parents=True)
