@@ -1,7 +1,7 @@
 """Evaluation by the paper's protocol: PSNR of each map over the texels the mesh's UVs cover
 (SSIM over the whole map), and PSNR of renderings from the evaluation views (predicted maps
 against ground truth maps, same lighting). Keys: ``maps.<name>.psnr``, ``maps.<name>.ssim``,
-``render.psnr``."""
+``render.psnr``, and with several lights ``render.<light>.psnr`` per light."""
 
 from __future__ import annotations
 
@@ -122,19 +122,43 @@ class RenderEvaluator:
     def _render(self, textures, light) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         return render_views(self.scene, textures, self.cameras, light, gbuffers=self.gbuffers)
 
+    def light_keys(self) -> list[str]:
+        """``render.<light>.psnr`` per light, named by the light (a repeated name numbered)."""
+        keys: list[str] = []
+        for light in self.lights:
+            key, k = f"render.{light.name}.psnr", 2
+            while key in keys:
+                key, k = f"render.{light.name}#{k}.psnr", k + 1
+            keys.append(key)
+        return keys
+
     def __call__(self, pred: Asset) -> dict[str, float]:
+        """``render.psnr`` over every view and light, and the same per light
+        (:meth:`light_keys`): a map's error can show under one light and not another (a
+        highlight the tonemap clips hides errors of one sign)."""
         tex = asset_textures(pred, self.device)
-        sq, n = 0.0, 0
+        per_light = []
         for light, (img_gt, masks) in zip(self.lights, self.gt_images, strict=True):
             img_pr, _ = self._render(tex, light)
+            sq, n = 0.0, 0
             for a, b, m in zip(img_pr, img_gt, masks, strict=True):
                 d = ((a - b) ** 2)[m]
                 sq += float(d.double().sum())
                 n += int(d.numel())
-        if n == 0:
-            return {"render.psnr": float("nan")}
-        mse = sq / n
-        return {"render.psnr": float("inf") if mse == 0 else 10 * math.log10(1 / mse)}
+            per_light.append((sq, n))
+        out = {"render.psnr": _psnr_of(sum(s for s, _ in per_light), sum(n for _, n in per_light))}
+        if len(self.lights) > 1:
+            for key, (sq, n) in zip(self.light_keys(), per_light, strict=True):
+                out[key] = _psnr_of(sq, n)
+        return out
+
+
+def _psnr_of(sq: float, n: int) -> float:
+    """PSNR (peak 1) of a sum of ``n`` squared errors; NaN for none, inf for no error."""
+    if n == 0:
+        return float("nan")
+    mse = sq / n
+    return float("inf") if mse == 0 else 10 * math.log10(1 / mse)
 
 
 def eval_cameras(resolution: int, num_views: int | None = None) -> list[cam.Camera]:

@@ -63,6 +63,25 @@ def test_map_and_render_metrics(demo: Path):
     assert math.isfinite(r1) and r1 > r2
 
 
+def test_render_psnr_per_light_pools_to_the_whole(demo: Path):
+    """With several lights each has its own render PSNR; the pooled one is over all their
+    pixels (the same views: the mean of their MSEs). One light gives the pooled key only."""
+    from pbrsr_core.scene import rotated_procedural_light
+
+    gt = load_asset(demo)
+    off = _perturbed(gt, 0.05)
+    cams = eval_cameras(48, 4)
+    lights = [procedural_light(), rotated_procedural_light(120.0), procedural_light()]
+    res = RenderEvaluator(gt, cameras=cams, lights=lights)(off)
+    keys = ["render.procedural.psnr", "render.procedural-rot120.psnr", "render.procedural#2.psnr"]
+    assert [k for k in res if k.startswith("render.")] == ["render.psnr", *keys]
+    assert res[keys[0]] == res[keys[2]] != res[keys[1]]
+    mse = [10 ** (-res[k] / 10) for k in keys]
+    assert res["render.psnr"] == pytest.approx(-10 * math.log10(sum(mse) / 3), abs=1e-9)
+    alone = RenderEvaluator(gt, cameras=cams, lights=lights[1:2])(off)
+    assert alone == {"render.psnr": pytest.approx(res[keys[1]], abs=1e-9)}
+
+
 def test_eval_cameras_subset():
     assert len(eval_cameras(32)) == 240
     assert len(eval_cameras(32, 24)) == 24
