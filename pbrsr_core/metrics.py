@@ -122,7 +122,7 @@ class RenderEvaluator:
     def _render(self, textures, light) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         return render_views(self.scene, textures, self.cameras, light, gbuffers=self.gbuffers)
 
-    def light_keys(self) -> list[str]:
+    def _light_keys(self) -> list[str]:
         """``render.<light>.psnr`` per light, named by the light (a repeated name numbered)."""
         keys: list[str] = []
         for light in self.lights:
@@ -134,7 +134,7 @@ class RenderEvaluator:
 
     def __call__(self, pred: Asset) -> dict[str, float]:
         """``render.psnr`` over every view and light, and the same per light
-        (:meth:`light_keys`): a map's error can show under one light and not another (a
+        (:meth:`_light_keys`): a map's error can show under one light and not another (a
         highlight the tonemap clips hides errors of one sign)."""
         tex = asset_textures(pred, self.device)
         per_light = []
@@ -148,7 +148,7 @@ class RenderEvaluator:
             per_light.append((sq, n))
         out = {"render.psnr": _psnr_of(sum(s for s, _ in per_light), sum(n for _, n in per_light))}
         if len(self.lights) > 1:
-            for key, (sq, n) in zip(self.light_keys(), per_light, strict=True):
+            for key, (sq, n) in zip(self._light_keys(), per_light, strict=True):
                 out[key] = _psnr_of(sq, n)
         return out
 
