@@ -409,8 +409,10 @@ def summary(
     procedural assets, and the variants, which repeat their source's maps): mean
     render PSNR gain over bicubic, the worst map PSNR difference to bicubic (any asset, any
     map the two rows both score, occlusion and emissive included), mean run seconds and the
-    largest peak memory; the targets are stated on these. ``estimated_kernels``: for runs that
-    read their LR kernel off the maps, how many assets got each kernel."""
+    largest peak memory; the targets are stated on these. ``render_gain_db_by_light``: the
+    mean gain under each light, where every row and its bicubic row have it.
+    ``estimated_kernels``: for runs that read their LR kernel off the maps, how many assets
+    got each kernel."""
     bic = {r["asset"]: r for r in rows if r["method"] == "bicubic" and r["asset"] not in exclude}
     out = []
     for method in dict.fromkeys(r["method"] for r in rows):
@@ -427,12 +429,19 @@ def summary(
         picked = [
             r["lr_model"]["kernel"] for r in mine if (r.get("lr_model") or {}).get("estimated")
         ]
+        by_light = {
+            key[len("render.") : -len(".psnr")]: round(
+                float(np.mean([r[key] - bic[r["asset"]][key] for r in mine])), 3
+            )
+            for key in _light_keys(mine, bic)
+        }
         out.append(
             {
                 "method": method,
                 "assets": len(mine),
                 "estimated_kernels": dict(Counter(picked).most_common()),
                 "render_gain_db": round(float(np.mean(gains)), 3),
+                "render_gain_db_by_light": by_light,
                 "worst_map_db": round(worst, 3),
                 "worst_map_at": worst_at,
                 "mean_run_s": round(float(np.mean([r["run_s"] for r in mine])), 1),
@@ -440,6 +449,13 @@ def summary(
             }
         )
     return out
+
+
+def _light_keys(rows: list[dict], bic: dict[str, dict]) -> list[str]:
+    """The ``render.<light>.psnr`` keys every row and its asset's bicubic row have, in the
+    order of the first row."""
+    keys = [k for k in rows[0] if k.startswith("render.") and k != "render.psnr"]
+    return [k for k in keys if all(k in r and k in bic[r["asset"]] for r in rows)]
 
 
 def summary_table(rows: list[dict]) -> str:
@@ -458,6 +474,14 @@ def summary_table(rows: list[dict]) -> str:
             f"| {r['worst_map_db']:+.2f} dB ({r['worst_map_at']}) | {r['mean_run_s']:.1f} "
             f"| {r['max_peak_mib']} |"
         )
+    lights = list(s[0]["render_gain_db_by_light"])
+    if lights and all(list(r["render_gain_db_by_light"]) == lights for r in s):
+        each = ", ".join(
+            f"{r['method']} "
+            + " / ".join(f"{r['render_gain_db_by_light'][k]:+.2f}" for k in lights)
+            for r in s
+        )
+        lines += ["", f"Mean render PSNR gain per light ({' / '.join(lights)}): {each} dB."]
     for r in s:
         if r["estimated_kernels"]:
             n = sum(r["estimated_kernels"].values())

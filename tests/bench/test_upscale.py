@@ -141,6 +141,32 @@ def test_summary_gains_worst_map_and_fast_share():
     )
 
 
+def test_summary_gives_the_gain_under_each_light():
+    """The mean gain per light, over the rows that have it with their bicubic rows; the
+    table says it when every method has the same lights."""
+    from pbrsr_bench.upscale import summary_table
+
+    rows = [
+        _row("a", "bicubic", 30.0, 30.0, 1.0),
+        _row("a", "direct", 31.0, 31.0, 2.0),
+        _row("b", "bicubic", 20.0, 20.0, 1.0),
+        _row("b", "direct", 23.0, 21.0, 2.0),
+    ]
+    studio, sunset = (29.0, 31.5, 19.0, 21.0), (31.0, 30.5, 21.0, 25.0)
+    for r, a, b in zip(rows, studio, sunset, strict=True):
+        r["render.studio.psnr"], r["render.sunset.psnr"] = a, b
+    s = summary(rows)[0]
+    assert s["render_gain_db_by_light"] == {"studio": 2.25, "sunset": 1.75}
+    text = summary_table(rows)
+    assert "Mean render PSNR gain per light (studio / sunset): direct +2.25 / +1.75 dB." in text
+    del rows[2]["render.sunset.psnr"]  # a bicubic row without it: that light is left out
+    assert summary(rows)[0]["render_gain_db_by_light"] == {"studio": 2.25}
+    for r in rows:
+        r.pop("render.studio.psnr")
+    assert summary(rows)[0]["render_gain_db_by_light"] == {}
+    assert "per light" not in summary_table(rows)
+
+
 def test_a_run_that_estimates_its_kernel_says_which_it_picked(tmp_path: Path):
     """Each row keeps the run's LR model: the kernel an ``lr_kernel=auto`` run read off the
     maps, or the one a run was told; the tables name the estimated ones."""
