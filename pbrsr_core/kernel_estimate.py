@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from . import runtime
 from .degrade import KERNELS
 from .errors import InvalidOptions
 
@@ -156,8 +157,11 @@ class KernelClassifier:
         )
 
 
-def load_classifier(path: Path = CLASSIFIER) -> KernelClassifier:
-    """The classifier in ``path`` (by default the shipped one)."""
+def load_classifier(path: Path | None = None) -> KernelClassifier:
+    """The classifier in ``path``; by default the runtime's (``PBRSR_KERNEL_CLASSIFIER``),
+    else the shipped one."""
+    if path is None:
+        path = runtime.current().kernel_classifier or CLASSIFIER
     try:
         return KernelClassifier.from_json(json.loads(Path(path).read_text(encoding="utf-8")))
     except (OSError, ValueError, KeyError, TypeError) as exc:

@@ -1,5 +1,5 @@
 """Process-wide runtime settings of the core: cache folders, prior tiling and precision, the
-pseudo-GT memory cache, the shading path.
+pseudo-GT memory cache, the shading path, the LR-kernel classifier.
 
 The core never reads the environment. Entry points (the ``pbrsr`` CLI, the service, the
 worker) build a :class:`Runtime` from the ``PBRSR_*`` variables with
@@ -35,6 +35,9 @@ class Runtime:
     """In-memory cache of pseudo-GT targets per process (MiB)."""
     shade_reference: bool = False
     """Shade with the torch reference path on the CPU too."""
+    kernel_classifier: Path | None = None
+    """The LR-kernel classifier ``lr_kernel="auto"`` runs (a file of ``pbrsr kernel fit``);
+    None: the shipped one."""
 
     def __post_init__(self) -> None:
         if self.prior_precision not in PRECISIONS:

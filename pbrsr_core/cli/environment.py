@@ -11,6 +11,7 @@ the service and the worker call :func:`configure_from_env` at start-up.
 | ``PBRSR_PRIOR_PRECISION`` | ``prior_precision`` |
 | ``PBRSR_PSEUDO_GT_CACHE_MB`` | ``pseudo_gt_cache_mb`` |
 | ``PBRSR_SHADE_REFERENCE`` (``1``: on) | ``shade_reference`` |
+| ``PBRSR_KERNEL_CLASSIFIER`` (a file of ``pbrsr kernel fit``) | ``kernel_classifier`` |
 """
 
 from __future__ import annotations
@@ -60,6 +61,11 @@ def runtime_changes(environ: Mapping[str, str]) -> dict[str, Any]:
         changes["pseudo_gt_cache_mb"] = _integer(env, "PBRSR_PSEUDO_GT_CACHE_MB", 0, "is negative")
     if "PBRSR_SHADE_REFERENCE" in env:
         changes["shade_reference"] = env["PBRSR_SHADE_REFERENCE"].strip() != "0"
+    if "PBRSR_KERNEL_CLASSIFIER" in env:
+        path = Path(env["PBRSR_KERNEL_CLASSIFIER"].strip()).expanduser()
+        if not path.is_file():
+            raise InvalidOptions(f"PBRSR_KERNEL_CLASSIFIER={str(path)!r} is not a file")
+        changes["kernel_classifier"] = path
     return changes
 
 

@@ -20,15 +20,22 @@ kernel_app = typer.Typer(
 def estimate_cmd(
     input: Path = typer.Argument(..., help="A .glb or .gltf asset (its maps as they are)."),
     as_json: bool = typer.Option(False, "--json", help="Print the estimate as JSON."),
+    classifier: Path | None = typer.Option(
+        None,
+        "--classifier",
+        help="A classifier of `pbrsr kernel fit` (default: $PBRSR_KERNEL_CLASSIFIER, else the "
+        "shipped one).",
+    ),
 ) -> None:
     """Estimate the kernel (gaussian, area, bicubic, lanczos) that made the asset's maps from
     larger ones: each map's spectrum near its Nyquist frequency, pooled over the maps."""
     from ..asset import load_asset
-    from ..kernel_estimate import estimate_kernel
+    from ..kernel_estimate import estimate_kernel, load_classifier
     from ..maps import role_label, upscalable_images
 
+    clf = load_classifier(classifier)
     images = upscalable_images(load_asset(input))
-    est = estimate_kernel([im.pixels for im in images])
+    est = estimate_kernel([im.pixels for im in images], clf)
     if as_json:
         typer.echo(json.dumps(est.to_json(), indent=2))
         return
@@ -72,7 +79,7 @@ def fit_cmd(
             f"held out: {held['map_accuracy']:.1%} of {held['maps']} maps, "
             f"{held['group_accuracy']:.1%} of {held['groups']} material groups"
         )
-    typer.echo(f"wrote {output}")
+    typer.echo(f"wrote {output} (runs use it with PBRSR_KERNEL_CLASSIFIER={output})")
 
 
 def register(app: typer.Typer) -> None:

@@ -21,8 +21,10 @@ def test_each_variable_sets_its_field(tmp_path):
         "PBRSR_PRIOR_PRECISION": "fp32",
         "PBRSR_PSEUDO_GT_CACHE_MB": "0",
         "PBRSR_SHADE_REFERENCE": "1",
+        "PBRSR_KERNEL_CLASSIFIER": str(tmp_path / "classifier.json"),
         "HOME": "/nowhere",
     }
+    (tmp_path / "classifier.json").write_text("{}")
     assert runtime_changes(env) == {
         "cache_dir": tmp_path / "cache",
         "npm_dir": tmp_path / "npm",
@@ -30,6 +32,7 @@ def test_each_variable_sets_its_field(tmp_path):
         "prior_precision": "fp32",
         "pseudo_gt_cache_mb": 0,
         "shade_reference": True,
+        "kernel_classifier": tmp_path / "classifier.json",
     }
     assert runtime_changes({"PBRSR_SHADE_REFERENCE": "0"}) == {"shade_reference": False}
     # unset or empty: the defaults stay
@@ -49,6 +52,7 @@ def test_cache_folder_falls_back_to_xdg(tmp_path):
         ("PBRSR_PRIOR_TILE", "0", "PBRSR_PRIOR_TILE=0 is not a positive tile side"),
         ("PBRSR_PRIOR_PRECISION", "half", "PBRSR_PRIOR_PRECISION='half' is not one of"),
         ("PBRSR_PSEUDO_GT_CACHE_MB", "-5", "PBRSR_PSEUDO_GT_CACHE_MB=-5 is negative"),
+        ("PBRSR_KERNEL_CLASSIFIER", "/no/such.json", "PBRSR_KERNEL_CLASSIFIER='/no/such.json' is"),
     ],
 )
 def test_bad_values_name_the_variable(name, value, message):

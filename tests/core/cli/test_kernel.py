@@ -9,7 +9,9 @@ import numpy as np
 from pbrsr_core.asset import load_asset, make_test_asset
 from pbrsr_core.degrade import KERNELS, degrade_asset
 from pbrsr_core.errors import InvalidOptions
-from pbrsr_core.kernel_estimate import estimate_kernel, load_classifier
+from pbrsr_core.kernel_estimate import CLASSIFIER, estimate_kernel, load_classifier
+from pbrsr_core.options import UpscaleOptions
+from pbrsr_core.pipeline import upscale_asset
 from tests.clirun import run_cli, run_cli_output
 from tests.core.prior.test_train import make_texture_folder
 
@@ -29,6 +31,37 @@ def test_estimate_prints_each_map_and_the_pooled_estimate(tmp_path, capfd):
     assert lines[-1].startswith(f"estimate: {want.kernel} ({want.maps} maps; gaussian ")
     for line in lines[:-1]:
         assert all(k in line for k in KERNELS) or "not used" in line
+
+
+def _leaning(tmp_path, kernel: str):
+    """The shipped classifier with its bias moved far toward ``kernel``: every map says it."""
+    data = json.loads(CLASSIFIER.read_text())
+    data["bias"][list(data["kernels"]).index(kernel)] += 100.0
+    path = tmp_path / f"leans-{kernel}.json"
+    path.write_text(json.dumps(data))
+    return path
+
+
+def test_a_fitted_classifier_is_used_where_named(tmp_path, capfd, set_runtime):
+    """``--classifier FILE`` for the command; ``PBRSR_KERNEL_CLASSIFIER`` (the runtime's
+    ``kernel_classifier``) for it and for ``lr_kernel="auto"`` runs."""
+    hr = make_test_asset(tmp_path / "hr.glb", size=256)
+    lr = degrade_asset(hr, tmp_path / "lr.glb", 2, image_format="png16", kernel="lanczos")[0]
+    area, bicubic = _leaning(tmp_path, "area"), _leaning(tmp_path, "bicubic")
+    args = ["kernel", "estimate", str(lr), "--json"]
+    code, out, _ = run_cli_output([*args, "--classifier", str(area)], capfd)
+    assert code == 0 and json.loads(out)["kernel"] == "area"
+    set_runtime(kernel_classifier=bicubic)
+    code, out, _ = run_cli_output(args, capfd)
+    assert code == 0 and json.loads(out)["kernel"] == "bicubic"
+    code, out, _ = run_cli_output([*args, "--classifier", str(area)], capfd)  # the option wins
+    assert code == 0 and json.loads(out)["kernel"] == "area"
+    rep = upscale_asset(lr, tmp_path / "run", UpscaleOptions(method="bicubic", lr_kernel="auto"))
+    assert rep["lr_model"]["kernel"] == "bicubic" and rep["lr_model"]["posterior"]["bicubic"] > 0.99
+    broken = tmp_path / "broken.json"
+    broken.write_text("{")
+    code, err = run_cli([*args, "--classifier", str(broken)], capfd)
+    assert code == InvalidOptions.exit_code and "cannot read the kernel classifier" in err
 
 
 def test_estimate_refuses_a_missing_or_broken_asset(tmp_path, capfd):
