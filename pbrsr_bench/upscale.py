@@ -433,7 +433,7 @@ def summary(
             key[len("render.") : -len(".psnr")]: round(
                 float(np.mean([r[key] - bic[r["asset"]][key] for r in mine])), 3
             )
-            for key in _light_keys(mine, bic)
+            for key in _common_light_keys(mine, bic)
         }
         out.append(
             {
@@ -451,7 +451,7 @@ def summary(
     return out
 
 
-def _light_keys(rows: list[dict], bic: dict[str, dict]) -> list[str]:
+def _common_light_keys(rows: list[dict], bic: dict[str, dict]) -> list[str]:
     """The ``render.<light>.psnr`` keys every row and its asset's bicubic row have, in the
     order of the first row."""
     keys = [k for k in rows[0] if k.startswith("render.") and k != "render.psnr"]
