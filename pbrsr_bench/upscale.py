@@ -454,7 +454,8 @@ def summary(
 def _common_light_keys(rows: list[dict], bic: dict[str, dict]) -> list[str]:
     """The ``render.<light>.psnr`` keys every row and its asset's bicubic row have, in the
     order of the first row."""
-    keys = [k for k in rows[0] if k.startswith("render.") and k != "render.psnr"]
+    keys = [k for k in rows[0] if k.startswith("render.") and k.endswith(".psnr")]
+    keys = [k for k in keys if k != "render.psnr"]
     return [k for k in keys if all(k in r and k in bic[r["asset"]] for r in rows)]
 
 
