@@ -115,9 +115,10 @@ def eval_lights(shared: Path) -> tuple[list[EnvLight], list[str]]:
     ]
 
 
-OPTION_CHANGES = ("max_size", "lr_kernel")
+OPTION_CHANGES = ("max_size", "lr_kernel", "maps")
 """``+key=value`` changes that are upscale options, which every method takes, not a preset's
-numbers: ``direct+max_size=512``, ``direct+lr_kernel=area``."""
+numbers: ``direct+max_size=512``, ``direct+lr_kernel=area``, ``balanced+maps=base_color|normal``
+(roles joined by ``|``, since a comma separates methods)."""
 
 
 def parse_method(method: str) -> tuple[str, str | None, dict]:
@@ -146,6 +147,8 @@ def method_options(method: str, scale: int, prior: str) -> dict:
     name, own_prior, changes = parse_method(method)
     prior = own_prior or prior
     options = {k: v for k, v in changes.items() if k in OPTION_CHANGES}
+    if isinstance(options.get("maps"), str):
+        options["maps"] = options["maps"].split("|")
     if name in ("bicubic", "direct"):
         return {"method": name, "scale": scale, "prior": prior, **options}
     return {"method": "pbrsr", "preset": name, "scale": scale, "prior": prior, **options}

@@ -8,10 +8,10 @@ CHANNELS = "RGBA"
 
 def map_rows(report: dict) -> list[dict]:
     """Per map of ``report`` (``report.json``), by image index: its name and label, LR and
-    output size, factor (1: kept as it is, ``max_size``), what each channel entry was made
-    from (``made_by``: one entry for a colour or normal map, one per channel of a data map)
-    on one line (``made_from``) and, where PBR-SR measured it, the consistency PSNR to its LR
-    map per role (dB)."""
+    output size, factor (1: kept as it is, for ``maps`` or under ``max_size``), what each
+    channel entry was made from (``made_by``: one entry for a colour or normal map, one per
+    channel of a data map) on one line (``made_from``) and, where PBR-SR measured it, the
+    consistency PSNR to its LR map per role (dB)."""
     consistency: dict[int, dict[str, float]] = {}
     for key, db in (report.get("consistency_psnr_db") or {}).items():
         index, _, role = key.partition(":")
@@ -37,7 +37,7 @@ def map_rows(report: dict) -> list[dict]:
             "lr_size": img["size"],
             "size": img["size"],
             "scale": 1,
-            "made_by": ["kept (max_size)"],
+            "made_by": [f"kept ({img.get('reason', 'max_size')})"],
             "consistency_db": {},
         }
         for img in report.get("kept", [])

@@ -4,6 +4,7 @@ encoding (numpy, as in the file) and the optimisation space (torch, linear colou
 from __future__ import annotations
 
 import re
+from collections.abc import Collection
 
 import numpy as np
 import torch
@@ -89,13 +90,26 @@ def upscalable_images(asset: Asset) -> list[ImageData]:
     return [img for img in asset.images if img.roles]
 
 
-def map_scales(images: list[ImageData], scale: int, max_size: int | None) -> dict[int, int]:
+def map_scales(
+    images: list[ImageData],
+    scale: int,
+    max_size: int | None,
+    roles: Collection[str] | None = None,
+) -> dict[int, int]:
     """Per image index, the factor its map is upscaled by: ``scale``, or with ``max_size`` the
     largest of ``scale``, ``scale / 2``, ... whose output is at most ``max_size`` px on a side;
-    1 (the map kept as it is) where even x2 would be larger. Refused (UnprocessableAsset) when
-    that keeps every map."""
-    out = {}
-    for img in images:
+    1 (the map kept as it is) where even x2 would be larger, or, with ``roles``, where none of
+    the image's roles is listed. Refused (UnprocessableAsset) when that keeps every map."""
+    chosen = [img for img in images if roles is None or img.roles & set(roles)]
+    if images and not chosen:
+        asked = ", ".join(roles or ())
+        present = ", ".join(sorted({role for img in images for role in img.roles}))
+        raise UnprocessableAsset(
+            f"nothing to upscale: no map of this asset has a role in maps ({asked}); "
+            f"its maps' roles: {present}"
+        )
+    out = {img.index: 1 for img in images}
+    for img in chosen:
         f = scale
         while max_size is not None and f > 1 and max(img.width, img.height) * f > max_size:
             f //= 2

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 DEFAULT_PRIOR = "pbr-srmd"
 """The image SR prior a run uses unless told otherwise: a shipped texture prior
@@ -31,6 +31,14 @@ class UpscaleOptions(BaseModel):
         description="Largest output texture side in pixels: a map that scale would make larger "
         "is upscaled by the largest of scale/2, scale/4 that fits, and kept as it is where x2 "
         "would not fit. None: every map at scale.",
+    )
+    maps: list[str] | None = Field(
+        None,
+        min_length=1,
+        description="Material roles whose textures are upscaled (base_color, metallic_roughness, "
+        "normal, occlusion, emissive, or a KHR_materials_* role such as clearcoat): an image is "
+        "upscaled when any of its roles is listed, and every other image keeps its file. None: "
+        "every map.",
     )
     method: Method = Field(
         "pbrsr",
@@ -78,3 +86,17 @@ class UpscaleOptions(BaseModel):
     unwrap_missing_uvs: bool = Field(
         True, description="Unwrap meshes without UVs with xatlas; when false they are refused."
     )
+
+    @field_validator("maps")
+    @classmethod
+    def _known_roles(cls, maps: list[str] | None) -> list[str] | None:
+        from .asset.model import TEXTURE_ROLES  # the asset package imports torch
+
+        if maps is None:
+            return None
+        unknown = [m for m in maps if m not in TEXTURE_ROLES]
+        if unknown:
+            raise ValueError(
+                f"unknown map role {', '.join(map(repr, unknown))}: use {', '.join(TEXTURE_ROLES)}"
+            )
+        return sorted(set(maps), key=TEXTURE_ROLES.index)

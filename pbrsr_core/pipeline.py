@@ -101,10 +101,11 @@ def _check_footprint(images, options: UpscaleOptions, config, budget: int) -> No
 
     if options.method == "pbrsr" and config is None:
         config = run_config(options.preset, options.iterations)
-    factors = map_scales(images, options.scale, options.max_size)
+    factors = map_scales(images, options.scale, options.max_size, options.maps)
     sizes = {img.index: (img.width, img.height, int(img.pixels.shape[2])) for img in images}
-    largest = max(max(w, h) for w, h, _ in sizes.values())
-    what = f"x{options.scale} of {len(images)} maps (largest {largest} px)"
+    upscaled = [sizes[i] for i, f in factors.items() if f > 1]
+    largest = max(max(w, h) for w, h, _ in upscaled)
+    what = f"x{options.scale} of {len(upscaled)} maps (largest {largest} px)"
     if options.max_size is not None:
         what += f" at most {options.max_size} px"
     if options.method == "pbrsr":
@@ -131,14 +132,14 @@ def _upscale_maps(
     snapshots: Snapshots | None = None,
     config: PbrsrConfig | None = None,
 ) -> tuple[dict[int, np.ndarray], dict]:
-    """HR maps (stored encoding) for every used image ``options.max_size`` does not keep, each
-    at its factor (:func:`~.maps.map_scales`), and method-specific report fields. The prior's
-    check, init and blends run on the maps of each factor together, the larger factors first
-    (a metallic-roughness map whose colour map has another factor is blended without it as
-    guide); PBR-SR's optimisation and export take every map at once, a kept map rendered as it
-    is."""
+    """HR maps (stored encoding) for every used image ``options.maps`` and ``max_size`` do not
+    keep, each at its factor (:func:`~.maps.map_scales`), and method-specific report fields.
+    The prior's check, init and blends run on the maps of each factor together, the larger
+    factors first (a metallic-roughness map whose colour map has another factor, or is kept,
+    is blended without it as guide); PBR-SR's optimisation and export take every map at once,
+    a kept map rendered as it is."""
     images = upscalable_images(asset)
-    factors = map_scales(images, options.scale, options.max_size)
+    factors = map_scales(images, options.scale, options.max_size, options.maps)
     groups = {
         f: [img for img in images if factors[img.index] == f]
         for f in sorted(set(factors.values()) - {1}, reverse=True)
@@ -477,7 +478,9 @@ def upscale_asset(
                 raise UnprocessableAsset(
                     "nothing to upscale: no material of this asset uses a texture"
                 )
-            check_output_size(images, map_scales(images, options.scale, options.max_size), limits)
+            check_output_size(
+                images, map_scales(images, options.scale, options.max_size, options.maps), limits
+            )
             if memory_budget is not None:
                 _check_footprint(images, options, config, memory_budget)
         kernel: str = options.lr_kernel
@@ -576,13 +579,16 @@ def _write_bundle(
                 for img in asset.images
                 if img.index in hr
             ],
-            # maps max_size keeps as they are: their files are the input's
+            # maps kept as they are (not in maps, or over max_size): their files are the input's
             "kept": [
                 {
                     "index": img.index,
                     "name": img.name,
                     "label": role_label(img.roles),
                     "size": [img.width, img.height],
+                    "reason": "max_size"
+                    if options.maps is None or img.roles & set(options.maps)
+                    else "maps",
                 }
                 for img in upscalable_images(asset)
                 if img.index not in hr

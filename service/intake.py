@@ -84,7 +84,9 @@ def check_asset(path: Path, options: dict[str, Any], settings: Settings) -> floa
                 raise UnprocessableAsset(
                     "nothing to upscale: no material of this asset uses a texture"
                 )
-            factors = map_scales(images, int(options["scale"]), options["max_size"])
+            factors = map_scales(
+                images, int(options["scale"]), options["max_size"], options["maps"]
+            )
             check_output_size(images, factors, limits)
             return sum(img.width * img.height * factors[img.index] ** 2 for img in images) / 1e6
         finally:

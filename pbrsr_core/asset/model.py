@@ -63,6 +63,8 @@ EXTENSION_ROLES: dict[str, tuple[str, str, str]] = {
         "colour",
     ),
 }
+TEXTURE_ROLES: tuple[str, ...] = (*MAP_ROLES, *EXTENSION_ROLES)
+"""Every material role a texture can have: the core glTF maps, then the KHR_materials_* ones."""
 SRGB_ROLES: frozenset[str] = frozenset(
     {"base_color", "emissive"} | {r for r, (_, _, k) in EXTENSION_ROLES.items() if k == "colour"}
 )

@@ -64,6 +64,14 @@ def register(app: typer.Typer) -> None:
                 "scale/2 or scale/4, or is kept"
             ),
         ] = None,
+        maps: Annotated[
+            str | None,
+            typer.Option(
+                help="comma-separated material roles to upscale (base_color, "
+                "metallic_roughness, normal, occlusion, emissive, clearcoat, ...); the other "
+                "maps keep their files. Default: every map"
+            ),
+        ] = None,
         method: Annotated[str, typer.Option(help="pbrsr, direct or bicubic")] = "pbrsr",
         preset: Annotated[str, typer.Option(help="fast, balanced, quality, paper")] = "balanced",
         iterations: Annotated[
@@ -121,6 +129,7 @@ def register(app: typer.Typer) -> None:
             options = UpscaleOptions(
                 scale=scale,
                 max_size=max_size,
+                maps=None if maps is None else [m.strip() for m in maps.split(",") if m.strip()],
                 method=method,
                 preset=preset,
                 iterations=iterations,

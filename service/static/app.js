@@ -92,12 +92,20 @@ function pickFile(file) {
   $("submit").disabled = !file;
 }
 
+function checkedMaps() {
+  const boxes = [...document.querySelectorAll("#opt-maps input[type=checkbox]")];
+  const on = boxes.filter((b) => b.checked).map((b) => b.value);
+  return on.length === boxes.length ? null : on;  // null: every map, extensions' too
+}
+
 function options() {
   const steps = $("opt-iterations").value.trim();  // empty: the preset's
   const maxSize = $("opt-max-size").value.trim();  // empty: every map at the scale
+  const maps = checkedMaps();
   return {
     scale: Number($("opt-scale").value),
     ...(maxSize !== "" ? { max_size: Number(maxSize) } : {}),
+    ...(maps ? { maps } : {}),
     method: $("opt-method").value,
     preset: $("opt-preset").value,
     ...(steps !== "" && $("opt-method").value === "pbrsr" ? { iterations: Number(steps) } : {}),
@@ -110,6 +118,11 @@ function options() {
 function upload(event) {
   event.preventDefault();
   if (!state.file) return;
+  const maps = checkedMaps();
+  if (maps && maps.length === 0) {
+    $("upload-status").textContent = "Check at least one map to upscale.";
+    return;
+  }
   const form = new FormData();
   form.append("file", state.file, state.file.name);
   form.append("options", JSON.stringify(options()));
@@ -245,6 +258,7 @@ function renderJob(job) {
   const o = job.options || {};
   $("job-meta").textContent = [
     `x${o.scale}`, o.max_size ? `at most ${o.max_size} px` : "",
+    o.maps ? `maps: ${o.maps.join(", ")}` : "",
     inputLine(o, job.summary && job.summary.lr_model), o.method, o.method === "pbrsr" ? o.preset : "",
     `created ${fmtTime(job.created_at)}`,
     job.attempt > 1 ? `attempt ${job.attempt}` : "",

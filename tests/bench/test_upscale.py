@@ -311,6 +311,15 @@ def test_methods_take_preset_changes():
     assert preset_changes("balanced+lr_kernel=area") == {}
     with pytest.raises(ValueError, match="lr_kernel: Input should be 'gaussian'"):
         check_methods(("direct+lr_kernel=box",), "bicubic")
+    # and maps, its roles joined by "|" (a comma separates methods)
+    check_methods(("balanced+maps=base_color|normal", "bicubic+maps=emissive"), "bicubic")
+    assert method_options("direct+maps=normal|base_color", 4, "bicubic")["maps"] == [
+        "normal",
+        "base_color",
+    ]
+    assert preset_changes("balanced+maps=normal") == {}
+    with pytest.raises(ValueError, match="maps: Value error, unknown map role 'albedo'"):
+        check_methods(("direct+maps=albedo|normal",), "bicubic")
     with pytest.raises(ValueError, match="no_such_field"):
         check_methods(("balanced+no_such_field=1",), "bicubic")
     with pytest.raises(ValueError, match="unknown prior 'nope'"):

@@ -54,7 +54,7 @@ def test_the_cli_prints_the_table(tmp_path, capfd, monkeypatch):
 
     monkeypatch.setattr(upscale_cli.console, "width", 160)  # a row per line
     src = three_sizes(tmp_path)
-    args = ["upscale", str(src), "-o", str(tmp_path / "o"), "--method", "bicubic"]
+    args = ["upscale", str(src), "--method", "bicubic", "--overwrite", "-o", str(tmp_path / "o")]
     code, out, err = run_cli_output([*args, "--max-size", "32"], capfd)
     assert code == 0, err
     table = out[out.index("maps") : out.index("stage timings")]
@@ -63,3 +63,9 @@ def test_the_cli_prints_the_table(tmp_path, capfd, monkeypatch):
     assert "32² kept" in lines[0] and "kept (max_size)" in lines[0]
     assert "16² x2 = 32²" in lines[1] and "bicubic" in lines[1]
     assert "8² x4 = 32²" in lines[2] and "bicubic" in lines[2]
+    code, out, err = run_cli_output([*args, "--maps", "normal, metallic_roughness"], capfd)
+    assert code == 0, err
+    table = out[out.index("maps") : out.index("stage timings")]
+    lines = [line for line in table.splitlines() if re.search(r"base_color|normal|metallic", line)]
+    assert "32² kept" in lines[0] and "kept (maps)" in lines[0], table
+    assert "16² x4 = 64²" in lines[1] and "8² x4 = 32²" in lines[2]

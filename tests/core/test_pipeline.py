@@ -21,6 +21,7 @@ from pbrsr_core.asset import (
 )
 from pbrsr_core.errors import InvalidOptions, LimitExceeded, StorageError, UnprocessableAsset
 from pbrsr_core.limits import Limits
+from pbrsr_core.map_table import map_rows
 from pbrsr_core.options import UpscaleOptions
 from pbrsr_core.pipeline import upscale_asset
 from pbrsr_core.prior.base import Prior
@@ -410,7 +411,7 @@ def three_sizes(tmp_path: Path, data_side: int = 8) -> Path:
     return make_quad_asset(tmp_path / "in" / "q.gltf", maps)
 
 
-@pytest.mark.parametrize(
+each_method = pytest.mark.parametrize(
     "options",
     [
         UpscaleOptions(method="direct", prior="pbr-srmd"),
@@ -419,6 +420,9 @@ def three_sizes(tmp_path: Path, data_side: int = 8) -> Path:
     ],
     ids=["direct", "balanced", "bicubic"],
 )
+
+
+@each_method
 def test_max_size_upscales_each_map_by_the_largest_factor_that_fits(tmp_path, options):
     """x4 with max_size 64: the 32² albedo at x2, the 16² normal and 8² data maps at x4, each
     map as a run at its own factor makes it; with max_size 32 the albedo keeps its file."""
@@ -453,6 +457,53 @@ def test_max_size_refuses_what_it_cannot_run(tmp_path):
 
     with pytest.raises(ValidationError, match="max_size"):
         UpscaleOptions(max_size=1)
+
+
+@each_method
+def test_maps_upscales_the_listed_roles_and_keeps_the_other_files(tmp_path, options):
+    """maps=[base_color, normal]: those two maps as a run of every map makes them, the
+    metallic-roughness map's file byte for byte the input's, reported kept for ``maps``."""
+    src = three_sizes(tmp_path)
+    everything = upscale_asset(src, tmp_path / "all", options)
+    some_maps = UpscaleOptions.model_validate(
+        {**options.model_dump(), "maps": ["normal", "base_color"]}
+    )
+    report = upscale_asset(src, tmp_path / "some", some_maps)
+    assert report["options"]["maps"] == ["base_color", "normal"]
+    assert [(i["label"], i["scale"]) for i in report["images"]] == [
+        ("base_color", 4),
+        ("normal", 4),
+    ]
+    assert report["kept"] == [
+        {"index": 2, "name": "metallic_roughness.png", "label": "metallic_roughness",
+         "size": [8, 8], "reason": "maps"}
+    ]  # fmt: skip
+    full, some = load_asset(tmp_path / "all" / "q.gltf"), load_asset(tmp_path / "some" / "q.gltf")
+    for i in (0, 1):
+        assert np.array_equal(some.images[i].pixels, full.images[i].pixels), i
+    uri = json.loads(src.read_text())["images"][2]["uri"]
+    assert json.loads((tmp_path / "some" / "q.gltf").read_text())["images"][2]["uri"] == uri
+    assert (tmp_path / "some" / uri).read_bytes() == (src.parent / uri).read_bytes()
+    assert len(list((tmp_path / "some" / "maps").iterdir())) == 2
+    assert len(everything["images"]) == 3 and everything["kept"] == []
+    rows = map_rows(report)
+    assert rows[2]["made_by"] == ["kept (maps)"] and rows[2]["scale"] == 1
+
+
+def test_maps_refuses_roles_it_does_not_know_or_the_asset_lacks(tmp_path):
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="unknown map role 'albedo'"):
+        UpscaleOptions(maps=["albedo"])
+    with pytest.raises(ValidationError, match="maps"):
+        UpscaleOptions(maps=[])
+    src = three_sizes(tmp_path)
+    with pytest.raises(UnprocessableAsset, match=r"no map of this asset has a role in maps "
+                       r"\(occlusion, emissive\); its maps' roles: base_color, "
+                       r"metallic_roughness, normal"):  # fmt: skip
+        missing = UpscaleOptions(method="bicubic", maps=["emissive", "occlusion"])
+        upscale_asset(src, tmp_path / "a", missing)
+    assert not (tmp_path / "a").exists()
 
 
 def test_optimiser_steps_take_every_map_at_its_own_factor(tmp_path):

@@ -152,6 +152,8 @@ def _bad_cases(tmp_path: Path) -> list[tuple[str, bytes, str | dict | None, int,
         ("max_size 1", glb, {"max_size": 1}, 422, "invalid-options"),
         ("unknown LR kernel", glb, {"lr_kernel": "box"}, 422, "invalid-options"),
         ("max_size under every x2", glb, {"max_size": 3}, 422, "unprocessable-asset"),
+        ("unknown map role", glb, {"maps": ["albedo"]}, 422, "invalid-options"),
+        ("maps the asset lacks", glb, {"maps": ["clearcoat"]}, 422, "unprocessable-asset"),
     ]
 
 
@@ -394,6 +396,34 @@ def test_max_size_is_stored_and_sizes_the_job_for_its_queue(tmp_path):
         assert Job.fetch(capped, connection=redis).origin == settings.queue
         manifest = JobFiles(FilesystemStore(settings.storage_dir)).read_manifest(capped)
         assert manifest.options["max_size"] == cap
+    finally:
+        next(gen, None)
+
+
+def test_maps_is_stored_and_sizes_the_job_by_the_maps_it_upscales(tmp_path):
+    """A job's size (output megapixels) counts the maps ``maps`` does not list at their own
+    size: with every map at x4 the job goes to the large queue, with the base colour alone to
+    the default one."""
+    from pbrsr_core.asset import load_asset
+
+    data = asset_bytes(tmp_path)
+    (tmp_path / "a.glb").write_bytes(data)
+    images = [i for i in load_asset(tmp_path / "a.glb").images if i.roles]
+    some_mpix = sum(i.width * i.height * (16 if "base_color" in i.roles else 1) for i in images)
+    assert len(images) > 1 and some_mpix < sum(i.width * i.height * 16 for i in images)
+    gen = settings_scope(tmp_path, large_job_mpix=some_mpix * 1.01 / 1e6)
+    settings = next(gen)
+    try:
+        with TestClient(create_app(settings), raise_server_exceptions=False) as c:
+            full = post_asset(c, data, options={"method": "bicubic"}).json()["id"]
+            some = post_asset(
+                c, data, options={"method": "bicubic", "maps": ["base_color"]}
+            ).json()["id"]
+        redis = redis_client()
+        assert Job.fetch(full, connection=redis).origin == settings.large_queue
+        assert Job.fetch(some, connection=redis).origin == settings.queue
+        manifest = JobFiles(FilesystemStore(settings.storage_dir)).read_manifest(some)
+        assert manifest.options["maps"] == ["base_color"]
     finally:
         next(gen, None)
 

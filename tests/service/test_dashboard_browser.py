@@ -119,6 +119,7 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
             page.select_option("#opt-scale", "2")
             page.fill("#opt-max-size", "64")  # the 32² maps at x2 all the same
             page.select_option("#opt-lr-kernel", "auto")
+            page.uncheck("#opt-maps input[value=emissive]")  # its file kept
             page.click("#submit")
             page.wait_for_selector("#job-view:not([hidden])")
             page.wait_for_selector(".job-row[data-status]")
@@ -127,7 +128,8 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
             assert page.inner_text("#job-name") == "chair.glb"
             meta = page.inner_text("#job-meta")
             assert meta.startswith(
-                "x2 · at most 64 px · input kernel to estimate · pbrsr · quality"
+                "x2 · at most 64 px · maps: base_color, metallic_roughness, normal, occlusion"
+                " · input kernel to estimate · pbrsr · quality"
             )
 
             # watch the bar until the job ends
@@ -164,8 +166,12 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
             cells = page.eval_on_selector_all(
                 "#map-table tbody tr", "trs => trs.map(tr => [...tr.cells].map(c => c.textContent))"
             )
-            assert len(cells) == page.locator("#thumbs img").count(), cells
-            for _, role, size, made_from, db in cells:
+            upscaled = [c for c in cells if not c[2].endswith("kept")]  # a thumbnail each
+            assert len(upscaled) == page.locator("#thumbs img").count() == len(cells) - 1, cells
+            assert [c[1:4] for c in cells if c[1] == "emissive"] == [
+                ["emissive", "16² kept", "kept (maps)"]
+            ], cells
+            for _, role, size, made_from, db in (c for c in cells if c[1] != "emissive"):
                 lr, hr = re.fullmatch(r"(\d+)² x2 = (\d+)²", size).groups()  # under max_size
                 assert role and made_from and int(hr) == 2 * int(lr) <= 64, cells
                 assert all(float(v) > 20 for v in db.split()), cells
@@ -186,7 +192,11 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
             assert report["options"]["max_size"] == 64
             assert report["options"]["lr_kernel"] == "auto"
             assert report["lr_model"]["kernel"] == "gaussian" and report["lr_model"]["maps"] == 0
-            assert {i["scale"] for i in report["images"]} == {2} and report["kept"] == []
+            assert report["options"]["maps"] == [
+                "base_color", "metallic_roughness", "normal", "occlusion"
+            ]  # fmt: skip
+            assert {i["scale"] for i in report["images"]} == {2}
+            assert [(k["label"], k["reason"]) for k in report["kept"]] == [("emissive", "maps")]
             assert errors == []
     finally:
         cleanup_redis(settings)

@@ -107,6 +107,9 @@ def test_missing_input_file(tmp_path, capfd):
             "lr_kernel: Input should be 'gaussian', 'area', 'bicubic', 'lanczos' or 'auto'",
         ),
         (["--method", "bicubic", "--max-size", "15"], "nothing to upscale"),
+        (["--maps", "base_color,albedo"], "maps: Value error, unknown map role 'albedo'"),
+        (["--maps", ","], "maps: List should have at least 1 item"),
+        (["--method", "bicubic", "--maps", "clearcoat"], "nothing to upscale"),
     ],
 )
 def test_bad_options(quad, tmp_path, capfd, extra, says):
