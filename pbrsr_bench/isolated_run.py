@@ -56,7 +56,10 @@ def main(spec_path: str) -> None:
         overhead += time.perf_counter() - s0
 
     options = UpscaleOptions(**spec["options"])
-    changes = spec.get("config")
+    # JSON has no tuples: a preset's tuple fields (prior_maps, ...) come back as lists
+    changes = {
+        k: tuple(v) if isinstance(v, list) else v for k, v in (spec.get("config") or {}).items()
+    }
     try:
         report = upscale_asset(
             Path(spec["input"]),

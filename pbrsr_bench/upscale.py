@@ -118,7 +118,7 @@ def eval_lights(shared: Path) -> tuple[list[EnvLight], list[str]]:
 OPTION_CHANGES = ("max_size", "lr_kernel", "maps")
 """``+key=value`` changes that are upscale options, which every method takes, not a preset's
 numbers: ``direct+max_size=512``, ``direct+lr_kernel=area``, ``balanced+maps=base_color|normal``
-(roles joined by ``|``, since a comma separates methods)."""
+(list items joined by ``|``, since a comma separates methods)."""
 
 
 def parse_method(method: str) -> tuple[str, str | None, dict]:
@@ -155,8 +155,16 @@ def method_options(method: str, scale: int, prior: str) -> dict:
 
 
 def preset_changes(method: str) -> dict:
-    """The changes of ``method`` to its preset's numbers (``PbrsrConfig.with_``)."""
-    return {k: v for k, v in parse_method(method)[2].items() if k not in OPTION_CHANGES}
+    """The changes of ``method`` to its preset's numbers (``PbrsrConfig.with_``); a field
+    that holds a tuple takes its items joined by ``|``: ``fast+prior_maps=base_color|normal``."""
+    from pbrsr_core.optim.presets import PbrsrConfig
+
+    defaults = PbrsrConfig()
+    changes = {k: v for k, v in parse_method(method)[2].items() if k not in OPTION_CHANGES}
+    for k, v in changes.items():
+        if isinstance(v, str) and isinstance(getattr(defaults, k, None), tuple):
+            changes[k] = tuple(v.split("|"))
+    return changes
 
 
 def check_methods(methods: tuple[str, ...], prior: str) -> None:
@@ -373,6 +381,11 @@ def _method_cell(row: dict) -> str:
     return f"{row['method']} ({lr['kernel']})" if lr.get("estimated") else row["method"]
 
 
+def _md(text: str) -> str:
+    """``text`` as a markdown table cell: a list change's ``|`` (``+maps=a|b``) escaped."""
+    return text.replace("|", "\\|")
+
+
 def _row_text(row: dict) -> str:
     maps = " ".join(f"{m}={_map_cell(row, m)}" for m in MAP_COLUMNS if f"maps.{m}.psnr" in row)
     return (
@@ -390,7 +403,7 @@ def markdown_table(rows: list[dict]) -> str:
     for r in rows:
         cells = [
             r["asset"],
-            _method_cell(r),
+            _md(_method_cell(r)),
             f"{r['run_s']:.1f}",
             f"{r['peak_rss_mib']:.0f}",
             f"{r.get('render.psnr', float('nan')):.2f}",
@@ -474,7 +487,7 @@ def summary_table(rows: list[dict]) -> str:
     ]
     for r in s:
         lines.append(
-            f"| {r['method']} | {r['assets']} | {r['render_gain_db']:+.2f} dB "
+            f"| {_md(r['method'])} | {r['assets']} | {r['render_gain_db']:+.2f} dB "
             f"| {r['worst_map_db']:+.2f} dB ({r['worst_map_at']}) | {r['mean_run_s']:.1f} "
             f"| {r['max_peak_mib']} |"
         )
@@ -513,7 +526,8 @@ def published_summary(out_dir: Path) -> str:
     data = json.loads((Path(out_dir) / "results.json").read_text())
     rows = data["rows"]
     methods = ",".join(dict.fromkeys(r["method"] for r in rows))
-    command = f"pbrsr bench upscale --methods {methods} --eval-views {data['eval_views']}"
+    quoted = f'"{methods}"' if "|" in methods else methods  # a list change's | for the shell
+    command = f"pbrsr bench upscale --methods {quoted} --eval-views {data['eval_views']}"
     if data["scale"] != 4:
         command += f" --scale {data['scale']}"
     if data["prior"] != DEFAULT_PRIOR:

@@ -67,6 +67,30 @@ def test_max_size_runs_are_scored_at_the_ground_truths_size(tmp_path: Path):
         assert full[key] - 3.0 < capped[key] < full[key] + 0.2, key
 
 
+def test_list_changes_run_the_maps_and_preset_tuples_they_name(tmp_path: Path):
+    """``+maps=`` keeps the maps it does not list (scored at the ground truth's size as a
+    bicubic upscale, as max_size's are); a preset's tuple (``prior_maps``) reaches the run
+    through the child process's JSON."""
+    rows = run(
+        out_dir=tmp_path / "out",
+        methods=("bicubic", "bicubic+maps=base_color", "fast+prior_maps=base_color|normal"),
+        prior="bicubic",
+        eval_res=64,
+        eval_views=4,
+        procedural_size=64,
+        include_shared=False,
+        log=lambda _: None,
+    )
+    by = {(r["asset"], r["method"]): r for r in rows}
+    full, some = by["procedural", "bicubic"], by["procedural", "bicubic+maps=base_color"]
+    assert some["maps.albedo.psnr"] == full["maps.albedo.psnr"]
+    assert some["maps.normal.psnr"] == pytest.approx(full["maps.normal.psnr"], abs=0.5)
+    assert some["render.psnr"] != full["render.psnr"]  # the kept maps render as they are
+    assert 5.0 < by["procedural", "fast+prior_maps=base_color|normal"]["render.psnr"] < 100.0
+    table = (tmp_path / "out" / "results.md").read_text()
+    assert "| procedural | fast+prior_maps=base_color\\|normal | " in table  # one cell
+
+
 def test_at_gt_size_upscales_only_maps_smaller_by_a_whole_factor(tmp_path: Path):
     from pbrsr_bench.upscale import at_gt_size
     from pbrsr_core.maps import kind_of
@@ -318,6 +342,13 @@ def test_methods_take_preset_changes():
         "base_color",
     ]
     assert preset_changes("balanced+maps=normal") == {}
+    # a preset's tuple takes its items the same way
+    assert preset_changes("fast+prior_maps=base_color|normal") == {
+        "prior_maps": ("base_color", "normal")
+    }
+    assert preset_changes("fast+prior_maps=normal") == {"prior_maps": ("normal",)}
+    with pytest.raises(ValueError, match="prior_maps must be among"):
+        check_methods(("fast+prior_maps=albedo",), "bicubic")
     with pytest.raises(ValueError, match="maps: Value error, unknown map role 'albedo'"):
         check_methods(("direct+maps=albedo|normal",), "bicubic")
     with pytest.raises(ValueError, match="no_such_field"):
@@ -367,6 +398,20 @@ def test_publish_writes_the_summary_between_the_markers_only(tmp_path):
     # a second run replaces the section again, nothing else
     again = CliRunner().invoke(_bench_cli(), ["bench", "publish", str(out), "--docs", str(doc)])
     assert again.exit_code == 0 and doc.read_text() == text
+
+
+def test_a_list_change_stays_one_cell_and_its_command_is_quoted(tmp_path):
+    from pbrsr_bench.upscale import published_summary
+    from pbrsr_core.options import DEFAULT_PRIOR
+
+    method = "fast+maps=base_color|normal"
+    rows = [_row("a", "bicubic", 28.0, 27.0, 1.0), _row("a", method, 28.4, 27.5, 10.0)]
+    meta = {"scale": 4, "prior": DEFAULT_PRIOR, "eval_res": 256, "eval_views": 40}
+    meta.update(lights=["a.hdr", "b.hdr"], machine="a test CPU, 2 cores")
+    (tmp_path / "results.json").write_text(json.dumps({**meta, "rows": rows}))
+    text = published_summary(tmp_path)
+    assert "| fast+maps=base_color\\|normal | 1 | +0.40 dB |" in text
+    assert '`pbrsr bench upscale --methods "bicubic,fast+maps=base_color|normal" --eval' in text
 
 
 def test_docs_without_markers_are_refused_before_the_bench_runs(tmp_path):

@@ -504,6 +504,11 @@ def test_maps_refuses_roles_it_does_not_know_or_the_asset_lacks(tmp_path):
         missing = UpscaleOptions(method="bicubic", maps=["emissive", "occlusion"])
         upscale_asset(src, tmp_path / "a", missing)
     assert not (tmp_path / "a").exists()
+    # the listed maps all over max_size: refused for max_size, though the others would fit
+    capped = UpscaleOptions(method="bicubic", maps=["base_color"], max_size=63)
+    with pytest.raises(UnprocessableAsset, match=r"over max_size \(63 px\) at x2"):
+        upscale_asset(src, tmp_path / "b", capped)
+    assert not (tmp_path / "b").exists()
 
 
 def test_optimiser_steps_take_every_map_at_its_own_factor(tmp_path):

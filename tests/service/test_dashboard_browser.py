@@ -119,6 +119,15 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
             page.select_option("#opt-scale", "2")
             page.fill("#opt-max-size", "64")  # the 32² maps at x2 all the same
             page.select_option("#opt-lr-kernel", "auto")
+            boxes = page.locator("#opt-maps input[type=checkbox]")
+            for i in range(boxes.count()):  # nothing checked: nothing sent
+                boxes.nth(i).uncheck()
+            page.click("#submit")
+            assert page.inner_text("#upload-status") == "Check at least one map to upscale."
+            page.wait_for_timeout(300)
+            assert page.locator(".job-row").count() == 0 and page.is_hidden("#upload-bar")
+            for i in range(boxes.count()):
+                boxes.nth(i).check()
             page.uncheck("#opt-maps input[value=emissive]")  # its file kept
             page.click("#submit")
             page.wait_for_selector("#job-view:not([hidden])")
