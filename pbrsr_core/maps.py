@@ -90,6 +90,12 @@ def upscalable_images(asset: Asset) -> list[ImageData]:
     return [img for img in asset.images if img.roles]
 
 
+def listed(image: ImageData, roles: Collection[str] | None) -> bool:
+    """Whether ``maps`` (``roles``; None: every map) has ``image`` upscaled: any of its roles
+    is listed."""
+    return roles is None or bool(image.roles & set(roles))
+
+
 def map_scales(
     images: list[ImageData],
     scale: int,
@@ -100,7 +106,7 @@ def map_scales(
     largest of ``scale``, ``scale / 2``, ... whose output is at most ``max_size`` px on a side;
     1 (the map kept as it is) where even x2 would be larger, or, with ``roles``, where none of
     the image's roles is listed. Refused (UnprocessableAsset) when that keeps every map."""
-    chosen = [img for img in images if roles is None or img.roles & set(roles)]
+    chosen = [img for img in images if listed(img, roles)]
     if images and not chosen:
         asked = ", ".join(roles or ())
         present = ", ".join(sorted({role for img in images for role in img.roles}))

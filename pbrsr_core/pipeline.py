@@ -52,6 +52,7 @@ from .maps import (
     image_cutout,
     image_wrap,
     kind_of,
+    listed,
     map_file_stem,
     map_scales,
     param_to_encoded,
@@ -586,9 +587,7 @@ def _write_bundle(
                     "name": img.name,
                     "label": role_label(img.roles),
                     "size": [img.width, img.height],
-                    "reason": "max_size"
-                    if options.maps is None or img.roles & set(options.maps)
-                    else "maps",
+                    "reason": "max_size" if listed(img, options.maps) else "maps",
                 }
                 for img in upscalable_images(asset)
                 if img.index not in hr
