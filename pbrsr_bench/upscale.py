@@ -115,10 +115,11 @@ def eval_lights(shared: Path) -> tuple[list[EnvLight], list[str]]:
     ]
 
 
-OPTION_CHANGES = ("max_size", "lr_kernel", "maps")
+OPTION_CHANGES = ("max_size", "lr_kernel", "maps", "other_maps")
 """``+key=value`` changes that are upscale options, which every method takes, not a preset's
 numbers: ``direct+max_size=512``, ``direct+lr_kernel=area``, ``balanced+maps=base_color|normal``
-(list items joined by ``|``, since a comma separates methods)."""
+(list items joined by ``|``, since a comma separates methods),
+``balanced+maps=base_color|normal+other_maps=bicubic``."""
 
 
 def parse_method(method: str) -> tuple[str, str | None, dict]:

@@ -101,11 +101,14 @@ def map_scales(
     scale: int,
     max_size: int | None,
     roles: Collection[str] | None = None,
+    others: str = "keep",
 ) -> dict[int, int]:
     """Per image index, the factor its map is upscaled by: ``scale``, or with ``max_size`` the
     largest of ``scale``, ``scale / 2``, ... whose output is at most ``max_size`` px on a side;
     1 (the map kept as it is) where even x2 would be larger, or, with ``roles``, where none of
-    the image's roles is listed. Refused (UnprocessableAsset) when that keeps every map."""
+    the image's roles is listed and ``others`` is ``keep`` (``bicubic``: such a map has the
+    factor a listed one would). Refused (UnprocessableAsset) when no image has a listed role,
+    or when every map would be kept."""
     chosen = [img for img in images if listed(img, roles)]
     if images and not chosen:
         asked = ", ".join(roles or ())
@@ -115,7 +118,7 @@ def map_scales(
             f"its maps' roles: {present}"
         )
     out = {img.index: 1 for img in images}
-    for img in chosen:
+    for img in images if others == "bicubic" else chosen:
         f = scale
         while max_size is not None and f > 1 and max(img.width, img.height) * f > max_size:
             f //= 2
@@ -125,6 +128,14 @@ def map_scales(
             f"nothing to upscale: every map would be over max_size ({max_size} px) at x2"
         )
     return out
+
+
+def bicubic_only(
+    images: list[ImageData], factors: dict[int, int], roles: Collection[str] | None
+) -> set[int]:
+    """The images :func:`map_scales` upscales although none of their roles is listed in
+    ``roles`` (``other_maps`` bicubic): bicubic's, never a prior's or the optimiser's."""
+    return {img.index for img in images if factors[img.index] > 1 and not listed(img, roles)}
 
 
 def to_param(image: ImageData) -> torch.Tensor:

@@ -13,6 +13,7 @@ whose kinds without trained weights use waifu2x-photo."""
 
 Method = Literal["pbrsr", "direct", "bicubic"]
 LrKernel = Literal["gaussian", "area", "bicubic", "lanczos", "auto"]
+OtherMaps = Literal["keep", "bicubic"]
 ImageFormat = Literal["same", "png", "png16", "exr", "jpeg", "ktx2", "webp", "avif"]
 
 
@@ -39,6 +40,12 @@ class UpscaleOptions(BaseModel):
         "normal, occlusion, emissive, or a KHR_materials_* role such as clearcoat): an image is "
         "upscaled when any of its roles is listed, and every other image keeps its file. None: "
         "every map.",
+    )
+    other_maps: OtherMaps = Field(
+        "keep",
+        description="With maps: what the images of the unlisted roles get. keep: their files "
+        "as they are; bicubic: a bicubic upscale at the factor a listed map would get (the "
+        "prior and the optimiser skip them; PBR-SR renders them as they come out).",
     )
     method: Method = Field(
         "pbrsr",

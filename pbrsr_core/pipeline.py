@@ -49,6 +49,8 @@ from .initial_maps import (
 from .kernel_estimate import estimate_kernel
 from .limits import Limits, check_output_size
 from .maps import (
+    bicubic_only,
+    encoded_to_param,
     image_cutout,
     image_wrap,
     kind_of,
@@ -102,7 +104,8 @@ def _check_footprint(images, options: UpscaleOptions, config, budget: int) -> No
 
     if options.method == "pbrsr" and config is None:
         config = run_config(options.preset, options.iterations)
-    factors = map_scales(images, options.scale, options.max_size, options.maps)
+    factors = map_scales(images, options.scale, options.max_size, options.maps, options.other_maps)
+    plain = bicubic_only(images, factors, options.maps)
     sizes = {img.index: (img.width, img.height, int(img.pixels.shape[2])) for img in images}
     upscaled = [sizes[i] for i, f in factors.items() if f > 1]
     largest = max(max(w, h) for w, h, _ in upscaled)
@@ -111,9 +114,11 @@ def _check_footprint(images, options: UpscaleOptions, config, budget: int) -> No
         what += f" at most {options.max_size} px"
     if options.method == "pbrsr":
         what += f" with the {options.preset} preset"
-    estimate, held = 0, 0
-    for f in sorted({f for f in factors.values() if f > 1}, reverse=True):
-        group = [sizes[i] for i, g in factors.items() if g == f]
+    # the maps bicubic alone upscales (other_maps) are held from the start
+    estimate = held = sum(4 * w * h * c * factors[i] ** 2 for i, (w, h, c) in sizes.items()
+                          if i in plain)  # fmt: skip
+    for f in sorted({f for i, f in factors.items() if f > 1 and i not in plain}, reverse=True):
+        group = [sizes[i] for i, g in factors.items() if g == f and i not in plain]
         estimate = max(estimate, held + estimate_peak_bytes(group, f, options.method, config))
         held += sum(4 * w * h * c * f * f for w, h, c in group)
     check_memory(estimate, budget, what)
@@ -135,45 +140,62 @@ def _upscale_maps(
 ) -> tuple[dict[int, np.ndarray], dict]:
     """HR maps (stored encoding) for every used image ``options.maps`` and ``max_size`` do not
     keep, each at its factor (:func:`~.maps.map_scales`), and method-specific report fields.
-    The prior's check, init and blends run on the maps of each factor together, the larger
-    factors first (a metallic-roughness map whose colour map has another factor, or is kept,
-    is blended without it as guide); PBR-SR's optimisation and export take every map at once,
-    a kept map rendered as it is."""
+    The images of unlisted roles that ``other_maps`` has upscaled are bicubic's. The prior's
+    check, init and blends run on the maps of each factor together, the larger factors first
+    (a metallic-roughness map whose colour map has another factor, or is kept, is blended
+    without it as guide); PBR-SR's optimisation and export take every map at once, a kept map
+    and a bicubic-only one rendered as they are."""
     images = upscalable_images(asset)
-    factors = map_scales(images, options.scale, options.max_size, options.maps)
-    groups = {
-        f: [img for img in images if factors[img.index] == f]
-        for f in sorted(set(factors.values()) - {1}, reverse=True)
-    }
-    kept = [img for img in images if factors[img.index] == 1]
+    factors = map_scales(images, options.scale, options.max_size, options.maps, options.other_maps)
     wraps = {img.index: image_wrap(asset, img.index) for img in images}  # tiling maps
     cutouts = {img.index: image_cutout(asset, img.index) for img in images}
     if options.method == "bicubic":
         with timer("upscale"):
-            return {
-                img.index: bicubic_map(
-                    img.pixels, kind_of(img.roles), f, wraps[img.index], cutouts[img.index]
-                )
-                for f, group in groups.items()
-                for img in group
-            }, {"made_by": {img.index: ["bicubic"] for group in groups.values() for img in group}}
-
+            hr = _bicubic_maps(images, factors, wraps, cutouts, set(factors))
+        return hr, {"made_by": {i: ["bicubic"] for i in hr}}
+    with timer("upscale"):
+        plain = _bicubic_maps(images, factors, wraps, cutouts,
+                              bicubic_only(images, factors, options.maps))  # fmt: skip
+    groups = {
+        f: [img for img in images if factors[img.index] == f and img.index not in plain]
+        for f in sorted({f for i, f in factors.items() if i not in plain} - {1}, reverse=True)
+    }
+    plain_report = {"made_by": {i: ["bicubic (maps)"] for i in plain}}
+    if not groups:  # every listed map is over max_size: bicubic's maps are the run's
+        return plain, plain_report
     with timer("load_prior"):
         emit(progress, Progress(stage="load_prior", message=options.prior))
         prior = load_prior(options.prior, device)
     if options.method == "direct":
-        out: dict[int, np.ndarray] = {}
+        out: dict[int, np.ndarray] = dict(plain)
         report: dict = {}
         for f, group in groups.items():
             hr, part = _direct_maps(asset, group, prior, f, wraps, cutouts, timer, progress)
             out.update(hr)
             _merge_report(report, part)
+        _merge_report(report, plain_report)
         return out, report
     from .optim.presets import run_config
 
     config = config or run_config(options.preset, options.iterations)
-    return _pbrsr_maps(asset, groups, kept, prior, options, config, device, timer, progress,
-                       work_dir, snapshots, wraps, cutouts)  # fmt: skip
+    # rendered as they are, never optimised: the kept maps and bicubic's
+    kinds = {img.index: kind_of(img.roles) for img in images}
+    static = {img.index: to_param(img) for img in images if factors[img.index] == 1}
+    static.update({i: encoded_to_param(torch.from_numpy(hr), kinds[i]) for i, hr in plain.items()})
+    out, report = _pbrsr_maps(asset, groups, static, prior, options, config, device, timer,
+                              progress, work_dir, snapshots, wraps, cutouts)  # fmt: skip
+    _merge_report(report, plain_report)
+    return {**plain, **out}, report
+
+
+def _bicubic_maps(images, factors, wraps, cutouts, which) -> dict[int, np.ndarray]:
+    """Bicubic's HR map of each image in ``which`` that its factor upscales."""
+    out = {}
+    for img in images:
+        i = img.index
+        if i in which and factors[i] > 1:
+            out[i] = bicubic_map(img.pixels, kind_of(img.roles), factors[i], wraps[i], cutouts[i])
+    return out
 
 
 def _merge_report(into: dict, part: dict) -> None:
@@ -257,10 +279,11 @@ def _made_by(images, sources, blends, checks) -> dict[int, list[str]]:
     return out
 
 
-def _pbrsr_maps(asset, groups, kept, prior, options, config, device, timer, progress, work_dir,
+def _pbrsr_maps(asset, groups, static, prior, options, config, device, timer, progress, work_dir,
                 snapshots, wraps, cutouts):  # fmt: skip
     """PBR-SR: each factor's maps checked, blended and initialised together, then every map
-    optimised and exported at once (``kept`` maps rendered from their LR pixels)."""
+    optimised and exported at once (``static``: {image: map in optimisation space} rendered as
+    it is, never optimised)."""
     from .prior.symmetry import averaged
 
     map_prior = averaged(prior, config.self_ensemble)  # the check, init and blends
@@ -290,8 +313,7 @@ def _pbrsr_maps(asset, groups, kept, prior, options, config, device, timer, prog
         deblocked += names
         if found is not None:
             checks = (checks or []) + found
-    for img in kept:  # rendered as they are, never optimised
-        lr[img.index] = to_param(img)
+    lr.update(static)  # an LR map without an init: rendered as it is
     if checks is not None and not any(any(c) for c in channels.values()):
         prior = load_prior("bicubic", device)  # for the pseudo-GT
     out, report = _optimise(
@@ -480,7 +502,11 @@ def upscale_asset(
                     "nothing to upscale: no material of this asset uses a texture"
                 )
             check_output_size(
-                images, map_scales(images, options.scale, options.max_size, options.maps), limits
+                images,
+                map_scales(
+                    images, options.scale, options.max_size, options.maps, options.other_maps
+                ),
+                limits,
             )
             if memory_budget is not None:
                 _check_footprint(images, options, config, memory_budget)
@@ -587,7 +613,9 @@ def _write_bundle(
                     "name": img.name,
                     "label": role_label(img.roles),
                     "size": [img.width, img.height],
-                    "reason": "max_size" if listed(img, options.maps) else "maps",
+                    "reason": "maps"
+                    if options.other_maps == "keep" and not listed(img, options.maps)
+                    else "max_size",
                 }
                 for img in upscalable_images(asset)
                 if img.index not in hr

@@ -85,7 +85,11 @@ def check_asset(path: Path, options: dict[str, Any], settings: Settings) -> floa
                     "nothing to upscale: no material of this asset uses a texture"
                 )
             factors = map_scales(
-                images, int(options["scale"]), options["max_size"], options["maps"]
+                images,
+                int(options["scale"]),
+                options["max_size"],
+                options["maps"],
+                options["other_maps"],
             )
             check_output_size(images, factors, limits)
             return sum(img.width * img.height * factors[img.index] ** 2 for img in images) / 1e6

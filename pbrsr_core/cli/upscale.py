@@ -69,9 +69,17 @@ def register(app: typer.Typer) -> None:
             typer.Option(
                 help="comma-separated material roles to upscale (base_color, "
                 "metallic_roughness, normal, occlusion, emissive, clearcoat, ...); the other "
-                "maps keep their files. Default: every map"
+                "maps keep their files (or, with --other-maps bicubic, get bicubic's). "
+                "Default: every map"
             ),
         ] = None,
+        other_maps: Annotated[
+            str,
+            typer.Option(
+                help="with --maps, what the other maps get: keep (their files) or bicubic "
+                "(a bicubic upscale, no prior or optimiser)"
+            ),
+        ] = "keep",
         method: Annotated[str, typer.Option(help="pbrsr, direct or bicubic")] = "pbrsr",
         preset: Annotated[str, typer.Option(help="fast, balanced, quality, paper")] = "balanced",
         iterations: Annotated[
@@ -130,6 +138,7 @@ def register(app: typer.Typer) -> None:
                 scale=scale,
                 max_size=max_size,
                 maps=None if maps is None else [m.strip() for m in maps.split(",") if m.strip()],
+                other_maps=other_maps,
                 method=method,
                 preset=preset,
                 iterations=iterations,

@@ -105,7 +105,7 @@ function options() {
   return {
     scale: Number($("opt-scale").value),
     ...(maxSize !== "" ? { max_size: Number(maxSize) } : {}),
-    ...(maps ? { maps } : {}),
+    ...(maps ? { maps, other_maps: $("opt-other-maps").value } : {}),
     method: $("opt-method").value,
     preset: $("opt-preset").value,
     ...(steps !== "" && $("opt-method").value === "pbrsr" ? { iterations: Number(steps) } : {}),
@@ -258,7 +258,7 @@ function renderJob(job) {
   const o = job.options || {};
   $("job-meta").textContent = [
     `x${o.scale}`, o.max_size ? `at most ${o.max_size} px` : "",
-    o.maps ? `maps: ${o.maps.join(", ")}` : "",
+    o.maps ? `maps: ${o.maps.join(", ")}${o.other_maps === "bicubic" ? " (the rest bicubic)" : ""}` : "",
     inputLine(o, job.summary && job.summary.lr_model), o.method, o.method === "pbrsr" ? o.preset : "",
     `created ${fmtTime(job.created_at)}`,
     job.attempt > 1 ? `attempt ${job.attempt}` : "",

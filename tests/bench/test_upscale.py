@@ -342,6 +342,12 @@ def test_methods_take_preset_changes():
         "base_color",
     ]
     assert preset_changes("balanced+maps=normal") == {}
+    # and other_maps, for the maps that maps leaves out
+    rest = method_options("balanced+maps=normal+other_maps=bicubic", 4, "bicubic")
+    assert (rest["maps"], rest["other_maps"]) == (["normal"], "bicubic")
+    assert preset_changes("balanced+maps=normal+other_maps=bicubic") == {}
+    with pytest.raises(ValueError, match="other_maps: Input should be 'keep' or 'bicubic'"):
+        check_methods(("direct+maps=normal+other_maps=smear",), "bicubic")
     # a preset's tuple takes its items the same way
     assert preset_changes("fast+prior_maps=base_color|normal") == {
         "prior_maps": ("base_color", "normal")

@@ -490,6 +490,47 @@ def test_maps_upscales_the_listed_roles_and_keeps_the_other_files(tmp_path, opti
     assert rows[2]["made_by"] == ["kept (maps)"] and rows[2]["scale"] == 1
 
 
+@each_method
+def test_other_maps_bicubic_upscales_the_unlisted_roles_by_bicubic(tmp_path, options):
+    """maps=[base_color, normal] with other_maps bicubic: those two maps as a run of every map
+    makes them, the metallic-roughness map as ``--method bicubic`` makes it, nothing kept."""
+    src = three_sizes(tmp_path)
+    upscale_asset(src, tmp_path / "all", options)
+    upscale_asset(src, tmp_path / "bic", UpscaleOptions(method="bicubic"))
+    rest_bicubic = UpscaleOptions.model_validate(
+        {**options.model_dump(), "maps": ["base_color", "normal"], "other_maps": "bicubic"}
+    )
+    report = upscale_asset(src, tmp_path / "some", rest_bicubic)
+    assert [(i["label"], i["scale"]) for i in report["images"]] == [
+        ("base_color", 4),
+        ("normal", 4),
+        ("metallic_roughness", 4),
+    ]
+    assert report["kept"] == []
+    full, some = load_asset(tmp_path / "all" / "q.gltf"), load_asset(tmp_path / "some" / "q.gltf")
+    bicubic = load_asset(tmp_path / "bic" / "q.gltf")
+    for i in (0, 1):
+        assert np.array_equal(some.images[i].pixels, full.images[i].pixels), i
+    assert np.array_equal(some.images[2].pixels, bicubic.images[2].pixels)
+    if options.method != "bicubic":
+        assert map_rows(report)[2]["made_from"] == "bicubic (maps)"
+        assert not np.array_equal(some.images[0].pixels, bicubic.images[0].pixels)
+
+
+def test_other_maps_bicubic_keeps_a_listed_map_over_max_size(tmp_path):
+    """The listed albedo over max_size keeps its file (reason max_size); the unlisted maps
+    get bicubic's upscale at the factor max_size leaves them (16² x2, 8² x4)."""
+    src = three_sizes(tmp_path)
+    capped = UpscaleOptions(method="direct", prior="pbr-srmd", maps=["base_color"],
+                            max_size=63, other_maps="bicubic")  # fmt: skip
+    report = upscale_asset(src, tmp_path / "a", capped)
+    assert [(i["lr_size"][0], i["scale"]) for i in report["images"]] == [(16, 2), (8, 4)]
+    assert [(k["label"], k["reason"]) for k in report["kept"]] == [("base_color", "max_size")]
+    assert [r["made_from"] for r in map_rows(report)] == ["kept (max_size)", "bicubic (maps)",
+                                                          "bicubic (maps)"]  # fmt: skip
+    assert "load_prior" not in report["timings"]  # no listed map to run the prior on
+
+
 def test_maps_refuses_roles_it_does_not_know_or_the_asset_lacks(tmp_path):
     from pydantic import ValidationError
 
@@ -536,3 +577,19 @@ def test_optimiser_steps_take_every_map_at_its_own_factor(tmp_path):
     assert [k["size"] for k in kept["kept"]] == [[32, 32]]
     uri = json.loads(src.read_text())["images"][0]["uri"]
     assert (tmp_path / "k" / uri).read_bytes() == (src.parent / uri).read_bytes()
+
+
+def test_optimiser_steps_render_a_bicubic_only_map_and_leave_it_bicubics(tmp_path):
+    """other_maps bicubic with steps: the albedo, unlisted, is rendered at its bicubic x4
+    and comes out as ``--method bicubic`` makes it; the listed maps are optimised."""
+    src = three_sizes(tmp_path)
+    options = UpscaleOptions(prior="bicubic", iterations=3, maps=["normal", "metallic_roughness"],
+                             other_maps="bicubic")  # fmt: skip
+    report = upscale_asset(src, tmp_path / "a", options)
+    assert report["history"] and [i["scale"] for i in report["images"]] == [4, 4, 4]
+    assert sorted(report["consistency_psnr_db"]) == ["1:normal", "2:metallic", "2:roughness"]
+    upscale_asset(src, tmp_path / "b", UpscaleOptions(method="bicubic"))
+    out, bicubic = load_asset(tmp_path / "a" / "q.gltf"), load_asset(tmp_path / "b" / "q.gltf")
+    assert np.array_equal(out.images[0].pixels, bicubic.images[0].pixels)
+    assert not np.array_equal(out.images[1].pixels, bicubic.images[1].pixels)
+    assert all(np.isfinite(img.pixels).all() for img in out.images)

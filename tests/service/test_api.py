@@ -154,6 +154,13 @@ def _bad_cases(tmp_path: Path) -> list[tuple[str, bytes, str | dict | None, int,
         ("max_size under every x2", glb, {"max_size": 3}, 422, "unprocessable-asset"),
         ("unknown map role", glb, {"maps": ["albedo"]}, 422, "invalid-options"),
         ("maps the asset lacks", glb, {"maps": ["clearcoat"]}, 422, "unprocessable-asset"),
+        (
+            "unknown other_maps",
+            glb,
+            {"maps": ["normal"], "other_maps": "smear"},
+            422,
+            "invalid-options",
+        ),
     ]
 
 
@@ -419,11 +426,17 @@ def test_maps_is_stored_and_sizes_the_job_by_the_maps_it_upscales(tmp_path):
             some = post_asset(
                 c, data, options={"method": "bicubic", "maps": ["base_color"]}
             ).json()["id"]
+            rest = {"method": "bicubic", "maps": ["base_color"], "other_maps": "bicubic"}
+            rest_bicubic = post_asset(c, data, options=rest).json()["id"]
         redis = redis_client()
         assert Job.fetch(full, connection=redis).origin == settings.large_queue
         assert Job.fetch(some, connection=redis).origin == settings.queue
-        manifest = JobFiles(FilesystemStore(settings.storage_dir)).read_manifest(some)
-        assert manifest.options["maps"] == ["base_color"]
+        # the maps bicubic upscales count at their output size
+        assert Job.fetch(rest_bicubic, connection=redis).origin == settings.large_queue
+        files = JobFiles(FilesystemStore(settings.storage_dir))
+        assert files.read_manifest(some).options["maps"] == ["base_color"]
+        assert files.read_manifest(some).options["other_maps"] == "keep"
+        assert files.read_manifest(rest_bicubic).options["other_maps"] == "bicubic"
     finally:
         next(gen, None)
 

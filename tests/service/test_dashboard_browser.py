@@ -206,6 +206,25 @@ def test_dashboard_upload_progress_finish_download(tmp_path):
             ]  # fmt: skip
             assert {i["scale"] for i in report["images"]} == {2}
             assert [(k["label"], k["reason"]) for k in report["kept"]] == [("emissive", "maps")]
+
+            # the same maps with the rest bicubic: the emissive map upscaled by bicubic
+            page.select_option("#opt-method", "direct")
+            page.select_option("#opt-other-maps", "bicubic")
+            page.click("#submit")
+            page.wait_for_function(
+                "document.getElementById('job-meta').textContent.includes('(the rest bicubic)')"
+            )
+            page.wait_for_selector("#job-view[data-status=finished]", timeout=120_000)
+            page.wait_for_function(  # the table of this job, not of the one before
+                "document.getElementById('map-table').textContent.includes('bicubic (maps)')"
+            )
+            cells = page.eval_on_selector_all(
+                "#map-table tbody tr", "trs => trs.map(tr => [...tr.cells].map(c => c.textContent))"
+            )
+            assert [c[1:4] for c in cells if c[1] == "emissive"] == [
+                ["emissive", "16² x2 = 32²", "bicubic (maps)"]
+            ], cells
+            assert not any(c[2].endswith("kept") for c in cells), cells
             assert errors == []
     finally:
         cleanup_redis(settings)

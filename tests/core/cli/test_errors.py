@@ -110,6 +110,7 @@ def test_missing_input_file(tmp_path, capfd):
         (["--maps", "base_color,albedo"], "maps: Value error, unknown map role 'albedo'"),
         (["--maps", ","], "maps: List should have at least 1 item"),
         (["--method", "bicubic", "--maps", "clearcoat"], "nothing to upscale"),
+        (["--maps", "normal", "--other-maps", "smear"], "other_maps: Input should be 'keep' or"),
     ],
 )
 def test_bad_options(quad, tmp_path, capfd, extra, says):
