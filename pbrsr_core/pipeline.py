@@ -153,9 +153,10 @@ def _upscale_maps(
         with timer("upscale"):
             hr = _bicubic_maps(images, factors, wraps, cutouts, set(factors))
         return hr, {"made_by": {i: ["bicubic"] for i in hr}}
-    with timer("upscale"):
-        plain = _bicubic_maps(images, factors, wraps, cutouts,
-                              bicubic_only(images, factors, options.maps))  # fmt: skip
+    plain: dict[int, np.ndarray] = {}
+    if only := bicubic_only(images, factors, options.maps):
+        with timer("upscale"):
+            plain = _bicubic_maps(images, factors, wraps, cutouts, only)
     groups = {
         f: [img for img in images if factors[img.index] == f and img.index not in plain]
         for f in sorted({f for i, f in factors.items() if i not in plain} - {1}, reverse=True)
@@ -313,7 +314,7 @@ def _pbrsr_maps(asset, groups, static, prior, options, config, device, timer, pr
         deblocked += names
         if found is not None:
             checks = (checks or []) + found
-    lr.update(static)  # an LR map without an init: rendered as it is
+    lr.update(static)  # a map without an init: rendered as it is
     if checks is not None and not any(any(c) for c in channels.values()):
         prior = load_prior("bicubic", device)  # for the pseudo-GT
     out, report = _optimise(
