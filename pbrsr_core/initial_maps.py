@@ -79,14 +79,18 @@ def self_checks(asset, images, prior, lr_pixels, s, kinds, max_prior_scale, time
 
 
 def prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, progress,
-                            kept=None):  # fmt: skip
+                            kept=None, unseen=None):  # fmt: skip
     """Which channels of each image the prior initialises (paper 3.1: the maps the preset
-    names in ``prior_maps``; an ORM image's channels one by one; bicubic the rest), and with
-    ``check_prior`` only those where the prior beats bicubic one scale down (``kept``: as
+    names in ``prior_maps``; an ORM image's channels one by one; bicubic the rest; not the
+    entries ``unseen`` names, {image: entries}, render_reach.py), and with ``check_prior``
+    only those where the prior beats bicubic one scale down (``kept``: as
     :func:`self_checks` fills it). Returns
     ({image: [bool per channel]}, the self-check reports or None when nothing was checked,
     {image: per channel, the prior's candidate the check chose, or None for bicubic})."""
     channels = {img.index: prior_channels(img, config) for img in images}
+    for i, entries in (unseen or {}).items():
+        if i in channels:
+            channels[i] = [u and c not in entries for c, u in enumerate(channels[i])]
     if not (config.check_prior and prior.name != "bicubic" and any(map(any, channels.values()))):
         return channels, None, {i: [prior if c else None for c in ch] for i, ch in channels.items()}
     used = [img for img in images if any(channels[img.index])]
@@ -121,16 +125,17 @@ def prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, pr
 
 
 def blended_channels(asset, images, prior, channels, checks, sources, kept, lr_pixels, config,
-                      timer):  # fmt: skip
+                      timer, unseen=None):  # fmt: skip
     """With ``blend_data``: each checked data map's channels (those the preset lets a prior
-    initialise) as a blend of the prior's candidates, bicubic and, for the roughness and
-    metallic of a metallic-roughness map, the upscale guided by its colour map
-    (prior/blend.py, prior/guided.py), weighted one scale down from the upscales its check
-    compared (``kept``); a channel whose blend beats bicubic by less than ``blend_margin`` stays
-    bicubic's, and one whose check's pick beats bicubic keeps the pick unless its blend beats
-    the pick by ``blend_pick_db``. Updates ``channels``, ``sources`` (None: blended or
-    bicubic) and the ``checks`` entries (``blend``); returns {image: (the blend's sources, a
-    candidate or "guided"; per channel their weights; the guide image or None)}."""
+    initialise, but the entries ``unseen`` names) as a blend of the prior's candidates,
+    bicubic and, for the roughness and metallic of a metallic-roughness map, the upscale
+    guided by its colour map (prior/blend.py, prior/guided.py), weighted one scale down from
+    the upscales its check compared (``kept``); a channel whose blend beats bicubic by less
+    than ``blend_margin`` stays bicubic's, and one whose check's pick beats bicubic keeps the
+    pick unless its blend beats the pick by ``blend_pick_db``. Updates ``channels``,
+    ``sources`` (None: blended or bicubic) and the ``checks`` entries (``blend``); returns
+    {image: (the blend's sources, a candidate or "guided"; per channel their weights; the
+    guide image or None)}."""
     if not config.blend_data or checks is None or not kept:
         return {}
     by_index = {img.index: img for img in images}
@@ -143,8 +148,11 @@ def blended_channels(asset, images, prior, channels, checks, sources, kept, lr_p
                 continue
             n = len(channels[i])
             flat = entries[i]["flat"]  # nothing for a network to sharpen: bicubic's
+            hidden = (unseen or {}).get(i, ())
             todo = [
-                c for c, ok in enumerate(prior_channels(by_index[i], config)) if ok and not flat[c]
+                c
+                for c, ok in enumerate(prior_channels(by_index[i], config))
+                if ok and not flat[c] and c not in hidden
             ]
             guided, g = {}, pairs.get(i)
             gc = [c for c in GUIDED_CHANNELS if c in todo]

@@ -81,6 +81,7 @@ from .prior.selfcheck import (
 )
 from .progress import MapProgress, Progress, ProgressFn, StageTimer, emit
 from .render.light import EnvLight
+from .render_reach import render_reach, unseen_entries
 from .scene import make_scene, procedural_light
 from .uvmask import coverage_masks
 
@@ -167,26 +168,43 @@ def _upscale_maps(
     with timer("load_prior"):
         emit(progress, Progress(stage="load_prior", message=options.prior))
         prior = load_prior(options.prior, device)
+    from .optim.presets import BALANCED, run_config
+
     if options.method == "direct":
+        unseen, reach = _render_reach(asset, groups, prior, BALANCED, device, timer, progress)
         out: dict[int, np.ndarray] = dict(plain)
-        report: dict = {}
+        report: dict = reach
         for f, group in groups.items():
-            hr, part = _direct_maps(asset, group, prior, f, wraps, cutouts, timer, progress)
+            hr, part = _direct_maps(asset, group, prior, f, wraps, cutouts, unseen, timer,
+                                    progress)  # fmt: skip
             out.update(hr)
             _merge_report(report, part)
         _merge_report(report, plain_report)
         return out, report
-    from .optim.presets import run_config
-
     config = config or run_config(options.preset, options.iterations)
+    unseen, reach = _render_reach(asset, groups, prior, config, device, timer, progress)
     # rendered as they are, never optimised: the kept maps and bicubic's
     kinds = {img.index: kind_of(img.roles) for img in images}
     static = {img.index: to_param(img) for img in images if factors[img.index] == 1}
     static.update({i: encoded_to_param(torch.from_numpy(hr), kinds[i]) for i, hr in plain.items()})
     out, report = _pbrsr_maps(asset, groups, static, prior, options, config, device, timer,
-                              progress, work_dir, snapshots, wraps, cutouts)  # fmt: skip
-    _merge_report(report, plain_report)
+                              progress, work_dir, snapshots, wraps, cutouts, unseen)  # fmt: skip
+    _merge_report(report, {**plain_report, **reach})
     return {**plain, **out}, report
+
+
+def _render_reach(asset, groups, prior, config, device, timer, progress):
+    """The maps of ``groups`` whose errors the renders do not show (render_reach.py), as
+    {image: its unseen entries}, and the report field (``render_reach``; none when not
+    measured: ``config.reach_db`` None, or the prior is bicubic)."""
+    if config.reach_db is None or prior.name == "bicubic":
+        return {}, {}
+    images = [img for group in groups.values() for img in group]
+    channels = {img.index: prior_channels(img, config) for img in images}
+    with timer("render_reach"):
+        emit(progress, Progress(stage="render_reach"))
+        reach = render_reach(asset, channels, config, device)
+    return unseen_entries(reach, channels), ({"render_reach": reach} if reach else {})
 
 
 def _bicubic_maps(images, factors, wraps, cutouts, which) -> dict[int, np.ndarray]:
@@ -211,14 +229,21 @@ def _merge_report(into: dict, part: dict) -> None:
             into.setdefault(k, v)
 
 
-def _direct_maps(asset, images, prior, s, wraps, cutouts, timer, progress):
+def _direct_maps(asset, images, prior, s, wraps, cutouts, unseen, timer, progress):
     """The direct method on ``images`` at ``s``: JPEG maps deblocked with their own tables,
     as every preset does; where the prior offers candidates, the self-check picks one per
-    colour and data map. Returns (HR maps, report fields)."""
+    colour and data map; the entries ``unseen`` names ({image: entries}) keep bicubic.
+    Returns (HR maps, report fields)."""
     from .optim.presets import BALANCED, CHECK_PRIOR_CPU
 
     lr_pixels, deblocked = deblocked_lr(images, BALANCED, timer)
-    offered = [img for img in images if len(prior.candidates(kind_of(img.roles))) > 1]
+    n = {img.index: len(prior_channels(img, BALANCED)) for img in images}  # channel entries
+    offered = [
+        img
+        for img in images
+        if len(prior.candidates(kind_of(img.roles))) > 1
+        and len(unseen.get(img.index, ())) < n[img.index]
+    ]
     found = self_checks(asset, offered, prior, lr_pixels, s, CHECK_PRIOR_CPU, None, timer,
                         progress)  # fmt: skip
     picks = {img.index: _direct_picks(prior, img, found.get(img.index)) for img in offered}
@@ -227,7 +252,7 @@ def _direct_maps(asset, images, prior, s, wraps, cutouts, timer, progress):
         tiles = MapProgress(progress, "prior", images)
         for img in images:
             kind = kind_of(img.roles)
-            sources = picks.get(img.index, [prior])
+            sources = _without(picks.get(img.index, [prior]), unseen.get(img.index), n[img.index])
             px, wrap, cutout = lr_pixels[img.index], wraps[img.index], cutouts[img.index]
             base = None if any(sources) else bicubic_map(px, kind, s, wrap, cutout)
             out[img.index] = upscale_channels(
@@ -235,8 +260,14 @@ def _direct_maps(asset, images, prior, s, wraps, cutouts, timer, progress):
             )
     names = {img.index: img.name for img in images}
     checked = [{"image": names[i], "index": i, **c} for i, c in found.items() if c]
-    made_by = _made_by(images, {img.index: picks.get(img.index, [prior]) for img in images}, {},
-                       checked)  # fmt: skip
+    made_by = _made_by(
+        images,
+        {img.index: _without(picks.get(img.index, [prior]), unseen.get(img.index), n[img.index])
+         for img in images},
+        {},
+        checked,
+        unseen,
+    )  # fmt: skip
     return out, {
         "prior_precision": _precisions(prior, images),
         "jpeg_deblocked": deblocked,
@@ -245,15 +276,28 @@ def _direct_maps(asset, images, prior, s, wraps, cutouts, timer, progress):
     }
 
 
-def _bicubic_why(check: dict | None, c: int) -> str:
+def _without(sources: list, entries: set[int] | None, n: int) -> list:
+    """``sources`` (per channel entry, a prior or None) with ``entries`` set to None; a data
+    map's single source is first spread over its ``n`` entries."""
+    if not entries:
+        return sources
+    if len(sources) == 1:
+        sources = sources * n
+    return [None if c in entries else p for c, p in enumerate(sources)]
+
+
+def _bicubic_why(check: dict | None, c: int, unseen: bool = False) -> str:
     """How a map's channel entry ``c`` that no prior upscales is named in ``made_by``."""
+    if unseen:
+        return "bicubic (unseen)"
     return "bicubic (flat)" if check and check.get("flat", [])[c : c + 1] == [True] else "bicubic"
 
 
-def _made_by(images, sources, blends, checks) -> dict[int, list[str]]:
+def _made_by(images, sources, blends, checks, unseen=None) -> dict[int, list[str]]:
     """Per image, per channel entry of ``sources`` (the prior or None for bicubic): what it
     was made from (a prior's network, a blend of upscales with their weights, as ``blends``
-    gives them, or bicubic; for PBR-SR before the projection and the steps)."""
+    gives them, or bicubic; for PBR-SR before the projection and the steps; ``unseen``:
+    {image: entries the renders do not show})."""
     found = {c["index"]: c for c in checks or [] if "index" in c}
     out = {}
     for img in images:
@@ -275,16 +319,17 @@ def _made_by(images, sources, blends, checks) -> dict[int, list[str]]:
             else:
                 p = srcs[c]
                 kind = kind_of(img.roles)
-                row.append(p.for_kind(kind).name if p else _bicubic_why(found.get(i), c))
+                hidden = c in (unseen or {}).get(i, ())
+                row.append(p.for_kind(kind).name if p else _bicubic_why(found.get(i), c, hidden))
         out[i] = row
     return out
 
 
 def _pbrsr_maps(asset, groups, static, prior, options, config, device, timer, progress, work_dir,
-                snapshots, wraps, cutouts):  # fmt: skip
+                snapshots, wraps, cutouts, unseen):  # fmt: skip
     """PBR-SR: each factor's maps checked, blended and initialised together, then every map
     optimised and exported at once (``static``: {image: map in optimisation space} rendered as
-    it is, never optimised)."""
+    it is, never optimised; ``unseen``: {image: entries} the prior leaves to bicubic)."""
     from .prior.symmetry import averaged
 
     map_prior = averaged(prior, config.self_ensemble)  # the check, init and blends
@@ -297,13 +342,14 @@ def _pbrsr_maps(asset, groups, static, prior, options, config, device, timer, pr
             if (seen_from := cutouts[img.index]) is not None:
                 px[img.index] = filled_cutout(px[img.index], seen_from)
         blend_kept = {} if config.blend_data else None
-        ch, found, sources = prior_channels_checked(asset, group, map_prior, px, s, config,
-                                                    timer, progress, blend_kept)  # fmt: skip
+        ch, found, sources = prior_channels_checked(
+            asset, group, map_prior, px, s, config, timer, progress, blend_kept, unseen
+        )
         blends = blended_channels(asset, group, map_prior, ch, found, sources, blend_kept, px,
-                                  config, timer)  # fmt: skip
+                                  config, timer, unseen)  # fmt: skip
         del blend_kept
         every = {i: sources.get(i) or [None] * len(c) for i, c in ch.items()}
-        made_by.update(_made_by(group, every, blends, found))
+        made_by.update(_made_by(group, every, blends, found, unseen))
         enc, par, low = initial_maps(group, sources, blends, px, s, wraps, config, timer,
                                      progress)  # fmt: skip
         init_encoded.update(enc)

@@ -97,6 +97,11 @@ class PbrsrConfig:
     """With ``blend_data``: a candidate network stays in a data map's blends wherever leaving
     it out would put a channel's blend below the self-check's pick one scale down, whatever
     ``blend_network_db`` says (prior/blend.py)."""
+    reach_db: float | None = None
+    """A map of ``prior_maps`` whose render error, measured one scale down on the LR asset,
+    lies this many dB or more below that of all the asset's maps together keeps bicubic's
+    upscale: the renders do not show it (render_reach.py; direct follows balanced's). None:
+    not measured, the prior runs on every map of ``prior_maps``."""
     deblock_jpeg: bool = False
     """LR maps stored as JPEG have their block artefacts reduced with the file's own
     quantisation tables (every component of 4:4:4 files, the luma of chroma-subsampled ones)
@@ -187,6 +192,7 @@ class PbrsrConfig:
                 "blend_pick_db must be None or >= 0",
             ),
             (self.self_ensemble in (1, 2, 4, 8), "self_ensemble must be 1, 2, 4 or 8"),
+            (self.reach_db is None or self.reach_db > 0, "reach_db must be None or > 0"),
             (
                 self.pseudo_gt_self_ensemble in (1, 2, 4, 8),
                 "pseudo_gt_self_ensemble must be 1, 2, 4 or 8",
@@ -288,6 +294,13 @@ PROJECT_LR_CPU = ("colour", "data")
 #   prior would cost the Avocado's roughness 0.67 dB (-0.04 one scale down) and the BoomBox's
 #   constant occlusion channel 72 dB (-47 one scale down).
 CHECK_PRIOR_CPU = ("colour", "data")
+# * reach_db: None in every preset. At 25 dB (`+reach_db=25` in `pbrsr bench upscale`, x4, the
+#   seven shared assets, 40 evaluation views) the renders move by -0.01..0.00 dB per asset and
+#   balanced runs 5 % faster on average (ToyCar 23.8 -> 19.2 s, cabinet 10.4 -> 8.6, the rest
+#   within noise; the measurement itself 0.6-1.4 s), and no map scores below bicubic; but the
+#   ToyCar's roughness goes to bicubic's (46.33 -> 37.12 dB): the renders of this renderer,
+#   under these lights, do not show it, and a scene that lights it otherwise, or shades a
+#   clearcoat over it, would (docs/METHOD.md, "Maps the renders do not show").
 # * blend_data: each data channel a least-squares blend, fitted one scale down, of the prior's
 #   candidates, bicubic and (roughness, metallic) the colour-guided upscale (prior/blend.py).
 #   x4, 40 evaluation views, mean render gain over bicubic without / with: balanced +1.96 /

@@ -240,7 +240,14 @@ def shade_terms(
     ``ao`` (P, 1), ``emissive`` (P, 3), ``rgb`` = ao (diffuse + specular) + emissive,
     ``alpha`` (P, 1), and the shading ``normal`` (P, 3)."""
     dtype = next(iter(textures.values())).dtype if textures else torch.float32
-    m = material_inputs(gb, materials, textures, dtype)
+    return terms_of(gb, material_inputs(gb, materials, textures, dtype), light, lut)
+
+
+def terms_of(
+    gb: GBuffer, m: dict[str, torch.Tensor], light: EnvLight, lut: torch.Tensor | None = None
+) -> dict[str, torch.Tensor]:
+    """:func:`shade_terms` from the material inputs ``m`` (:func:`material_inputs`)."""
+    dtype = m["base"].dtype
     base = m["base"].clamp(0.0, 1.0)
     kd = base[:, :3]
     rough = m["rough"].clamp(0.0, 1.0)
@@ -299,11 +306,25 @@ def shade(
     dtype = next(iter(textures.values())).dtype if textures else torch.float32
     if gb.num_pixels == 0:
         return torch.zeros(0, 4, dtype=dtype, device=gb.device)
-    if not reference and use_fused(gb, textures, light):
-        m = material_inputs(gb, materials, textures, dtype, fused_decode=True)
-        table = brdf_lut() if lut is None else lut
-        return shade_fused(m, gb.nrm, gb.tng, gb.view, light, table)
-    t = shade_terms(gb, materials, textures, light, lut)
+    fused = not reference and use_fused(gb, textures, light)
+    m = material_inputs(gb, materials, textures, dtype, fused_decode=fused)
+    return shade_inputs(gb, m, light, lut, fused=fused)
+
+
+def shade_inputs(
+    gb: GBuffer,
+    m: dict[str, torch.Tensor],
+    light: EnvLight,
+    lut: torch.Tensor | None = None,
+    *,
+    fused: bool,
+) -> torch.Tensor:
+    """:func:`shade` from the material inputs ``m`` (:func:`material_inputs`, with
+    ``fused_decode=fused``): the textures sampled once serve several lights. ``fused``: the
+    fused CPU kernels (as :func:`use_fused` decides), else the torch path."""
+    if fused:
+        return shade_fused(m, gb.nrm, gb.tng, gb.view, light, brdf_lut() if lut is None else lut)
+    t = terms_of(gb, m, light, lut)
     return torch.cat([t["rgb"], t["alpha"]], 1)
 
 
