@@ -168,21 +168,20 @@ each reads."""
 
 def _swapped(asset: Asset, gb, swap: dict[int, list[int]]) -> list[tuple[str, torch.Tensor]]:
     """(material input, pixel rows of ``gb``) that the channels ``swap`` names ({image:
-    channels}) feed: the rows of each material reading one of them."""
+    channels}) feed: the rows of each material reading one of them (the per-view rows
+    ``material_inputs`` cached on ``gb``)."""
+    rows_of = dict(gb.derived()["material_rows"])
     out = []
-    mats = gb.mat
     for m in asset.materials:
+        if m.index not in rows_of:
+            continue
+        rows = rows_of[m.index]
+        if rows is None:  # the view shows this material only
+            rows = torch.arange(gb.num_pixels, device=gb.device)
         for role, fields in ROLE_FIELDS.items():
             ref = m.texture(role)  # type: ignore[arg-type]
-            if ref is None or ref.image not in swap:
-                continue
-            for field, used in fields:
-                if set(used) & set(swap[ref.image]):
-                    rows = torch.nonzero(mats == m.index).squeeze(1) if mats is not None else None
-                    if rows is None:
-                        rows = torch.arange(gb.num_pixels, device=gb.device)
-                    if rows.numel():
-                        out.append((field, rows))
+            if ref is not None and ref.image in swap:
+                out += [(f, rows) for f, used in fields if set(used) & set(swap[ref.image])]
     return out
 
 
