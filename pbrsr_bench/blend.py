@@ -15,10 +15,10 @@ map's self-check, the guided upscale, :func:`blend_check` and :func:`blend_plan`
 of rules asked for. Per channel the result holds the gain over bicubic against the HR crop of
 each rule's blend (and its gain one scale down), of direct's choice (the check's pick where it
 beats bicubic), of each upscale alone (and its gain one scale down, as the check saw it) and of
-the oracle; per rule, the networks it runs per map. The plot puts each rule's mean gain against
-its networks per map. With ``jpeg`` both LR crops are stored as JPEG files of that quality hold
-them (4:4:4, as ``pbrsr degrade`` writes JPEG maps) and checked and upscaled as the presets do
-(``check.presets_low_res``).
+the oracle; per rule, the networks it runs per map and their runs (a network's run on one
+channel). The plot puts each rule's mean gain against its network runs per map. With ``jpeg``
+both LR crops are stored as JPEG files of that quality hold them (4:4:4, as ``pbrsr degrade``
+writes JPEG maps) and checked and upscaled as the presets do (``check.presets_low_res``).
 """
 
 from __future__ import annotations
@@ -84,12 +84,13 @@ def score_crop(
     packed: np.ndarray,
     present: list[int],
     scale: int,
-    rules: list[tuple[float, float, float | None, bool]],
+    rules: list[tuple[float, float, float | None, bool, float | None]],
     max_prior_scale: int | None = None,
     jpeg: int | None = None,
 ) -> tuple[list[dict], dict[str, int]]:
     """One material crop: per channel of ``present`` that its check does not find flat, the
-    gains over bicubic at the real scale (rows); per rule the networks the blend runs."""
+    gains over bicubic at the real scale (rows); per rule the networks the blend runs, and
+    (key ``runs:RULE``) their runs, one per network and channel."""
     kw = {"max_prior_scale": max_prior_scale}
     (lr_c, stored_c), (lr_d, stored_d) = (
         presets_low_res(colour, scale, jpeg),
@@ -158,12 +159,15 @@ def score_crop(
     networks = {}
     names = list(kept["ups"]) + (["guided"] if gc else [])
     picks = check_picks(check, todo)
-    for margin, network_db, pick_db, floor in rules:
-        key = rule_name(margin, network_db, pick_db, floor)
+    for margin, network_db, pick_db, floor, channel_db in rules:
+        key = rule_name(margin, network_db, pick_db, floor, channel_db)
         fits = blend_check(kept, todo, guided_small, network_db=network_db, margin=margin,
-                           picks=picks if floor else None)  # fmt: skip
+                           picks=picks if floor else None, channel_db=channel_db)  # fmt: skip
         used, weights, use = blend_plan(fits, names, packed.shape[2], margin, picks, pick_db)
         networks[key] = sum(n != "guided" for n in used)
+        networks[f"runs:{key}"] = sum(
+            bool(w[m]) for w in weights for m, n in enumerate(used) if n != "guided"
+        )
         for r, c in zip(rows, todo, strict=True):
             r["fit_db"][key] = fits[c][2]
             if use[c]:
@@ -173,19 +177,29 @@ def score_crop(
                 r["rules"][key] = 0.0
     direct_nets = {check["priors"][c] for c in todo if check["channels"][c]}
     networks["direct"] = len(direct_nets)
+    networks["runs:direct"] = sum(bool(check["channels"][c]) for c in todo)
     return rows, networks
 
 
 def rule_name(
-    margin: float, network_db: float, pick_db: float | None = None, floor: bool = False
+    margin: float,
+    network_db: float,
+    pick_db: float | None = None,
+    floor: bool = False,
+    channel_db: float | None = None,
 ) -> str:
     pick = "" if pick_db is None else f", over the pick {pick_db:g}"
-    return f"margin {margin:g}, networks {network_db:g}{pick}" + (", pick floor" if floor else "")
+    per = "" if channel_db is None else f", per channel {channel_db:g}"
+    return (
+        f"margin {margin:g}, networks {network_db:g}{pick}"
+        + (", pick floor" if floor else "")
+        + per
+    )
 
 
 def summarise(result: dict) -> list[dict]:
     """Per rule (and direct's choice): mean and worst gain over the channels, mean networks
-    run per map, channels below bicubic."""
+    run per map and their runs (one per network and channel), channels below bicubic."""
     rows, crops = result["rows"], result["crops"]
     out = []
     for key in [*result["rules"], "direct"]:
@@ -198,6 +212,9 @@ def summarise(result: dict) -> list[dict]:
                 "worst": float(min(gains, default=0.0)),
                 "below": sum(g < 0 for g in gains),
                 "networks": float(np.mean([c["networks"][key] for c in crops])) if crops else 0.0,
+                "runs": float(np.mean([c["networks"][f"runs:{key}"] for c in crops]))
+                if crops
+                else 0.0,
             }
         )
     return out
@@ -216,28 +233,31 @@ def run(
     pick_floors: tuple[bool, ...] = (False,),
     max_prior_scale: int | None = None,
     jpeg: int | None = None,
+    channel_dbs: tuple[float | None, ...] = (None,),
 ) -> dict:
     """Score the blend of ``prior``'s data upscales at ``scale`` for every rule of
-    ``margins``, ``network_dbs``, ``pick_dbs`` (None: no pick rule) and ``pick_floors``
-    (``blend_pick_floor``: networks kept where a channel needs them to reach its pick) on
+    ``margins``, ``network_dbs``, ``pick_dbs`` (None: no pick rule), ``pick_floors``
+    (``blend_pick_floor``: networks kept where a channel needs them to reach its pick) and
+    ``channel_dbs`` (``blend_channel_db``; None: off) on
     packed crops of ``size`` HR pixels of the held-out materials, the LR crops stored as JPEG
     of quality ``jpeg`` when given."""
     if scale not in (2, 4, 8):
         raise ValueError(f"scale must be 2, 4 or 8, not {scale}")
     if size < 16 * scale:
         raise ValueError(f"the crop size must be at least {16 * scale} px at x{scale}")
-    picked = [v for v in pick_dbs if v is not None]
+    picked = [v for v in (*pick_dbs, *channel_dbs) if v is not None]
     if any(v < 0 for v in (*margins, *network_dbs, *picked)) or not (
-        margins and network_dbs and pick_dbs and pick_floors
+        margins and network_dbs and pick_dbs and pick_floors and channel_dbs
     ):
         raise ValueError(
-            "margins, network dBs, pick dBs and pick floors must be given, the dBs not negative"
+            "margins, network dBs, pick dBs, pick floors and channel dBs must be given, the dBs "
+            "not negative"
         )
     root = texture_folder(textures)
     manifest = read_manifest(root)
     held = split_materials(manifest)[1]
     p = load_prior(prior)
-    rules = list(product(margins, network_dbs, pick_dbs, pick_floors))
+    rules = list(product(margins, network_dbs, pick_dbs, pick_floors, channel_dbs))
     rows: list[dict] = []
     crops: list[dict] = []
     for mat in load_materials(root, held, manifest):
@@ -286,13 +306,14 @@ def markdown_table(result: dict) -> str:
         + f"; oracle {np.mean([r['oracle'] for r in rows]):+.3f}; "
         + _ranking_note(rows),
         "",
-        "| rule | channels | mean gain | worst | below bicubic | networks per map |",
-        "|---|---|---|---|---|---|",
+        "| rule | channels | mean gain | worst | below bicubic | networks per map | network "
+        "runs per map |",
+        "|---|---|---|---|---|---|---|",
     ]
     for s in result["summary"]:
         lines.append(
             f"| {s['rule']} | {s['channels']} | {s['mean']:+.3f} | {s['worst']:+.2f} | "
-            f"{s['below']} | {s['networks']:.2f} |"
+            f"{s['below']} | {s['networks']:.2f} | {s['runs']:.2f} |"
         )
     return "\n".join(lines)
 
@@ -313,19 +334,21 @@ def plot(result: dict, path: Path) -> None:
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     rules = dict(zip(result["rules"], result["rule_values"], strict=True))
     by_rule = {s["rule"]: s for s in result["summary"]}
-    for margin, pick, floor in dict.fromkeys((m, p, f) for m, _, p, f in rules.values()):
-        pts = sorted((by_rule[k]["networks"], by_rule[k]["mean"], n)
-                     for k, (m, n, p, f) in rules.items()
-                     if (m, p, f) == (margin, pick, floor))  # fmt: skip
+    for margin, pick, floor, per in dict.fromkeys((m, p, f, c) for m, _, p, f, c in rules.values()):
+        pts = sorted((by_rule[k]["runs"], by_rule[k]["mean"], n)
+                     for k, (m, n, p, f, c) in rules.items()
+                     if (m, p, f, c) == (margin, pick, floor, per))  # fmt: skip
         label = (f"margin {margin:g} dB" + ("" if pick is None else f", over the pick {pick:g}")
-                 + (", pick floor" if floor else ""))  # fmt: skip
+                 + (", pick floor" if floor else "")
+                 + ("" if per is None else f", per channel {per:g}"))  # fmt: skip
         ax.plot([x for x, _, _ in pts], [y for _, y, _ in pts], "o-", label=label)
         for x, y, n in pts:
             ax.annotate(f"{n:g}", (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
     d = by_rule["direct"]
-    ax.plot([d["networks"]], [d["mean"]], "k*", ms=10, label="direct's choice")
+    ax.plot([d["runs"]], [d["mean"]], "k*", ms=10, label="direct's choice")
     ax.set(
-        xlabel="networks run per map (labels: dB a network must add)",
+        xlabel="network runs per map, one per network and channel (labels: dB a network must "
+        "add to the map)",
         ylabel="mean gain over bicubic, real scale (dB)",
         title=f"data-channel blend of {result['prior']} at x{result['scale']}",
     )

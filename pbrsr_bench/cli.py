@@ -154,6 +154,12 @@ def blend_cmd(
         help="off, on or off,on: keep a network wherever leaving it out would put a "
         "channel's blend below the check's pick one scale down (blend_pick_floor).",
     ),
+    channel_db: str = typer.Option(
+        "off",
+        help="dB a network must add to a channel's blend to run on that channel "
+        "(blend_channel_db; off: on every channel its fit weighs, as the presets), "
+        "comma-separated.",
+    ),
     max_prior_scale: int | None = typer.Option(
         None, help="Largest factor the prior runs at (fast: 2; default: the prior's own)."
     ),
@@ -166,20 +172,22 @@ def blend_cmd(
     ),
 ) -> None:
     """The presets' blend of data channels on held-out texture materials, rule by rule: the
-    gain over bicubic per channel and the networks run per map, with direct's choice."""
+    gain over bicubic per channel and the networks run per map (and their runs, one per
+    network and channel), with direct's choice."""
     from pbrsr_bench.blend import markdown_table, run
 
     try:
         margin_values, network_values = _floats(margins), _floats(network_db)
-        pick_values = tuple(
-            None if v.strip() == "off" else float(v) for v in pick_db.split(",") if v.strip()
+        pick_values, channel_values = (
+            tuple(None if v.strip() == "off" else float(v) for v in text.split(",") if v.strip())
+            for text in (pick_db, channel_db)
         )
         floors = tuple({"off": False, "on": True}[v.strip()] for v in pick_floor.split(","))
     except (ValueError, KeyError):
         _bad_input(
             ValueError(
-                "--margins, --network-db and --pick-db take comma-separated numbers, "
-                "--pick-floor off, on or both"
+                "--margins, --network-db, --pick-db and --channel-db take comma-separated "
+                "numbers, --pick-floor off, on or both"
             )
         )
     _report(
@@ -197,6 +205,7 @@ def blend_cmd(
         pick_floors=floors,
         max_prior_scale=max_prior_scale,
         jpeg=jpeg,
+        channel_dbs=channel_values,
     )
 
 

@@ -171,7 +171,8 @@ def blended_channels(asset, images, prior, channels, checks, sources, kept, lr_p
             picks = check_picks(entry, todo)
             fits = blend_check(k, todo, guided, network_db=config.blend_network_db,
                                margin=config.blend_margin,
-                               picks=picks if config.blend_pick_floor else None)  # fmt: skip
+                               picks=picks if config.blend_pick_floor else None,
+                               channel_db=config.blend_channel_db)  # fmt: skip
             names = list(k["ups"]) + (["guided"] if guided else [])
             names, weights, use = blend_plan(fits, names, n, config.blend_margin, picks,
                                              config.blend_pick_db)  # fmt: skip

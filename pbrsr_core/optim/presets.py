@@ -89,6 +89,10 @@ class PbrsrConfig:
     """With ``blend_data``: dB (one scale down, summed over a map's blended channels) a
     candidate network must add to the blends to run on the map at all: the work follows what
     the map gains from it (prior/blend.py)."""
+    blend_channel_db: float | None = None
+    """With ``blend_data``: dB (one scale down) a network left on a map must add to a
+    channel's blend to run on that channel: each channel it is left out of saves one
+    network run (prior/blend.py). None: it runs on every channel its fit weighs."""
     blend_pick_db: float | None = None
     """With ``blend_data``: dB (one scale down) by which a data channel's blend must beat the
     self-check's pick, where that pick beats bicubic, to replace it; otherwise the channel
@@ -190,6 +194,10 @@ class PbrsrConfig:
             (
                 self.blend_pick_db is None or self.blend_pick_db >= 0,
                 "blend_pick_db must be None or >= 0",
+            ),
+            (
+                self.blend_channel_db is None or self.blend_channel_db >= 0,
+                "blend_channel_db must be None or >= 0",
             ),
             (self.self_ensemble in (1, 2, 4, 8), "self_ensemble must be 1, 2, 4 or 8"),
             (self.reach_db is None or self.reach_db > 0, "reach_db must be None or > 0"),
@@ -321,6 +329,14 @@ CHECK_PRIOR_CPU = ("colour", "data")
 #   against +1.026), nearly all of it the fabric, and on the shared assets moves the BoomBox's
 #   render only: +0.67 dB with pbr-upconv7, -0.15 with pbr-srmd (balanced; fast +0.17 and
 #   -0.18): off (docs/METHOD.md, "Where the network rule loses").
+# * blend_channel_db: None in every preset. At 0.1 dB (a network kept on a map is left out of
+#   each channel it adds less than that to, one scale down) the held-out materials' blends
+#   (`pbrsr bench blend --margins 0 --network-db 0.1 --channel-db off,0.05,0.1,0.2`, x4,
+#   pbr-srmd) gain +0.950 dB over bicubic with 0.92 network runs per map, against +0.958 with
+#   1.08; on the seven shared assets at x4 it changes one channel, the WaterBottle's metallic
+#   (balanced 83.8 -> 72.5 s on a machine 2.4x slower than the published tables', render
+#   39.74 either way; fast 27.9 -> 26.4 s, 39.56 -> 39.59). Off until the published tables
+#   are measured with it (docs/METHOD.md, "A network per channel").
 # * fast: PBR-SR's init and export with no optimisation steps, the prior at x2 of the scale
 #   (max_prior_scale 2; bicubic the rest, then the back-projection step). waifu2x-photo's x2
 #   pass on a 512² map costs 2.1 s against 13.0 s for its x4 (two passes), and on the shared

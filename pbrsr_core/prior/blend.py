@@ -14,7 +14,8 @@ A channel is blended where its blend beats bicubic one scale down by the preset'
 ``blend_margin`` (and, with ``blend_pick_db`` set, the self-check's pick by that much where
 the pick beats bicubic; otherwise the channel takes the pick), and a candidate network runs
 on a map where it adds ``blend_network_db`` to the map's blends, is a kept pick or (with
-``blend_pick_floor``) holds a channel's blend at its pick one scale down. ``pbrsr
+``blend_pick_floor``) holds a channel's blend at its pick one scale down; with
+``blend_channel_db`` only on the channels whose blends it adds that much to. ``pbrsr
 bench blend`` scores the rules at the real scale on the held-out CC0 materials' maps packed
 as occlusion-roughness-metallic images (x4, pbr-srmd, 38 channels): the presets' margin 0,
 0.1 dB networks, no pick rule +0.958 dB over bicubic, no channel below it, 0.62 networks per
@@ -23,7 +24,7 @@ map (docs/METHOD.md, "Data channels blended").
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -83,6 +84,7 @@ def blend_check(
     network_db: float,
     margin: float,
     picks: dict[int, tuple[str, float]] | None = None,
+    channel_db: float | None = None,
 ) -> dict[int, tuple[list[str], list[float], float]]:
     """Per channel of ``channels`` of a data map: (the upscales' names, their weights, the
     blend's dB over bicubic), one scale down, from what its self-check compared (``kept``,
@@ -92,19 +94,21 @@ def blend_check(
     than ``margin``): its network then does not run on the map. With ``picks`` (per channel,
     the self-check's pick and its dB over bicubic one scale down, :func:`check_picks`) a
     candidate stays wherever leaving it out would put a channel's blend below its pick (or
-    below the blend's own gain, where that is lower): the pick alone is a blend too."""
+    below the blend's own gain, where that is lower): the pick alone is a blend too. With
+    ``channel_db``, a network left in is then also left out of each channel where it adds
+    less than that to the channel's blend (one network run fewer per channel)."""
     db, ref, bic = kept["db"], kept["crop"], kept["bicubic"]
     guided = guided or {}
 
+    def fit_channel(c: int, nets: list[str]) -> tuple[list[str], list[float], float]:
+        names = nets + (["guided"] if c in guided else [])
+        ups = [kept["ups"][n][..., c] for n in nets] + ([guided[c]] if c in guided else [])
+        w = blend_weights(ups, bic[..., c], ref[..., c], kept["mask"])
+        gain = db(blend(ups, bic[..., c], w), ref[..., c]) - db(bic[..., c], ref[..., c])
+        return names, w, round(gain, 3)
+
     def fit(nets: list[str]) -> dict[int, tuple[list[str], list[float], float]]:
-        out = {}
-        for c in channels:
-            names = nets + (["guided"] if c in guided else [])
-            ups = [kept["ups"][n][..., c] for n in nets] + ([guided[c]] if c in guided else [])
-            w = blend_weights(ups, bic[..., c], ref[..., c], kept["mask"])
-            gain = db(blend(ups, bic[..., c], w), ref[..., c]) - db(bic[..., c], ref[..., c])
-            out[c] = (names, w, round(gain, 3))
-        return out
+        return {c: fit_channel(c, nets) for c in channels}
 
     def worth(fits: dict) -> float:
         return sum(g for _, _, g in fits.values() if g > margin)
@@ -131,7 +135,34 @@ def blend_check(
         if worth(fits) - worth(dropped[n]) >= network_db:
             break
         nets, fits = [m for m in nets if m != n], dropped[n]
+    if channel_db is not None:
+        for c in fits:
+            fits[c] = _pruned_channel(c, fits[c], fit_channel, channel_db, keeps_picks)
     return fits
+
+
+Fit = tuple[list[str], list[float], float]
+
+
+def _pruned_channel(
+    c: int,
+    fitted: Fit,
+    fit_channel: Callable[[int, list[str]], Fit],
+    channel_db: float,
+    keeps_picks: Callable[[dict, dict], bool],
+) -> Fit:
+    """One channel's fit with its networks left out, the cheapest first, while each costs
+    the channel's blend less than ``channel_db`` one scale down (and ``keeps_picks``)."""
+    while True:
+        nets = [n for n, w in zip(fitted[0], fitted[1], strict=True) if n != "guided" and w]
+        trials = {n: fit_channel(c, [m for m in nets if m != n]) for n in nets}
+        can = [n for n in nets if keeps_picks({c: fitted}, {c: trials[n]})]
+        if not can:
+            return fitted
+        n = min(can, key=lambda m: fitted[2] - trials[m][2])
+        if fitted[2] - trials[n][2] >= channel_db:
+            return fitted
+        fitted = trials[n]
 
 
 def check_picks(check: dict, channels: Sequence[int]) -> dict[int, tuple[str, float]]:

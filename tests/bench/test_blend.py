@@ -107,6 +107,27 @@ def test_the_pick_floor_holds_each_channel_at_its_pick(folder, tmp_path: Path):
     assert "| margin 0, networks 1000, pick floor | " in markdown_table(result)
 
 
+def test_the_per_channel_rule_runs_networks_on_fewer_channels(folder, tmp_path: Path):
+    result = run(lambda _: None, tmp_path / "out", folder, "waifu2x-photo", 4, 128,
+                 margins=(0.0,), network_dbs=(0.0,), channel_dbs=(None, 0.0, 1e3))  # fmt: skip
+    every, zero, none = ("margin 0, networks 0", "margin 0, networks 0, per channel 0",
+                         "margin 0, networks 0, per channel 1000")  # fmt: skip
+    assert result["rules"] == [every, zero, none]
+    by_rule = {s["rule"]: s for s in result["summary"]}
+    # a network runs once per channel its blend weighs, at most once per channel
+    for c in result["crops"]:
+        n = c["networks"]
+        assert n[every] <= n[f"runs:{every}"] <= 3 * n[every]
+        assert n[f"runs:{zero}"] == n[f"runs:{every}"] and n[f"runs:{none}"] == 0
+        assert n["runs:direct"] <= 3
+    assert by_rule[every]["runs"] > 0 and by_rule[none]["runs"] == 0
+    # a network that costs nothing to leave out of a channel was not weighed there
+    for r in result["rows"]:
+        assert r["rules"][zero] == r["rules"][every]
+    assert "| margin 0, networks 0, per channel 1000 | " in markdown_table(result)
+    assert "network runs per map |" in markdown_table(result)
+
+
 def test_cli_refuses_what_it_cannot_score(folder, tmp_path: Path, capfd):
     base = ["bench", "blend", "-o", str(tmp_path), "--textures", str(folder)]
     code, err = run_cli(["bench", "blend", "--textures", str(tmp_path / "none")], capfd)
@@ -123,6 +144,8 @@ def test_cli_refuses_what_it_cannot_score(folder, tmp_path: Path, capfd):
     assert code == 2 and "not negative" in err
     code, err = run_cli(base + ["--pick-db", "of"], capfd)
     assert code == 2 and "comma-separated numbers" in err
+    code, err = run_cli(base + ["--channel-db", "-0.1"], capfd)
+    assert code == 2 and "not negative" in err
     code, err = run_cli(base + ["--pick-floor", "yes"], capfd)
     assert code == 2 and "--pick-floor off, on or both" in err
     code, err = run_cli(base + ["--size", "512"], capfd)
@@ -156,12 +179,11 @@ def test_jpeg_lr_crops_are_deblocked_as_the_presets_deblock_them(
     monkeypatch.setattr(bench_check, "deblock", recorded)
     monkeypatch.setattr(bench_blend, "prior_self_check", recorded_check)
     prior = load_prior("bicubic", "cpu")
-    clean, _ = bench_blend.score_crop(prior, colour, packed, [1], 4, [(0.0, 0.0, None, False)])
+    rules = [(0.0, 0.0, None, False, None)]
+    clean, _ = bench_blend.score_crop(prior, colour, packed, [1], 4, rules)
     assert not seen and all(stored is None for _, stored in checked)
     checked.clear()
-    jpeg, _ = bench_blend.score_crop(
-        prior, colour, packed, [1], 4, [(0.0, 0.0, None, False)], jpeg=50
-    )
+    jpeg, _ = bench_blend.score_crop(prior, colour, packed, [1], 4, rules, jpeg=50)
     # both LR crops as a quality-50 file holds them, deblocked with its tables
     want = standard_quant(50)
     assert len(seen) == 2 and all(

@@ -108,6 +108,9 @@ def test_presets_paper_numbers_exact():
     with pytest.raises(InvalidOptions, match="blend_pick_db"):
         p.with_(blend_pick_db=-0.1)
     assert p.with_(blend_pick_db=None).blend_pick_db is None
+    with pytest.raises(InvalidOptions, match="blend_channel_db"):
+        p.with_(blend_channel_db=-0.1)
+    assert all(q.blend_channel_db is None for q in PRESETS.values())  # measured, not taken
 
 
 def test_pseudo_gt_cache_roundtrip(tmp_path):

@@ -99,6 +99,43 @@ def test_a_network_that_adds_little_is_not_run():
     assert blend_check(kept, [0], network_db=0.1, margin=1e3)[0] == ([], [], 0.0)
 
 
+def test_a_network_runs_only_on_the_channels_it_adds_to():
+    u1, u2, bic = _images(9, 3)
+    noise = np.random.default_rng(10).normal(0, 0.1, u1.shape).astype(np.float32)
+    ref = np.stack(
+        [
+            0.5 * u1 + 0.5 * bic + 0.08 * (u2 - bic) + noise,  # b adds under 1 dB here
+            0.7 * u2 + 0.3 * bic,  # and all of it here
+        ],
+        -1,
+    )
+    mask = np.ones(u1.shape, bool)
+    kept = {
+        "db": lambda up, r: psnr(up[mask], r[mask]),
+        "crop": ref,
+        "bicubic": np.stack([bic, bic], -1),
+        "mask": mask,
+        "ups": {"a": np.stack([u1, u1], -1), "b": np.stack([u2, u2], -1)},
+    }
+    every = blend_check(kept, [0, 1], network_db=0.0, margin=0.0)
+    assert every[0][0] == ["a", "b"] and min(every[0][1]) > MIN_WEIGHT
+    for channel_db in (None, 0.0, 0.1):  # b adds more than 0.1 dB to channel 0
+        assert blend_check(kept, [0, 1], network_db=0.0, margin=0.0, channel_db=channel_db) == every
+    fits = blend_check(kept, [0, 1], network_db=0.0, margin=0.0, channel_db=1.0)
+    names, w, gain = fits[0]
+    assert names == ["a"] and abs(w[0] - 0.5) < 0.06 and 0 < every[0][2] - gain < 1.0
+    assert fits[1] == every[1] and every[1][1][every[1][0].index("b")] > 0.6
+    # what the run blends: both networks, each weighed by (run on) its own channel only
+    sources, weights, use = blend_plan(fits, ["a", "b"], 2, 0.0)
+    assert sources == ["a", "b"] and use == [True, True]
+    assert weights[0][1] == 0.0 and weights[1][1] > 0.6
+    # each channel's last network is dropped too where it adds less than channel_db
+    assert blend_check(kept, [0, 1], network_db=0.0, margin=0.0, channel_db=1e3) == {
+        0: ([], [], 0.0),
+        1: ([], [], 0.0),
+    }
+
+
 def test_a_network_stays_where_the_blend_would_fall_below_its_pick():
     u1, u2, bic = _images(11, 3)
     g = np.random.default_rng(12)

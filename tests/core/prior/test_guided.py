@@ -315,3 +315,40 @@ def test_the_pick_floor_keeps_a_network_the_guide_cannot_replace(tmp_path, monke
     assert all(w[k] > 0.5 for w in blended["weights"][1:]), blended
     pairs = zip(blended["margins"][1:], entry["margins"][1:], strict=True)
     assert all(b >= m - 1e-3 for b, m in pairs)
+
+
+def test_a_network_is_not_run_on_the_channels_it_adds_little_to(tmp_path, monkeypatch):
+    import pbrsr_core.pipeline as pipeline
+
+    hr_colour = _blocks(128, 8, seed=7)
+    hr_data = np.roll(_blocks(128, 8, seed=8), 4, axis=(0, 1))  # no edge the colour has
+    path, orm_index = _roughly_known_quad(tmp_path, monkeypatch, hr_colour, hr_data)
+    prior = pipeline.load_prior("knows", "cpu")
+    runs: list[tuple[int, ...]] = []
+    forward = prior._forward
+
+    def counted(x: torch.Tensor, scale: int) -> torch.Tensor:
+        if torch.equal(x[:, 0], x[:, 1]) and torch.equal(x[:, 0], x[:, 2]):  # a data channel
+            runs.append(tuple(x.shape[-2:]))
+        return forward(x, scale)
+
+    monkeypatch.setattr(prior, "_forward", counted)
+
+    def run(name: str, channel_db: float | None) -> tuple[dict, list]:
+        runs.clear()
+        preset = presets.BALANCED.with_(project_lr=(), iterations=0, blend_network_db=0.0,
+                                        blend_channel_db=channel_db)  # fmt: skip
+        monkeypatch.setitem(presets.PRESETS, "balanced", preset)
+        report = upscale_asset(path, tmp_path / name, UpscaleOptions(preset="balanced"))
+        (entry,) = [c for c in report["prior_check"] if c["index"] == orm_index]
+        return entry, [r for r in runs if r == (32, 32)]  # the real scale's runs (LR 32²)
+
+    # the network beats bicubic and the guide on both channels: it runs on both
+    entry, real = run("every", None)
+    k = entry["blend"]["sources"].index("knows")
+    assert [w[k] > 0.5 for w in entry["blend"]["weights"]] == [False, True, True]
+    assert len(real) == 2
+    assert run("some", 0.1) == (entry, real)
+    # no channel gains 1000 dB from it: it runs on none, and each channel keeps what is left
+    entry, real = run("none", 1e3)
+    assert real == [] and "knows" not in entry["blend"]["sources"]
