@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from .asset.model import MAP_ROLES
+from .asset.model import EXTENSION_CHANNELS, MAP_ROLES
 from .maps import encoded_to_param, image_cutout, kind_of
 from .prior.blend import blend, blend_check, blend_plan, check_picks
 from .prior.direct import bicubic_map, upscale_map
@@ -248,8 +248,8 @@ def _blend_map(bicubic, px, how, init_encoded, lr_pixels, s, kind, wrap, config,
 def read_channels_only(picks: list, read: list[bool]) -> list:
     """``picks`` per channel with None (bicubic) for a channel no material reads (the R of a
     metallic-roughness image without occlusion): a data map's prior runs on the channels it
-    is picked for only. Unchanged when no channel is read (a map of one entry)."""
-    if len(picks) != len(read) or not any(read):
+    is picked for only. Unchanged for a map of one entry."""
+    if len(picks) != len(read):
         return picks
     return [p if r else None for p, r in zip(picks, read, strict=True)]
 
@@ -262,10 +262,14 @@ def prior_channels(img, config) -> list[bool]:
 
     n_colour = 3 if img.pixels.shape[2] >= 3 else 1
     if not img.roles & set(MAP_ROLES):  # KHR_materials_* maps only: as the core map of its kind
-        like = {"colour": "base_color", "normal": "normal", "data": "roughness"}
-        return [like[kind_of(img.roles)] in config.prior_maps] * (
-            1 if kind_of(img.roles) != "data" else n_colour
+        kind = kind_of(img.roles)
+        on = {"colour": "base_color", "normal": "normal", "data": "roughness"}[kind] in (
+            config.prior_maps
         )
+        if kind != "data":
+            return [on]
+        read = {c for r in img.roles for c in EXTENSION_CHANNELS.get(r, range(3))}
+        return [on and (c in read or n_colour == 1 and bool(read)) for c in range(n_colour)]
     named = {
         c
         for g in map_groups(set(img.roles), n_colour, config)

@@ -237,22 +237,28 @@ def _direct_maps(asset, images, prior, s, wraps, cutouts, unseen, timer, progres
     from .optim.presets import BALANCED, CHECK_PRIOR_CPU
 
     lr_pixels, deblocked = deblocked_lr(images, BALANCED, timer)
-    n = {img.index: len(prior_channels(img, BALANCED)) for img in images}  # channel entries
+    read = {img.index: prior_channels(img, BALANCED) for img in images}
+    n = {i: len(r) for i, r in read.items()}  # channel entries
     offered = [
         img
         for img in images
         if len(prior.candidates(kind_of(img.roles))) > 1
         and len(unseen.get(img.index, ())) < n[img.index]
+        and any(read[img.index])
     ]
     found = self_checks(asset, offered, prior, lr_pixels, s, CHECK_PRIOR_CPU, None, timer,
                         progress)  # fmt: skip
     picks = {img.index: _direct_picks(prior, img, found.get(img.index)) for img in offered}
+    chose = {  # a data map none of whose channels a material reads: bicubic's
+        i: picks.get(i, [prior]) if any(r) else [None] * len(r) for i, r in read.items()
+    }
+    sources_of = {i: _without(chose[i], unseen.get(i), n[i]) for i in read}
     out = {}
     with timer("prior"):
         tiles = MapProgress(progress, "prior", images)
         for img in images:
             kind = kind_of(img.roles)
-            sources = _without(picks.get(img.index, [prior]), unseen.get(img.index), n[img.index])
+            sources = sources_of[img.index]
             px, wrap, cutout = lr_pixels[img.index], wraps[img.index], cutouts[img.index]
             base = None if any(sources) else bicubic_map(px, kind, s, wrap, cutout)
             out[img.index] = upscale_channels(
@@ -260,14 +266,7 @@ def _direct_maps(asset, images, prior, s, wraps, cutouts, unseen, timer, progres
             )
     names = {img.index: img.name for img in images}
     checked = [{"image": names[i], "index": i, **c} for i, c in found.items() if c]
-    made_by = _made_by(
-        images,
-        {img.index: _without(picks.get(img.index, [prior]), unseen.get(img.index), n[img.index])
-         for img in images},
-        {},
-        checked,
-        unseen,
-    )  # fmt: skip
+    made_by = _made_by(images, sources_of, {}, checked, unseen)
     return out, {
         "prior_precision": _precisions(prior, images),
         "jpeg_deblocked": deblocked,

@@ -63,6 +63,20 @@ EXTENSION_ROLES: dict[str, tuple[str, str, str]] = {
         "colour",
     ),
 }
+EXTENSION_CHANNELS: dict[str, tuple[int, ...]] = {
+    "clearcoat": (0,),
+    "clearcoat_roughness": (1,),
+    "sheen_roughness": (),
+    "specular": (),
+    "transmission": (0,),
+    "thickness": (1,),
+    "iridescence": (0,),
+    "iridescence_thickness": (1,),
+    "anisotropy": (0, 1, 2),
+    "diffuse_transmission": (),
+}
+"""The colour channels (R, G, B: 0, 1, 2) each KHR_materials_* data map's role reads, as the
+extensions specify; sheen roughness, specular and diffuse transmission read alpha only."""
 TEXTURE_ROLES: tuple[str, ...] = (*MAP_ROLES, *EXTENSION_ROLES)
 """Every material role a texture can have: the core glTF maps, then the KHR_materials_* ones."""
 SRGB_ROLES: frozenset[str] = frozenset(

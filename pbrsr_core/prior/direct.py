@@ -301,17 +301,31 @@ def _upscale_map(prior, pixels, role, scale, max_prior_scale, progress, channels
 def _channel_by_channel(prior, colour, scale, run, max_prior_scale, progress) -> torch.Tensor:
     """A data map's colour channels (1, 3, H, W) -> (1, 3, sH, sW): each channel of ``run``
     through ``prior`` as a greyscale image, one at a time (a run's output is one image's, as
-    for a colour map), the others bicubic's; ``progress`` sees the runs as one."""
+    for a colour map), the others bicubic's; ``progress`` sees the runs as one. A channel of
+    ``run`` equal to an earlier one (a grey image is read as three equal channels) takes that
+    one's output: the prior runs once on each distinct channel."""
     h, w = colour.shape[-2:]
     with torch.inference_mode():
         if len(run) == 3:
             out = torch.empty(1, 3, h * scale, w * scale)
         else:
             out = bicubic_upscale(colour, scale).clamp_(0.0, 1.0)
+    tiles = [0]  # tiles per run, as the prior reports them
     for k, c in enumerate(run):
+        same = next((d for d in run[:k] if torch.equal(colour[:, c], colour[:, d])), None)
+        if same is not None:
+            with torch.inference_mode():
+                out[0, c] = out[0, same]
+            if progress is not None and tiles[0]:
+                progress((k + 1) * tiles[0], len(run) * tiles[0])
+            continue
         tick = None
         if progress is not None:
-            tick = lambda done, total, k=k: progress(k * total + done, len(run) * total)  # noqa: E731
+
+            def tick(done: int, total: int, k: int = k) -> None:
+                tiles[0] = total
+                progress(k * total + done, len(run) * total)
+
         up = upscale_rgb(prior, colour[:, c : c + 1].expand(-1, 3, -1, -1), scale,
                          max_prior_scale=max_prior_scale, progress=tick)[0]  # fmt: skip
         with torch.inference_mode():  # the mean of the three, exact where they agree

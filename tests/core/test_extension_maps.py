@@ -69,3 +69,29 @@ def test_extension_maps_come_back_upscaled_and_valid(tmp_path, method, preset, i
         "KHR_materials_anisotropy",
         "KHR_materials_diffuse_transmission",
     }
+
+
+@pytest.mark.parametrize("method", ["direct", "pbrsr"])
+def test_extension_data_maps_run_the_prior_on_the_channels_they_read(tmp_path, method):
+    """clearcoat reads R, clearcoat roughness G, sheen roughness and specular alpha only
+    (KHR_materials_*): the prior runs on those channels, bicubic's upscale fills the rest."""
+    from pbrsr_core.prior.direct import bicubic_map
+
+    src = make_test_asset(tmp_path / "a.glb", size=32, features=FEATURES)
+    options = UpscaleOptions(scale=2, method=method, preset="fast", prior="pbr-upconv7")
+    report = upscale_asset(src, tmp_path / "out", options)
+    lr, out = load_asset(src), load_asset(tmp_path / "out" / "a.glb")
+    made_by = {e["roles"][0]: e["made_by"] for e in report["images"] if len(e["roles"]) == 1}
+    read = {"clearcoat": 0, "clearcoat_roughness": 1, "iridescence": 0}
+    for role, c in read.items():
+        assert all(m.startswith("bicubic") for k, m in enumerate(made_by[role]) if k != c), role
+    assert not made_by["clearcoat"][0].startswith("bicubic")  # the prior wins it here
+    for role in ("sheen_roughness", "specular"):
+        assert made_by[role] == ["bicubic"] * 3, role
+    for img in upscalable_images(lr):
+        (role,) = img.roles if len(img.roles) == 1 else (None,)
+        if role in read or role in ("sheen_roughness", "specular"):
+            bic = bicubic_map(img.pixels, "data", 2)
+            unread = [k for k in range(3) if k != read.get(role)]
+            got = out.images[img.index].pixels[..., unread]
+            assert abs(got - bic[..., unread]).max() <= 1 / 255 + 1e-6, role

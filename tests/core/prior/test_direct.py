@@ -241,3 +241,29 @@ def test_a_data_maps_prior_runs_on_the_channels_named_only():
     np.testing.assert_allclose(upscale_map(prior, px, "data", 2, channels=[]),
                                bicubic_map(px, "data", 2), atol=1e-6)  # fmt: skip
     assert prior.images == 0
+
+
+def test_equal_channels_of_a_data_map_run_the_prior_once():
+    """A grey image is read as three equal channels: the prior runs on one of each set of
+    equal channels, and the others take its output (what the prior makes of the same input)."""
+    rng = np.random.default_rng(6)
+    grey = rng.random((6, 7, 1), dtype=np.float32)
+    px = np.concatenate([grey, rng.random((6, 7, 1), dtype=np.float32), grey], -1)
+    ticks: list[tuple[int, int]] = []
+    prior = MixingNearest()
+    out = upscale_map(prior, px, "data", 2, progress=lambda d, t: ticks.append((d, t)))
+    assert prior.images == 2  # R and B are equal: one run for both
+    assert np.array_equal(out[..., 0], out[..., 2])
+    each = MixingNearest()
+    for c in range(3):  # the same as each channel run on its own
+        alone = upscale_map(each, px, "data", 2, channels=[c])[..., c]
+        assert np.array_equal(out[..., c], alone)
+    assert ticks[-1][0] == ticks[-1][1] and ticks == sorted(ticks)  # the copy ends the map
+    prior.images = 0
+    out = upscale_map(prior, np.repeat(grey, 3, -1), "data", 2)
+    assert prior.images == 1 and np.array_equal(out[..., 0], out[..., 1])
+    # channels a run leaves to bicubic are not copied from the prior's
+    prior.images = 0
+    out = upscale_map(prior, np.repeat(grey, 3, -1), "data", 2, channels=[0])
+    assert prior.images == 1
+    np.testing.assert_allclose(out[..., 1:], bicubic_map(px, "data", 2)[..., [0, 0]], atol=1e-6)

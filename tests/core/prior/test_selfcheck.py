@@ -301,6 +301,19 @@ def test_presets_name_the_maps_and_orm_channels_the_prior_may_initialise():
     orm = img({"occlusion", "metallic_roughness"})
     assert prior_channels(orm, presets.BALANCED) == [True] * 3
     assert prior_channels(img({"emissive"}), presets.FAST) == [True]
+    # KHR_materials_* data maps: the channels their extensions read (alpha is never the prior's)
+    assert prior_channels(img({"clearcoat"}), presets.BALANCED) == [True, False, False]
+    both = img({"clearcoat", "clearcoat_roughness"})
+    assert prior_channels(both, presets.BALANCED) == [True, True, False]
+    assert prior_channels(img({"thickness", "transmission"}), presets.BALANCED) == [True] * 2 + [
+        False
+    ]
+    assert prior_channels(img({"specular"}, 4), presets.BALANCED) == [False] * 3
+    assert prior_channels(img({"anisotropy"}), presets.BALANCED) == [True] * 3
+    assert prior_channels(img({"clearcoat"}, 1), presets.BALANCED) == [True]
+    assert prior_channels(img({"sheen_roughness"}, 2), presets.BALANCED) == [False]
+    assert prior_channels(img({"clearcoat"}), paper) == [False] * 3
+    assert prior_channels(img({"sheen_color"}), presets.BALANCED) == [True]
 
 
 class Offering(Prior):
