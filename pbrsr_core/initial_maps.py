@@ -278,4 +278,7 @@ def prior_channels(img, config) -> list[bool]:
     }
     if kind_of(img.roles) != "data":
         return [bool(named)]
+    if "roughness" in config.prior_maps:  # a KHR map in the same image: its channels too
+        khr = {c for r in img.roles for c in EXTENSION_CHANNELS.get(r, ())}
+        named |= {0} if n_colour == 1 and khr else khr
     return [c in named for c in range(n_colour)]

@@ -33,6 +33,8 @@ MIN_WEIGHT = 0.05
 network for a sliver of a channel."""
 RIDGE = 1e-6
 """Regularisation of the normal equations (upscales that agree everywhere)."""
+Fit = tuple[list[str], list[float], float]
+"""One channel's blend: the upscales' names, their weights, its dB over bicubic."""
 
 
 def _fit(d: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -85,7 +87,7 @@ def blend_check(
     margin: float,
     picks: dict[int, tuple[str, float]] | None = None,
     channel_db: float | None = None,
-) -> dict[int, tuple[list[str], list[float], float]]:
+) -> dict[int, Fit]:
     """Per channel of ``channels`` of a data map: (the upscales' names, their weights, the
     blend's dB over bicubic), one scale down, from what its self-check compared (``kept``,
     :func:`~.selfcheck.prior_self_check`): each candidate's upscale, and ``guided[c]`` where
@@ -100,14 +102,14 @@ def blend_check(
     db, ref, bic = kept["db"], kept["crop"], kept["bicubic"]
     guided = guided or {}
 
-    def fit_channel(c: int, nets: list[str]) -> tuple[list[str], list[float], float]:
+    def fit_channel(c: int, nets: list[str]) -> Fit:
         names = nets + (["guided"] if c in guided else [])
         ups = [kept["ups"][n][..., c] for n in nets] + ([guided[c]] if c in guided else [])
         w = blend_weights(ups, bic[..., c], ref[..., c], kept["mask"])
         gain = db(blend(ups, bic[..., c], w), ref[..., c]) - db(bic[..., c], ref[..., c])
         return names, w, round(gain, 3)
 
-    def fit(nets: list[str]) -> dict[int, tuple[list[str], list[float], float]]:
+    def fit(nets: list[str]) -> dict[int, Fit]:
         return {c: fit_channel(c, nets) for c in channels}
 
     def worth(fits: dict) -> float:
@@ -139,9 +141,6 @@ def blend_check(
         for c in fits:
             fits[c] = _pruned_channel(c, fits[c], fit_channel, channel_db, keeps_picks)
     return fits
-
-
-Fit = tuple[list[str], list[float], float]
 
 
 def _pruned_channel(

@@ -314,6 +314,14 @@ def test_presets_name_the_maps_and_orm_channels_the_prior_may_initialise():
     assert prior_channels(img({"sheen_roughness"}, 2), presets.BALANCED) == [False]
     assert prior_channels(img({"clearcoat"}), paper) == [False] * 3
     assert prior_channels(img({"sheen_color"}), presets.BALANCED) == [True]
+    # an image a core map shares with a KHR map: the channels of both
+    shared = img({"occlusion", "clearcoat_roughness"})
+    assert prior_channels(shared, presets.BALANCED) == [True, True, False]
+    assert prior_channels(shared, cpu) == [True, True, False]
+    assert (
+        prior_channels(img({"occlusion", "specular"}, 4), presets.BALANCED) == [True] + [False] * 2
+    )
+    assert prior_channels(shared, paper) == [False] * 3
 
 
 class Offering(Prior):
