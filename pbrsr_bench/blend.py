@@ -87,10 +87,10 @@ def score_crop(
     rules: list[tuple[float, float, float | None, bool, float | None]],
     max_prior_scale: int | None = None,
     jpeg: int | None = None,
-) -> tuple[list[dict], dict[str, int]]:
+) -> tuple[list[dict], dict[str, int], dict[str, int]]:
     """One material crop: per channel of ``present`` that its check does not find flat, the
     gains over bicubic at the real scale (rows); per rule the networks the blend runs, and
-    (key ``runs:RULE``) their runs, one per network and channel."""
+    their runs (one per network and channel)."""
     kw = {"max_prior_scale": max_prior_scale}
     (lr_c, stored_c), (lr_d, stored_d) = (
         presets_low_res(colour, scale, jpeg),
@@ -110,7 +110,7 @@ def score_crop(
     kept: dict = {}
     check = prior_self_check(prior, lr_d, scale, "data", keep=kept, stored=stored_d, **kw)
     if check is None:
-        return [], {}
+        return [], {}, {}
     todo = [c for c in present if not check["flat"][c]]
     gc = [c for c in GUIDED_CHANNELS if c in todo]
     guided_small = {}
@@ -156,7 +156,7 @@ def score_crop(
     ]
     for r in rows:
         r["oracle"] = max(0.0, *r["gain"].values())
-    networks = {}
+    networks, runs = {}, {}
     names = list(kept["ups"]) + (["guided"] if gc else [])
     picks = check_picks(check, todo)
     for margin, network_db, pick_db, floor, channel_db in rules:
@@ -165,9 +165,7 @@ def score_crop(
                            picks=picks if floor else None, channel_db=channel_db)  # fmt: skip
         used, weights, use = blend_plan(fits, names, packed.shape[2], margin, picks, pick_db)
         networks[key] = sum(n != "guided" for n in used)
-        networks[f"runs:{key}"] = sum(
-            bool(w[m]) for w in weights for m, n in enumerate(used) if n != "guided"
-        )
+        runs[key] = sum(bool(w[m]) for w in weights for m, n in enumerate(used) if n != "guided")
         for r, c in zip(rows, todo, strict=True):
             r["fit_db"][key] = fits[c][2]
             if use[c]:
@@ -177,8 +175,8 @@ def score_crop(
                 r["rules"][key] = 0.0
     direct_nets = {check["priors"][c] for c in todo if check["channels"][c]}
     networks["direct"] = len(direct_nets)
-    networks["runs:direct"] = sum(bool(check["channels"][c]) for c in todo)
-    return rows, networks
+    runs["direct"] = sum(bool(check["channels"][c]) for c in todo)
+    return rows, networks, runs
 
 
 def rule_name(
@@ -212,9 +210,7 @@ def summarise(result: dict) -> list[dict]:
                 "worst": float(min(gains, default=0.0)),
                 "below": sum(g < 0 for g in gains),
                 "networks": float(np.mean([c["networks"][key] for c in crops])) if crops else 0.0,
-                "runs": float(np.mean([c["networks"][f"runs:{key}"] for c in crops]))
-                if crops
-                else 0.0,
+                "runs": float(np.mean([c["runs"][key] for c in crops])) if crops else 0.0,
             }
         )
     return out
@@ -264,12 +260,12 @@ def run(
         present = [c for c, m in enumerate(PACKED) if m in mat.maps]
         for name, colour, packed in packed_crops(mat, size):
             log(f"{name}: {', '.join(PACKED[c] for c in present)}")
-            crop_rows, networks = score_crop(p, colour, packed, present, scale, rules,
+            crop_rows, networks, runs = score_crop(p, colour, packed, present, scale, rules,
                                              max_prior_scale, jpeg)  # fmt: skip
             if not crop_rows:
                 continue
             rows += [{"map": f"{name}[{r['channel']}]", **r} for r in crop_rows]
-            crops.append({"crop": name, "networks": networks})
+            crops.append({"crop": name, "networks": networks, "runs": runs})
     if not crops:
         raise ValueError(
             f"no held-out material in {root} has a colour map and an occlusion, roughness or "

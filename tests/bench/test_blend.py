@@ -116,10 +116,9 @@ def test_the_per_channel_rule_runs_networks_on_fewer_channels(folder, tmp_path: 
     by_rule = {s["rule"]: s for s in result["summary"]}
     # a network runs once per channel its blend weighs, at most once per channel
     for c in result["crops"]:
-        n = c["networks"]
-        assert n[every] <= n[f"runs:{every}"] <= 3 * n[every]
-        assert n[f"runs:{zero}"] == n[f"runs:{every}"] and n[f"runs:{none}"] == 0
-        assert n["runs:direct"] <= 3
+        n, runs = c["networks"], c["runs"]
+        assert n[every] <= runs[every] <= 3 * n[every]
+        assert runs[zero] == runs[every] and runs[none] == 0 and runs["direct"] <= 3
     assert by_rule[every]["runs"] > 0 and by_rule[none]["runs"] == 0
     # a network that costs nothing to leave out of a channel was not weighed there
     for r in result["rows"]:
@@ -180,10 +179,10 @@ def test_jpeg_lr_crops_are_deblocked_as_the_presets_deblock_them(
     monkeypatch.setattr(bench_blend, "prior_self_check", recorded_check)
     prior = load_prior("bicubic", "cpu")
     rules = [(0.0, 0.0, None, False, None)]
-    clean, _ = bench_blend.score_crop(prior, colour, packed, [1], 4, rules)
+    clean, *_ = bench_blend.score_crop(prior, colour, packed, [1], 4, rules)
     assert not seen and all(stored is None for _, stored in checked)
     checked.clear()
-    jpeg, _ = bench_blend.score_crop(prior, colour, packed, [1], 4, rules, jpeg=50)
+    jpeg, *_ = bench_blend.score_crop(prior, colour, packed, [1], 4, rules, jpeg=50)
     # both LR crops as a quality-50 file holds them, deblocked with its tables
     want = standard_quant(50)
     assert len(seen) == 2 and all(
