@@ -76,6 +76,10 @@ class PbrsrConfig:
     the half turn, the quarter turns, the mirrors), each output turned back and the copies
     averaged (prior/symmetry.py): in the self-check, the blends and the init, one prior run
     per copy; the pseudo-GT's renders go through the prior once. 1: the prior once."""
+    self_ensemble_by_kind: dict[str, int] = field(default_factory=dict)
+    """Copies of ``self_ensemble`` per map kind (colour, data, normal) for the kinds named:
+    ``{"normal": 2}`` averages normal maps over two copies and the others over
+    ``self_ensemble``."""
     blend_data: bool = False
     """Each channel of a data map is a blend of the prior's candidates, bicubic and, for a
     metallic-roughness map's roughness and metallic, the upscale guided by the material's
@@ -200,6 +204,11 @@ class PbrsrConfig:
                 "blend_channel_db must be None or >= 0",
             ),
             (self.self_ensemble in (1, 2, 4, 8), "self_ensemble must be 1, 2, 4 or 8"),
+            (
+                set(self.self_ensemble_by_kind) <= set(MAP_KINDS)
+                and all(v in (1, 2, 4, 8) for v in self.self_ensemble_by_kind.values()),
+                f"self_ensemble_by_kind maps kinds among {MAP_KINDS} to 1, 2, 4 or 8",
+            ),
             (self.reach_db is None or self.reach_db > 0, "reach_db must be None or > 0"),
             (
                 self.pseudo_gt_self_ensemble in (1, 2, 4, 8),
@@ -337,6 +346,12 @@ CHECK_PRIOR_CPU = ("colour", "data")
 #   (balanced 83.8 -> 72.5 s on a machine 2.4x slower than the published tables', render
 #   39.74 either way; fast 27.9 -> 26.4 s, 39.56 -> 39.59). Off until the published tables
 #   are measured with it (docs/METHOD.md, "A network per channel").
+# * self_ensemble_by_kind: empty in every preset. {"normal": 2} (normal maps on two copies of
+#   the prior, the other kinds on one; x4, the seven shared assets, 40 evaluation views) raises
+#   balanced's mean render gain over bicubic from +2.36 to +2.41 dB in 1.12x its mean run time
+#   and fast's from +2.42 to +2.46 in 1.19x, every other map the same; the normal maps gain most
+#   from copies on the held-out materials too (docs/BENCHMARKS.md, "Normal maps on two copies of
+#   the prior"). Off until fast's and balanced's published tables are measured with it.
 # * fast: PBR-SR's init and export with no optimisation steps, the prior at x2 of the scale
 #   (max_prior_scale 2; bicubic the rest, then the back-projection step). waifu2x-photo's x2
 #   pass on a 512² map costs 2.1 s against 13.0 s for its x4 (two passes), and on the shared

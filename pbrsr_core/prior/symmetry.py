@@ -65,16 +65,20 @@ class SelfEnsemble(Prior):
     """``inner`` run on the first ``n`` symmetric copies of its input (:data:`ORDER`), each
     output turned back and the ``n`` averaged; ``kind`` says how the copies are made (normal
     maps turn their vectors). Everything else is ``inner``'s: its name, scales, candidates per
-    kind (each averaged the same way), precision and back-projection (each copy is
-    back-projected onto its own input, so the average is too)."""
+    kind (each averaged the same way, or on ``by_kind``'s number of copies for a kind it
+    names), precision and back-projection (each copy is back-projected onto its own input, so
+    the average is too)."""
 
-    def __init__(self, inner: Prior, n: int, kind: str | None = None) -> None:
+    def __init__(
+        self, inner: Prior, n: int, kind: str | None = None, by_kind: dict[str, int] | None = None
+    ) -> None:
         super().__init__()
-        if n not in SIZES:
-            raise ValueError(
-                f"a self-ensemble averages {', '.join(map(str, SIZES))} copies, not {n}"
-            )
-        self.inner, self.n, self.kind = inner, n, kind
+        for m in (n, *(by_kind or {}).values()):
+            if m not in SIZES:
+                raise ValueError(
+                    f"a self-ensemble averages {', '.join(map(str, SIZES))} copies, not {m}"
+                )
+        self.inner, self.n, self.kind, self.by_kind = inner, n, kind, dict(by_kind or {})
         for attr in ("name", "scales", "device", "is_network", "one_pass_scales", "back_project"):
             setattr(self, attr, getattr(inner, attr))
 
@@ -84,11 +88,17 @@ class SelfEnsemble(Prior):
     def num_parameters(self) -> int:
         return self.inner.num_parameters()
 
+    def _copies(self, kind: str) -> int:
+        return self.by_kind.get(kind, self.n)
+
     def for_kind(self, kind: str) -> Prior:
-        return SelfEnsemble(self.inner.for_kind(kind), self.n, kind)
+        inner = self.inner.for_kind(kind)
+        n = self._copies(kind)
+        return SelfEnsemble(inner, n, kind) if n > 1 else inner
 
     def candidates(self, kind: str) -> list[Prior]:
-        return [SelfEnsemble(c, self.n, kind) for c in self.inner.candidates(kind)]
+        n = self._copies(kind)
+        return [SelfEnsemble(c, n, kind) if n > 1 else c for c in self.inner.candidates(kind)]
 
     def int8_ready(self) -> bool:
         return self.inner.int8_ready()
@@ -124,8 +134,12 @@ class SelfEnsemble(Prior):
         return out.clone()
 
 
-def averaged(prior: Prior, n: int) -> Prior:
-    """``prior`` on ``n`` symmetric copies (:class:`SelfEnsemble`), or ``prior`` itself where
-    the copies would all come back the same: one copy, or bicubic interpolation, which
-    commutes with every turn and mirror."""
-    return SelfEnsemble(prior, n) if n > 1 and prior.is_network else prior
+def averaged(prior: Prior, n: int, by_kind: dict[str, int] | None = None) -> Prior:
+    """``prior`` on ``n`` symmetric copies (:class:`SelfEnsemble`; the map kinds ``by_kind``
+    names on its number), or ``prior`` itself where the copies would all come back the same:
+    one copy for every kind, or bicubic interpolation, which commutes with every turn and
+    mirror."""
+    by_kind = {k: m for k, m in (by_kind or {}).items() if m != n}
+    if not prior.is_network or (n == 1 and not by_kind):
+        return prior
+    return SelfEnsemble(prior, n, by_kind=by_kind)

@@ -319,6 +319,12 @@ def test_methods_take_preset_changes():
     assert changes == {"lambda_pix": 0, "pseudo_gt_prior": "bicubic"}
     assert parse_method("fast") == ("fast", None, {})
     check_methods(("balanced+iterations=50+pseudo_gt_prior=waifu2x-photo",), "bicubic")
+    # a field that holds a dict takes a JSON object (one key: a comma separates methods)
+    by_kind = 'balanced+self_ensemble_by_kind={"normal":2}'
+    assert preset_changes(by_kind) == {"self_ensemble_by_kind": {"normal": 2}}
+    check_methods((by_kind,), "bicubic")
+    with pytest.raises(ValueError, match="self_ensemble_by_kind maps kinds"):
+        check_methods(('fast+self_ensemble_by_kind={"normal":3}',), "bicubic")
     with pytest.raises(ValueError, match="not key=value"):
         check_methods(("balanced+lambda_pix",), "bicubic")
     with pytest.raises(ValueError, match="only a PBR-SR preset"):

@@ -133,3 +133,62 @@ def test_averaged_wraps_only_a_network_on_several_copies():
     assert averaged(net, 1) is net and averaged(bicubic, 8) is bicubic
     four = averaged(net, 4)
     assert isinstance(four, SelfEnsemble) and four.inner is net and four.n == 4
+
+
+def test_copies_per_kind_run_each_kind_on_its_own_number():
+    """``by_kind`` {"normal": 2}: normal maps on two copies (the prior and its candidates),
+    every other kind on ``n``; a kind given ``n`` itself, or bicubic, wraps nothing."""
+    net = Leaning()
+    normal = averaged(net, 1, {"normal": 2})
+    assert isinstance(normal, SelfEnsemble)
+    assert normal.for_kind("colour") is net and normal.candidates("data") == [net]
+    for made in (normal.for_kind("normal"), *normal.candidates("normal")):
+        assert isinstance(made, SelfEnsemble) and made.n == 2 and made.kind == "normal"
+    x = _normal_map(6, 6, 3)
+    net.calls = 0
+    got = normal.for_kind("normal").upscale(x, 2)
+    assert net.calls == 2
+    assert torch.equal(got, SelfEnsemble(net, 2, "normal").upscale(x, 2))
+    net.calls = 0
+    normal.for_kind("colour").upscale(x, 2)
+    assert net.calls == 1
+    eight = averaged(net, 8, {"normal": 1, "data": 8})
+    assert isinstance(eight, SelfEnsemble) and eight.by_kind == {"normal": 1}
+    assert eight.for_kind("normal") is net and eight.for_kind("data").n == 8
+    assert averaged(net, 2, {"colour": 2}).by_kind == {}
+    assert averaged(BicubicPrior(), 1, {"normal": 8}).name == "bicubic"
+    assert not isinstance(averaged(BicubicPrior(), 1, {"normal": 8}), SelfEnsemble)
+    with pytest.raises(ValueError, match="copies, not 3"):
+        SelfEnsemble(net, 1, by_kind={"normal": 3})
+
+
+def test_the_preset_field_per_kind_runs_only_the_normal_map_on_copies(tmp_path: Path, monkeypatch):
+    """``self_ensemble_by_kind`` {"normal": 2} in a preset: the colour map through the prior
+    once, the normal map twice, which its init shows; unknown kinds and counts are refused."""
+    import pbrsr_core.pipeline as pipeline
+    from pbrsr_core.optim import presets
+
+    prior = Leaning()
+    real = pipeline.load_prior
+    monkeypatch.setattr(pipeline, "load_prior", lambda n, d: prior if n == "l" else real(n, d))
+    rng = np.random.default_rng(8)
+    tex = np.clip(rng.random((32, 32, 3)) * 0.6 + 0.2, 0, 1).astype(np.float32)
+    normal = _normal_map(32, 32, 4)[0].permute(1, 2, 0).numpy()
+    asset = make_quad_asset(tmp_path / "q.gltf", {"base_color": tex, "normal": normal})
+    frozen = presets.FAST.with_(iterations=0, check_prior=(), max_prior_scale=None, project_lr=())
+    got = {}
+    for by_kind in ({}, {"normal": 2}):
+        monkeypatch.setitem(presets.PRESETS, "fast", frozen.with_(self_ensemble_by_kind=by_kind))
+        prior.calls = 0
+        out = tmp_path / f"o{len(by_kind)}"
+        upscale_asset(asset, out, UpscaleOptions(preset="fast", prior="l"))
+        assert prior.calls == 2 + len(by_kind)
+        images = load_asset(out / "q.gltf").images
+        got[len(by_kind)] = {next(iter(i.roles)): i.pixels for i in images}
+    assert np.array_equal(got[0]["base_color"], got[1]["base_color"])
+    assert np.abs(got[0]["normal"] - got[1]["normal"]).max() > 0.05
+    shipped = (presets.FAST, presets.BALANCED, presets.QUALITY, presets.PAPER)
+    assert all(not p.self_ensemble_by_kind for p in shipped)
+    for bad in ({"normal": 3}, {"normals": 2}):
+        with pytest.raises(InvalidOptions, match="self_ensemble_by_kind"):
+            frozen.with_(self_ensemble_by_kind=bad)
