@@ -331,6 +331,7 @@ def _pbrsr_maps(asset, groups, static, prior, options, config, device, timer, pr
     it is, never optimised; ``unseen``: {image: entries} the prior leaves to bicubic)."""
     from .prior.symmetry import averaged
 
+    # the check, init and blends
     map_prior = averaged(prior, config.self_ensemble, config.self_ensemble_by_kind)
     images = [img for group in groups.values() for img in group]
     init_encoded, init, lr, lr_pixels, channels = {}, {}, {}, {}, {}  # over every factor
