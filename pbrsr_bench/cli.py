@@ -157,7 +157,7 @@ def blend_cmd(
     channel_db: str = typer.Option(
         "off",
         help="dB a network must add to a channel's blend to run on that channel "
-        "(blend_channel_db; off: on every channel its fit weighs, as the presets), "
+        "(blend_channel_db; off: on every channel its fit weighs; the presets take 0.1), "
         "comma-separated.",
     ),
     max_prior_scale: int | None = typer.Option(

@@ -338,20 +338,23 @@ CHECK_PRIOR_CPU = ("colour", "data")
 #   against +1.026), nearly all of it the fabric, and on the shared assets moves the BoomBox's
 #   render only: +0.67 dB with pbr-upconv7, -0.15 with pbr-srmd (balanced; fast +0.17 and
 #   -0.18): off (docs/METHOD.md, "Where the network rule loses").
-# * blend_channel_db: None in every preset. At 0.1 dB (a network kept on a map is left out of
-#   each channel it adds less than that to, one scale down) the held-out materials' blends
+# * blend_channel_db 0.1 in fast, balanced and quality: a network kept on a map is left out of
+#   each channel it adds less than 0.1 dB to, one scale down. The held-out materials' blends
 #   (`pbrsr bench blend --margins 0 --network-db 0.1 --channel-db off,0.05,0.1,0.2`, x4,
 #   pbr-srmd) gain +0.950 dB over bicubic with 0.92 network runs per map, against +0.958 with
-#   1.08; on the seven shared assets at x4 it changes one channel, the WaterBottle's metallic
-#   (balanced 83.8 -> 72.5 s on a machine 2.4x slower than the published tables', render
-#   39.74 either way; fast 27.9 -> 26.4 s, 39.56 -> 39.59). Off until the published tables
-#   are measured with it (docs/METHOD.md, "A network per channel").
-# * self_ensemble_by_kind: empty in every preset. {"normal": 2} (normal maps on two copies of
-#   the prior, the other kinds on one; x4, the seven shared assets, 40 evaluation views) raises
-#   balanced's mean render gain over bicubic from +2.36 to +2.41 dB in 1.12x its mean run time
-#   and fast's from +2.42 to +2.46 in 1.19x, every other map the same; the normal maps gain most
-#   from copies on the held-out materials too (docs/BENCHMARKS.md, "Normal maps on two copies of
-#   the prior"). Off until fast's and balanced's published tables are measured with it.
+#   1.08. The published x4 run (`fast` against `fast+blend_channel_db=null`, the seven shared
+#   assets, 40 evaluation views) moves the WaterBottle's render +0.03 dB in 0.91x its time and
+#   the ToyCar's -0.01, mean +2.42 dB either way; at x2 it leaves the table's metallic 0.07 dB
+#   below bicubic (0.02 without), a map the renders do not show (docs/METHOD.md, "A network
+#   per channel").
+# * self_ensemble_by_kind {"normal": 2} in balanced: normal maps on two copies of the prior, the
+#   other kinds on one. Published runs, the seven shared assets, 40 evaluation views, balanced
+#   against `balanced+blend_channel_db=null+self_ensemble_by_kind={}`: x4 +2.41 against +2.36
+#   dB over bicubic (15.6 against 15.2 s), x2 +2.66 against +2.62 (1.12x), x8 +1.15 against
+#   +1.14 (1.11x: a copy there is three x2 passes); the normal maps gain most from copies on
+#   the held-out materials too (docs/BENCHMARKS.md, "Normal maps on two copies of the prior").
+#   fast keeps one copy: +2.42 -> +2.46 dB in 1.19x, a larger share of its shorter run.
+#   quality takes eight of every kind.
 # * fast: PBR-SR's init and export with no optimisation steps, the prior at x2 of the scale
 #   (max_prior_scale 2; bicubic the rest, then the back-projection step). waifu2x-photo's x2
 #   pass on a 512² map costs 2.1 s against 13.0 s for its x4 (two passes), and on the shared
@@ -398,6 +401,7 @@ _CPU = PbrsrConfig(
     lr=2.5e-4,
     prior_maps=PRIOR_MAPS_CPU,
     map_lr={"normal": 0.3, "emissive": 0.0},
+    blend_channel_db=0.1,
     project_lr=PROJECT_LR_CPU,
     lambda_pix=1.0,
     mask_unseen=True,
@@ -416,11 +420,12 @@ FAST = _CPU.with_(
     log_every=5,
 )
 
-BALANCED = FAST.with_(name="balanced", max_prior_scale=None)
+BALANCED = FAST.with_(name="balanced", max_prior_scale=None, self_ensemble_by_kind={"normal": 2})
 
 QUALITY = BALANCED.with_(
     name="quality",
     self_ensemble=8,
+    self_ensemble_by_kind={},
     # the views its steps were measured with (``iterations``; none by default)
     n_candidates=64,
     max_views=16,

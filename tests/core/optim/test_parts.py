@@ -110,7 +110,9 @@ def test_presets_paper_numbers_exact():
     assert p.with_(blend_pick_db=None).blend_pick_db is None
     with pytest.raises(InvalidOptions, match="blend_channel_db"):
         p.with_(blend_channel_db=-0.1)
-    assert all(q.blend_channel_db is None for q in PRESETS.values())  # measured, not taken
+    channel_rule = [n for n, q in PRESETS.items() if q.blend_channel_db == 0.1]
+    assert channel_rule == ["fast", "balanced", "quality"]
+    assert p.blend_channel_db is None  # the paper blends nothing
 
 
 def test_pseudo_gt_cache_roundtrip(tmp_path):

@@ -187,8 +187,9 @@ def test_the_preset_field_per_kind_runs_only_the_normal_map_on_copies(tmp_path: 
         got[len(by_kind)] = {next(iter(i.roles)): i.pixels for i in images}
     assert np.array_equal(got[0]["base_color"], got[1]["base_color"])
     assert np.abs(got[0]["normal"] - got[1]["normal"]).max() > 0.05
-    shipped = (presets.FAST, presets.BALANCED, presets.QUALITY, presets.PAPER)
-    assert all(not p.self_ensemble_by_kind for p in shipped)
+    assert presets.BALANCED.self_ensemble_by_kind == {"normal": 2}
+    assert all(not p.self_ensemble_by_kind for p in (presets.FAST, presets.QUALITY, presets.PAPER))
+    assert averaged(prior, 8, presets.QUALITY.self_ensemble_by_kind).for_kind("normal").n == 8
     for bad in ({"normal": 3}, {"normals": 2}):
         with pytest.raises(InvalidOptions, match="self_ensemble_by_kind"):
             frozen.with_(self_ensemble_by_kind=bad)
