@@ -332,11 +332,11 @@ def _pbrsr_maps(asset, groups, static, prior, options, config, device, timer, pr
     from .prior.symmetry import averaged
 
     # the check, init and blends
-    map_prior = averaged(prior, config.self_ensemble, config.self_ensemble_by_kind)
     images = [img for group in groups.values() for img in group]
     init_encoded, init, lr, lr_pixels, channels = {}, {}, {}, {}, {}  # over every factor
     checks, deblocked, made_by = None, [], {}
     for s, group in groups.items():
+        map_prior = averaged(prior, *config.copies(s))
         px, names = deblocked_lr(group, config, timer)
         for img in group:  # a cutout's hidden colour takes no part (init, losses, projection)
             if (seen_from := cutouts[img.index]) is not None:

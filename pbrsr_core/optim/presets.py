@@ -80,6 +80,9 @@ class PbrsrConfig:
     """Copies of ``self_ensemble`` per map kind (colour, data, normal) for the kinds named:
     ``{"normal": 2}`` averages normal maps over two copies and the others over
     ``self_ensemble``."""
+    self_ensemble_max_scale: int | None = None
+    """Maps upscaled by more than this factor run the prior once, whatever ``self_ensemble``
+    and ``self_ensemble_by_kind`` say. None: the copies are made at every scale."""
     blend_data: bool = False
     """Each channel of a data map is a blend of the prior's candidates, bicubic and, for a
     metallic-roughness map's roughness and metallic, the upscale guided by the material's
@@ -209,6 +212,10 @@ class PbrsrConfig:
                 and all(v in (1, 2, 4, 8) for v in self.self_ensemble_by_kind.values()),
                 f"self_ensemble_by_kind maps kinds among {MAP_KINDS} to 1, 2, 4 or 8",
             ),
+            (
+                self.self_ensemble_max_scale is None or self.self_ensemble_max_scale >= 2,
+                "self_ensemble_max_scale must be None or >= 2",
+            ),
             (self.reach_db is None or self.reach_db > 0, "reach_db must be None or > 0"),
             (
                 self.pseudo_gt_self_ensemble in (1, 2, 4, 8),
@@ -226,6 +233,12 @@ class PbrsrConfig:
     @property
     def weight_map_lr(self) -> float:
         return self.lr if self.lr_weight_maps is None else self.lr_weight_maps
+
+    def copies(self, scale: int) -> tuple[int, dict[str, int]]:
+        """(``self_ensemble``, ``self_ensemble_by_kind``) for maps upscaled by ``scale``."""
+        if self.self_ensemble_max_scale is not None and scale > self.self_ensemble_max_scale:
+            return 1, {}
+        return self.self_ensemble, self.self_ensemble_by_kind
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -350,11 +363,14 @@ CHECK_PRIOR_CPU = ("colour", "data")
 # * self_ensemble_by_kind {"normal": 2} in balanced: normal maps on two copies of the prior, the
 #   other kinds on one. Published runs, the seven shared assets, 40 evaluation views, balanced
 #   against `balanced+blend_channel_db=null+self_ensemble_by_kind={}`: x4 +2.41 against +2.36
-#   dB over bicubic (15.6 against 15.2 s), x2 +2.66 against +2.62 (1.12x), x8 +1.15 against
-#   +1.14 (1.11x: a copy there is three x2 passes); the normal maps gain most from copies on
-#   the held-out materials too (docs/BENCHMARKS.md, "Normal maps on two copies of the prior").
-#   fast keeps one copy: +2.42 -> +2.46 dB in 1.19x, a larger share of its shorter run.
-#   quality takes eight of every kind.
+#   dB over bicubic (15.6 against 15.2 s), x2 +2.66 against +2.62 (1.12x); the normal maps gain
+#   most from copies on the held-out materials too (docs/BENCHMARKS.md, "Normal maps on two
+#   copies of the prior"). fast keeps one copy: +2.42 -> +2.46 dB in 1.19x, a larger share of
+#   its shorter run. quality takes eight of every kind at every scale.
+# * self_ensemble_max_scale 4 in balanced: at x8 a normal map is three x2 passes and a copy
+#   runs all three; the published x8 run against `balanced+self_ensemble_max_scale=null`:
+#   +1.144 against +1.146 dB over bicubic in 0.86x the time (32.4 against 37.5 s), the
+#   renders -0.03..+0.07 dB per asset (docs/BENCHMARKS.md, "x8").
 # * fast: PBR-SR's init and export with no optimisation steps, the prior at x2 of the scale
 #   (max_prior_scale 2; bicubic the rest, then the back-projection step). waifu2x-photo's x2
 #   pass on a 512² map costs 2.1 s against 13.0 s for its x4 (two passes), and on the shared
@@ -420,12 +436,18 @@ FAST = _CPU.with_(
     log_every=5,
 )
 
-BALANCED = FAST.with_(name="balanced", max_prior_scale=None, self_ensemble_by_kind={"normal": 2})
+BALANCED = FAST.with_(
+    name="balanced",
+    max_prior_scale=None,
+    self_ensemble_by_kind={"normal": 2},
+    self_ensemble_max_scale=4,
+)
 
 QUALITY = BALANCED.with_(
     name="quality",
     self_ensemble=8,
     self_ensemble_by_kind={},
+    self_ensemble_max_scale=None,
     # the views its steps were measured with (``iterations``; none by default)
     n_candidates=64,
     max_views=16,

@@ -164,7 +164,8 @@ def test_copies_per_kind_run_each_kind_on_its_own_number():
 
 def test_the_preset_field_per_kind_runs_only_the_normal_map_on_copies(tmp_path: Path, monkeypatch):
     """``self_ensemble_by_kind`` {"normal": 2} in a preset: the colour map through the prior
-    once, the normal map twice, which its init shows; unknown kinds and counts are refused."""
+    once, the normal map twice, which its init shows, and once above ``self_ensemble_max_scale``;
+    unknown kinds and counts are refused."""
     import pbrsr_core.pipeline as pipeline
     from pbrsr_core.optim import presets
 
@@ -189,7 +190,23 @@ def test_the_preset_field_per_kind_runs_only_the_normal_map_on_copies(tmp_path: 
     assert np.abs(got[0]["normal"] - got[1]["normal"]).max() > 0.05
     assert presets.BALANCED.self_ensemble_by_kind == {"normal": 2}
     assert all(not p.self_ensemble_by_kind for p in (presets.FAST, presets.QUALITY, presets.PAPER))
+    # above self_ensemble_max_scale the normal map runs once: x4 makes the maps of no copies,
+    # x2 still takes its two copies
+    capped = frozen.with_(self_ensemble_by_kind={"normal": 2}, self_ensemble_max_scale=2)
+    monkeypatch.setitem(presets.PRESETS, "fast", capped)
+    for scale, calls in ((4, 2), (2, 3)):
+        prior.calls = 0
+        out = tmp_path / f"capped{scale}"
+        upscale_asset(asset, out, UpscaleOptions(preset="fast", prior="l", scale=scale))
+        assert prior.calls == calls, scale
+    images = load_asset(tmp_path / "capped4" / "q.gltf").images
+    assert all(np.array_equal(i.pixels, got[0][next(iter(i.roles))]) for i in images)
+    assert capped.copies(4) == (1, {}) and capped.copies(2) == (1, {"normal": 2})
+    assert presets.BALANCED.copies(8) == (1, {}) and presets.BALANCED.copies(4)[1] == {"normal": 2}
+    assert presets.QUALITY.copies(8) == (8, {})
     assert averaged(prior, 8, presets.QUALITY.self_ensemble_by_kind).for_kind("normal").n == 8
     for bad in ({"normal": 3}, {"normals": 2}):
         with pytest.raises(InvalidOptions, match="self_ensemble_by_kind"):
             frozen.with_(self_ensemble_by_kind=bad)
+    with pytest.raises(InvalidOptions, match="self_ensemble_max_scale"):
+        frozen.with_(self_ensemble_max_scale=1)
