@@ -366,7 +366,8 @@ CHECK_PRIOR_CPU = ("colour", "data")
 #   dB over bicubic (15.6 against 15.2 s), x2 +2.66 against +2.62 (1.12x); the normal maps gain
 #   most from copies on the held-out materials too (docs/BENCHMARKS.md, "Normal maps on two
 #   copies of the prior"). fast keeps one copy: +2.42 -> +2.46 dB in 1.19x, a larger share of
-#   its shorter run. quality takes eight of every kind at every scale.
+#   its shorter run. quality takes eight of every kind at every scale (x8: +1.21 against
+#   balanced's +1.14 dB in 6.5x its time, docs/BENCHMARKS.md "x8").
 # * self_ensemble_max_scale 4 in balanced: at x8 a normal map is three x2 passes and a copy
 #   runs all three; the published x8 run against `balanced+self_ensemble_max_scale=null`:
 #   +1.144 against +1.146 dB over bicubic in 0.86x the time (32.4 against 37.5 s), the
