@@ -135,7 +135,7 @@ def _run_training(
     kind makes the first pass, frozen, while the trained network learns the passes after it
     (from a set's later-pass network where ``init`` has one); ``distill``: it learns the first
     network's own second pass (without ``first``: the start weights' output) instead of the HR
-    crop; ``graphics``: the share of colour and normal crops drawn procedurally; ``int8``: an
+    crop; ``graphics``: the share of crops drawn procedurally; ``int8``: an
     SRMD network trained through its int8 rounding; ``device``: where the networks train and
     the report runs (:func:`~pbrsr_core.device.resolve_device`)."""
     from tqdm import tqdm
@@ -148,7 +148,6 @@ def _run_training(
         split_materials,
         texture_folder,
     )
-    from ..prior.train.graphics import DRAWN_KINDS
     from ..prior.train.loop import TrainConfig, train
     from ..prior.train.weights import ARCHS, resolve_start, start_shape
 
@@ -163,10 +162,6 @@ def _run_training(
     qualities = _jpeg_range(jpeg)
     if jpeg_share is not None and qualities is None:
         raise InvalidOptions("--jpeg-share needs --jpeg LOW-HIGH (the qualities to compress at)")
-    if graphics and not DRAWN_KINDS & set(kind_t):
-        raise InvalidOptions(
-            "procedural graphics are colour and normal crops: train a colour or normal network"
-        )
     configs = []
     for g in groups:
         start = resolve_start(init, g[0], stride, later=first is not None)
@@ -197,7 +192,7 @@ def _run_training(
                 residual=start_residual if residual is None else residual,
                 first=None if first is None else resolve_start(first, g[0], 2),
                 distill=distill,
-                graphics=graphics if DRAWN_KINDS & set(g) else 0.0,
+                graphics=graphics,
                 int8=int8,
                 loss=loss,
             )
@@ -316,10 +311,10 @@ _DISTILL = typer.Option(
 )
 _GRAPHICS = typer.Option(
     0.0,
-    help="Share of the colour and normal crops drawn procedurally "
-    "(pbrsr_core/prior/train/graphics.py) in place of material crops: text, shapes and lines, "
-    "drawn in colour or raised and sunk as a baked normal map; the labels, decals and "
-    "modelled details that the CC0 materials seldom show.",
+    help="Share of the crops drawn procedurally (pbrsr_core/prior/train/graphics.py) in place "
+    "of material crops: text, shapes and lines, drawn in colour, in grey levels as a data map "
+    "(half of them 0/255 masks) or raised and sunk as a baked normal map; the labels, decals, "
+    "metal masks and modelled details that the CC0 materials seldom show.",
 )
 _LOSS = typer.Option(
     "l1",

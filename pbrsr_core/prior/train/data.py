@@ -15,8 +15,8 @@ a normal map stays a normal map (:func:`dihedral`), then blurred and bicubic-dow
 :func:`pbrsr_core.degrade.degrade_tensor` (normal LR crops are renormalised, as
 ``pbrsr degrade`` writes them). With a JPEG stage (``jpeg``: a quality range), a share of
 the LR crops (half by default) are then compressed as a JPEG file would store them
-(:func:`jpeg_lr`), as real assets ship their maps. A share of the colour and normal crops may
-be procedural drawings instead (``graphics``, :mod:`.graphics`). Batches are a pure function of
+(:func:`jpeg_lr`), as real assets ship their maps. A share of the crops may be procedural
+drawings instead (``graphics``, :mod:`.graphics`). Batches are a pure function of
 ``(seed, step)``, so a run resumed from a checkpoint draws exactly the batches it would have
 drawn.
 """
@@ -36,7 +36,7 @@ from ...asset.jpeg import compress, standard_quant
 from ...degrade import check_kernels, downsample
 from ...errors import InvalidOptions
 from ..symmetry import dihedral
-from .graphics import DRAWN_KINDS, graphics_crop, normal_graphics_crop
+from .graphics import data_graphics_crop, graphics_crop, normal_graphics_crop
 
 KINDS = ("colour", "data", "normal")
 SCALAR_MAPS = ("roughness", "metallic", "ao", "height")
@@ -219,8 +219,10 @@ class CropSampler:
         self.graphics, self.kernels = graphics, kernels
 
     def _crop(self, rng: np.random.Generator, kind: str) -> np.ndarray:
-        if kind in DRAWN_KINDS and self.graphics and rng.random() < self.graphics:
-            draw = graphics_crop if kind == "colour" else normal_graphics_crop
+        if self.graphics and rng.random() < self.graphics:
+            draw = {"colour": graphics_crop, "data": data_graphics_crop}.get(
+                kind, normal_graphics_crop
+            )
             return draw(rng, self.patch)
         mats = self.by_kind[kind]
         mat = mats[rng.integers(len(mats))]

@@ -1,11 +1,13 @@
-"""Procedural drawings for colour and normal crops: text, rectangles, ellipses and lines.
+"""Procedural drawings for colour, data and normal crops: text, rectangles, ellipses and lines.
 
 Game textures carry drawn and modelled content that the CC0 material scans of the training
 set seldom show. Colour maps hold labels, decals, panel markings and printed text: hard edges
-between flat colours, thin strokes, glyphs (:func:`graphics_crop`). Normal maps baked from a
-high-poly model hold embossed and engraved shapes: flat areas, bevelled rims, grooves, raised
-lettering (:func:`normal_graphics_crop`). A training run can give a share of its colour or
-normal samples to them (``TrainConfig.graphics``); a drawing is its own HR ground truth, and
+between flat colours, thin strokes, glyphs (:func:`graphics_crop`). Metallic, roughness and
+occlusion maps of modelled parts hold masks and painted regions: flat levels with hard edges
+(:func:`data_graphics_crop`). Normal maps baked from a high-poly model hold embossed and
+engraved shapes: flat areas, bevelled rims, grooves, raised lettering
+(:func:`normal_graphics_crop`). A training run can give a share of its samples to them
+(``TrainConfig.graphics``); a drawing is its own HR ground truth, and
 with ``--distill`` it needs none. Everything is drawn at twice the crop size and box-filtered
 down, so edges are antialiased as a rasterised texture's are; text uses Pillow's built-in
 font (the same glyphs on every machine)."""
@@ -16,9 +18,6 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFilter, ImageFont
 
 GLYPHS = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789-+.%/&#"
-DRAWN_KINDS = frozenset({"colour", "normal"})
-"""The map kinds a drawing can stand in for (:func:`graphics_crop`,
-:func:`normal_graphics_crop`)."""
 
 
 def _colour(rng: np.random.Generator) -> tuple[int, int, int]:
@@ -57,6 +56,25 @@ def graphics_crop(rng: np.random.Generator, patch: int) -> np.ndarray:
     for _ in range(int(rng.integers(3, 9))):
         _shape(draw, rng, side, _colour(rng))
     return np.asarray(img.resize((patch, patch), Image.Resampling.BOX), dtype=np.uint8).copy()
+
+
+def data_graphics_crop(rng: np.random.Generator, patch: int) -> np.ndarray:
+    """A (patch, patch, 3) uint8 scalar map, the same in its three channels: a flat level and
+    3-8 shapes (:func:`_shape`), each of one level; half of them masks, every level 0 or
+    255 (metal masks of modelled parts), the rest of any level (painted roughness and
+    occlusion regions)."""
+    side = 2 * patch
+    binary = rng.random() < 0.5
+
+    def level() -> int:
+        return int(rng.integers(2)) * 255 if binary else int(rng.integers(256))
+
+    img = Image.new("L", (side, side), level())
+    draw = ImageDraw.Draw(img)
+    for _ in range(int(rng.integers(3, 9))):
+        _shape(draw, rng, side, level())
+    grey = np.asarray(img.resize((patch, patch), Image.Resampling.BOX), dtype=np.uint8)
+    return np.repeat(grey[..., None], 3, axis=2).copy()
 
 
 def normal_graphics_crop(rng: np.random.Generator, patch: int) -> np.ndarray:

@@ -36,7 +36,6 @@ from ..int8 import Calibration, FakeInt8, Int8SRMD, calibrate
 from ..waifu2x import UpConv7
 from . import weights
 from .data import KINDS, CropSampler, Material, degrade_pair, validation_crops
-from .graphics import DRAWN_KINDS
 
 CHECKPOINT = "checkpoint.pt"
 LOSSES = ("l1", "l1-backprojected")
@@ -106,10 +105,10 @@ class TrainConfig:
     trains for inputs made as the benchmark makes them; a mix, for LR maps made otherwise
     (mipmaps, image editors)."""
     graphics: float = 0.0
-    """Share of the colour and normal crops drawn procedurally (text, shapes, lines in colour,
-    or raised and sunk as a normal map: :mod:`~pbrsr_core.prior.train.graphics`) instead of
-    cut from a material; a drawing is its own HR ground truth, and with ``distill`` the target
-    is the first network's second pass."""
+    """Share of the crops drawn procedurally (text, shapes, lines in colour, in grey levels as
+    a data map, or raised and sunk as a normal map: :mod:`~pbrsr_core.prior.train.graphics`)
+    instead of cut from a material; a drawing is its own HR ground truth, and with ``distill``
+    the target is the first network's second pass."""
     int8: bool = False
     """SRMD only: train through the int8 network's rounding (:class:`~pbrsr_core.prior.int8.
     FakeInt8`, activation ranges calibrated on the start weights), and validate it in int8,
@@ -153,10 +152,6 @@ class TrainConfig:
         check_kernels(self.kernels)
         if not 0.0 <= self.graphics <= 1.0:
             raise InvalidOptions(f"the graphics share must be in [0, 1], not {self.graphics}")
-        if self.graphics and not DRAWN_KINDS & set(self.kinds):
-            raise InvalidOptions(
-                "procedural graphics are colour and normal crops: train a colour or normal network"
-            )
         if not (0.0 <= self.ema < 1.0):
             raise InvalidOptions(f"ema must be in [0, 1), not {self.ema}")
         if self.arch == "spandrel" or self.init.startswith(weights.SPANDREL):
@@ -273,8 +268,8 @@ def calibration_crops(
     materials: list[Material], kinds: tuple[str, ...], scale: int, patch: int, n: int, seed: int
 ) -> torch.Tensor:
     """``n`` LR crops (HR side ``patch``) of ``materials`` for an int8 calibration: drawn as a
-    training run draws its batches, the kinds in turn, half of the colour and normal crops
-    drawn procedurally (their hard edges set the activation ranges as much as the materials
+    training run draws its batches, the kinds in turn, half of the crops drawn
+    procedurally (their hard edges set the activation ranges as much as the materials
     do: pbr-srmd's colour network calibrated on 128² crops of the materials alone scored
     38.42 dB on the shared assets' albedo crops, with half of them drawn 38.60)."""
     sampler = CropSampler(materials, kinds, scale, patch, 8, seed, None, 0.5, 0.5)

@@ -219,13 +219,13 @@ def _kernels_line(nets: list) -> str:
 
 
 def _graphics_line(nets: list) -> str:
-    """The share of procedural colour crops of the networks trained with some (or nothing)."""
+    """The share of procedural crops of the networks trained with some (or nothing)."""
     parts = [f"{f.name}: {cfg['graphics']:.0%}" for f, _, cfg, _ in nets if cfg.get("graphics")]
     if not parts:
         return ""
     return (
-        " Colour crops drawn procedurally (flat-coloured text, shapes and lines, "
-        "`pbrsr_core/prior/train/graphics.py`) in place of material crops: "
+        " Crops drawn procedurally (text, shapes and lines in flat colours, grey levels or "
+        "baked normals, `pbrsr_core/prior/train/graphics.py`) in place of material crops: "
         + "; ".join(parts)
         + "."
     )

@@ -29,7 +29,12 @@ from pbrsr_core.prior.train.data import (
     split_materials,
     validation_crops,
 )
-from pbrsr_core.prior.train.graphics import graphics_crop, height_normals, normal_graphics_crop
+from pbrsr_core.prior.train.graphics import (
+    data_graphics_crop,
+    graphics_crop,
+    height_normals,
+    normal_graphics_crop,
+)
 from pbrsr_core.prior.train.loop import (
     TrainConfig,
     Validator,
@@ -216,16 +221,30 @@ def test_lr_kernels_are_drawn_per_crop_and_validation_takes_them_in_turn(materia
         TrainConfig(kernels=("nearest",)).check()
 
 
-def test_graphics_crops_are_flat_coloured_drawings_drawn_from_the_generator():
-    a = graphics_crop(np.random.default_rng(3), 64)
+@pytest.mark.parametrize("draw", [graphics_crop, data_graphics_crop, normal_graphics_crop])
+def test_a_drawing_is_a_crop_drawn_from_its_generator(draw):
+    a = draw(np.random.default_rng(3), 64)
     assert a.shape == (64, 64, 3) and a.dtype == np.uint8
-    assert np.array_equal(a, graphics_crop(np.random.default_rng(3), 64))
-    assert not np.array_equal(a, graphics_crop(np.random.default_rng(4), 64))
+    assert np.array_equal(a, draw(np.random.default_rng(3), 64))
+    assert not np.array_equal(a, draw(np.random.default_rng(4), 64))
+
+
+def test_graphics_crops_are_flat_coloured_drawings():
     crops = [graphics_crop(np.random.default_rng(s), 64) for s in range(20)]
     # flat colours with antialiased edges: most texels repeat a neighbour, and edges exist
     flat = np.mean([np.mean(np.all(c[:, 1:] == c[:, :-1], axis=2)) for c in crops])
     assert flat > 0.6, flat
     assert all(len(np.unique(c.reshape(-1, 3), axis=0)) > 1 for c in crops)
+
+
+def test_data_graphics_crops_are_grey_regions_half_of_them_masks():
+    crops = [data_graphics_crop(np.random.default_rng(s), 64) for s in range(40)]
+    assert all((c[..., 0] == c[..., 1]).all() and (c[..., 0] == c[..., 2]).all() for c in crops)
+    # a mask's texels are 0 or 255 but on its antialiased edges
+    masks = [c for c in crops if np.mean((c[..., 0] == 0) | (c[..., 0] == 255)) > 0.9]
+    assert 10 <= len(masks) <= 30, len(masks)
+    flat = np.mean([np.mean(c[:, 1:, 0] == c[:, :-1, 0]) for c in crops])
+    assert flat > 0.6, flat
 
 
 def test_height_normals_lean_away_from_the_rise_in_the_opengl_frame():
@@ -245,10 +264,6 @@ def test_height_normals_lean_away_from_the_rise_in_the_opengl_frame():
 
 
 def test_normal_graphics_crops_are_normal_maps_of_flat_ground_and_bevelled_shapes():
-    a = normal_graphics_crop(np.random.default_rng(3), 64)
-    assert a.shape == (64, 64, 3) and a.dtype == np.uint8
-    assert np.array_equal(a, normal_graphics_crop(np.random.default_rng(3), 64))
-    assert not np.array_equal(a, normal_graphics_crop(np.random.default_rng(4), 64))
     flat, tilted = [], []
     for seed in range(20):
         n = normal_graphics_crop(np.random.default_rng(seed), 64).astype(np.float64) / 127.5 - 1
@@ -261,7 +276,7 @@ def test_normal_graphics_crops_are_normal_maps_of_flat_ground_and_bevelled_shape
     assert sum(t > 0.01 for t in tilted) >= 15, tilted  # bevels that lean the normal
 
 
-def test_graphics_share_replaces_colour_and_normal_crops_and_stays_deterministic(
+def test_graphics_share_replaces_crops_of_every_kind_and_stays_deterministic(
     materials, monkeypatch
 ):
     train_m, _ = materials
@@ -282,9 +297,9 @@ def test_graphics_share_replaces_colour_and_normal_crops_and_stays_deterministic
         flat(h) < 0.2 for h, kind in zip(*plain.batch(2)[1:], strict=True) if kind == "colour"
     )
     for i, kind in enumerate(k):
-        assert kind != "colour" or flat(hr[i]) > 0.5
+        assert kind == "normal" or flat(hr[i]) > 0.5  # drawn in flat colours or levels
         assert torch.equal(lr[i], degrade_pair(hr[i][None], 2, kind)[0])
-    drawn = {"colour": 0, "normal": 0}
+    drawn = {"colour": 0, "data": 0, "normal": 0}
 
     def counted(kind, draw):
         def fn(rng, p):
@@ -295,9 +310,10 @@ def test_graphics_share_replaces_colour_and_normal_crops_and_stays_deterministic
 
     monkeypatch.setattr(data_mod, "graphics_crop", counted("colour", graphics_crop))
     monkeypatch.setattr(data_mod, "normal_graphics_crop", counted("normal", normal_graphics_crop))
+    monkeypatch.setattr(data_mod, "data_graphics_crop", counted("data", data_graphics_crop))
     every.batch(3)
-    assert drawn == {"colour": 2, "normal": 2}  # every colour and normal crop of 6, no data crop
-    drawn.update(colour=0, normal=0)
+    assert drawn == {"colour": 2, "data": 2, "normal": 2}  # every crop of 6
+    drawn.update(colour=0, data=0, normal=0)
     half = CropSampler(train_m, ("colour", "normal"), 2, 32, 8, seed=5, graphics=0.5)
     for step in range(8):
         half.batch(step)
@@ -305,8 +321,7 @@ def test_graphics_share_replaces_colour_and_normal_crops_and_stays_deterministic
     with pytest.raises(InvalidOptions, match="graphics share"):
         TrainConfig(kinds=("colour",), graphics=1.5).check()
     TrainConfig(kinds=("normal",), graphics=0.5).check()
-    with pytest.raises(InvalidOptions, match="colour or normal network"):
-        TrainConfig(kinds=("data",), graphics=0.5).check()
+    TrainConfig(kinds=("data",), graphics=0.5).check()
 
 
 def test_bad_jpeg_range_is_refused():
@@ -645,7 +660,6 @@ def test_cli_trains_reports_and_the_result_is_a_prior(tmp_path, capfd):
         (["--jpeg", "95-70"], "JPEG qualities"),
         (["--jpeg-share", "1"], "--jpeg-share needs --jpeg"),
         (["--graphics", "2"], "graphics share"),
-        (["--graphics", "0.5", "--kinds", "data"], "colour or normal network"),
         (["--kernels", "area,box"], "unknown LR kernel(s) box"),
         (["--kernels", ","], "(none given)"),
     ],
