@@ -220,10 +220,12 @@ class CropSampler:
 
     def _crop(self, rng: np.random.Generator, kind: str) -> np.ndarray:
         if self.graphics and rng.random() < self.graphics:
-            draw = {"colour": graphics_crop, "data": data_graphics_crop}.get(
-                kind, normal_graphics_crop
-            )
-            return draw(rng, self.patch)
+            drawings = {
+                "colour": graphics_crop,
+                "data": data_graphics_crop,
+                "normal": normal_graphics_crop,
+            }
+            return drawings[kind](rng, self.patch)
         mats = self.by_kind[kind]
         mat = mats[rng.integers(len(mats))]
         h, w = mat.size(kind)
