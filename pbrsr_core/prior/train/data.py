@@ -264,7 +264,8 @@ def validation_crops(
     """Fixed HR crops (name, (patch, patch, 3) uint8) of held-out materials for ``kind``:
     ``per_material`` crops at positions set by the material's name, so every run and every
     prior is scored on the same pixels. A data crop is one scalar map in all three channels,
-    the crops of a material taking its scalar maps in turn (each at least once)."""
+    the crops of a material taking its scalar maps in turn (each at least once); its name
+    ends in the map's (``material#i:roughness``, :func:`crop_map`)."""
     out = []
     for mat in materials:
         if not mat.has(kind) or min(mat.size(kind)) < patch:
@@ -283,5 +284,14 @@ def validation_crops(
                 crop = mat.maps["normal"][win]
             else:
                 crop = np.repeat(mat.maps[have[i % len(have)]][win], 3, axis=2)
-            out.append((f"{mat.name}#{i}", np.ascontiguousarray(crop)))
+            tag = f":{have[i % len(have)]}" if kind == "data" else ""
+            out.append((f"{mat.name}#{i}{tag}", np.ascontiguousarray(crop)))
     return out
+
+
+def crop_map(name: str, kind: str) -> str:
+    """The map type of a :func:`validation_crops` crop: basecolor, normal, or the scalar map
+    a data crop holds."""
+    if kind == "data":
+        return name.rpartition(":")[2]
+    return "basecolor" if kind == "colour" else "normal"

@@ -4,9 +4,12 @@ materials (``report.json``, ``report.md``), and a model card (``MODEL_CARD.md``)
 
 Scores: PSNR of the stored values (sRGB for colour, linear for data, encoded for normals)
 with ``s`` pixels shaved off each border, and for normal maps the mean angle between the
-decoded vectors in degrees. Every prior runs as pbrsr runs it (:meth:`Prior.upscale`, with
-back-projection; normal maps at their LR crop's length as
-:func:`~pbrsr_core.prior.direct.upscale_map` stores them), on the same crops.
+decoded vectors in degrees. ``psnr`` pools the crops (one mean squared error over all of
+them), so the crops furthest from their ground truth weigh most; ``crop_psnr`` is the mean of
+each crop's own PSNR (the convention of SR benchmarks), and for data maps ``by_map`` gives it
+per map type (roughness, metallic, ao, height), each a different signal. Every prior runs as
+pbrsr runs it (:meth:`Prior.upscale`, with back-projection; normal maps at their LR crop's
+length as :func:`~pbrsr_core.prior.direct.upscale_map` stores them), on the same crops.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -21,7 +25,7 @@ import torch
 from .. import compact, srmd, waifu2x
 from ..base import Prior
 from ..direct import normal_length, renormalize_encoded_normals
-from .data import KINDS, Material, degrade_pair, validation_crops
+from .data import KINDS, SCALAR_MAPS, Material, crop_map, degrade_pair, validation_crops
 from .loop import HISTORY, psnr
 
 PATCH = 256
@@ -43,10 +47,10 @@ def score_prior(
     crops: list[tuple[str, np.ndarray]],
     scale: int,
     kernel: str = "gaussian",
-) -> dict[str, float]:
-    """PSNR (and for normals the angular error) of ``prior`` on HR crops degraded by
-    ``scale`` (the protocol, or another ``kernel``); ``seconds`` is its run time over all
-    crops."""
+) -> dict[str, Any]:
+    """PSNR (pooled and the crops' mean; for data maps per map type too; for normals the
+    angular error) of ``prior`` on HR crops degraded by ``scale`` (the protocol, or another
+    ``kernel``); ``seconds`` is its run time over all crops."""
     hr = torch.stack([torch.from_numpy(c).permute(2, 0, 1).float() / 255 for _, c in crops])
     lr = degrade_pair(hr, scale, kind, kernel)
     p = prior.for_kind(kind)
@@ -56,7 +60,20 @@ def score_prior(
     if kind == "normal":
         up = renormalize_encoded_normals(up, normal_length(lr, scale))
     s = scale
-    out = {"psnr": psnr(up[..., s:-s, s:-s], hr[..., s:-s, s:-s]), "seconds": seconds}
+    err = (up[..., s:-s, s:-s] - hr[..., s:-s, s:-s]).double().pow(2).mean((1, 2, 3))
+    each = (-10.0 * torch.log10(err.clamp_min(1e-12))).tolist()
+    out: dict[str, Any] = {
+        "psnr": psnr(up[..., s:-s, s:-s], hr[..., s:-s, s:-s]),
+        "crop_psnr": float(np.mean(each)),
+        "seconds": seconds,
+    }
+    if kind == "data":
+        by_map: dict[str, list[float]] = {}
+        for (name, _), v in zip(crops, each, strict=True):
+            by_map.setdefault(crop_map(name, kind), []).append(v)
+        out["by_map"] = {
+            m: {"crops": len(v), "crop_psnr": float(np.mean(v))} for m, v in by_map.items()
+        }
     if kind == "normal":
         out["angle"] = angular_error(up[..., s:-s, s:-s], hr[..., s:-s, s:-s])
     return out
@@ -143,6 +160,7 @@ def _table(results: dict) -> str:
         labels = list(dict.fromkeys(label for s in scales for label in by_scale[s]))
         time_scale = "4" if "4" in scales else scales[0]
         head = "| prior | " + " | ".join(f"x{s} PSNR" for s in scales)
+        head += " | " + " | ".join(f"x{s} crop mean" for s in scales)
         if kind == "normal":
             head += " | " + " | ".join(f"x{s} angle °" for s in scales)
         head += f" | x{time_scale} s |"
@@ -150,16 +168,47 @@ def _table(results: dict) -> str:
 
         def cell(s: str, label: str, key: str, by_scale=by_scale) -> str:
             entry = by_scale[s].get(label)
-            return "-" if entry is None else f"{entry[key]:.2f}"
+            return "-" if entry is None or key not in entry else f"{entry[key]:.2f}"
 
         for label in labels:
             row = [cell(s, label, "psnr") for s in scales]
+            row += [cell(s, label, "crop_psnr") for s in scales]
             if kind == "normal":
                 row += [cell(s, label, "angle") for s in scales]
             lines.append(
                 f"| {label} | " + " | ".join(row) + f" | {cell(time_scale, label, 'seconds')} |"
             )
+        if kind == "data":
+            lines += _by_map_table(by_scale, scales, labels)
+    lines.append(
+        "\nPSNR pools each table's crops (one mean squared error), so the crops furthest from "
+        "their ground truth weigh most; crop mean: the mean of each crop's PSNR.\n"
+    )
     return "\n".join(lines) + "\n"
+
+
+def _by_map_table(by_scale: dict, scales: list[str], labels: list[str]) -> list[str]:
+    """The data maps' crop means per map type, one column per type and scale."""
+    seen = {m for s in scales for e in by_scale[s].values() for m in e.get("by_map", {})}
+    maps = [m for m in SCALAR_MAPS if m in seen]
+    if not maps:
+        return []
+    counts = {
+        m: e["by_map"][m]["crops"]
+        for e in by_scale[scales[0]].values()
+        for m in e.get("by_map", {})
+    }
+    cols = [(s, m) for m in maps for s in scales]
+    head = "| prior | " + " | ".join(f"{m} ({counts.get(m, 0)}) x{s}" for s, m in cols) + " |"
+    out = ["", "By map type (crop mean PSNR; crops of each in brackets):", "", head]
+    out.append("|" + " --- |" * (len(cols) + 1))
+    for label in labels:
+        cells = []
+        for s, m in cols:
+            e = by_scale[s].get(label, {}).get("by_map", {}).get(m)
+            cells.append("-" if e is None else f"{e['crop_psnr']:.2f}")
+        out.append(f"| {label} | " + " | ".join(cells) + " |")
+    return out
 
 
 def write_report(

@@ -742,6 +742,36 @@ def test_start_weights_resolve_per_kind(tmp_path):
         resolve_start("rrdn-thick", "colour", 2)
 
 
+def test_report_scores_each_crop_and_each_data_map_type(materials):
+    """Pooled PSNR lets the crops furthest from their ground truth decide; the report also
+    gives the mean of each crop's PSNR, and for data maps that mean per map type, each
+    recomputed here crop by crop."""
+    from pbrsr_core.prior.train.report import _table, score_prior
+
+    train_m, held_m = materials
+    crops = validation_crops(held_m + train_m, "data", 32)
+    types = {n.rpartition(":")[2] for n, _ in crops}
+    assert types == {"roughness", "metallic"}
+    scores = score_prior(load_prior("bicubic"), "data", crops, 2)
+    own = []
+    for _, c in crops:
+        hr = torch.from_numpy(c).permute(2, 0, 1)[None].float() / 255
+        up = load_prior("bicubic").upscale(degrade_pair(hr, 2, "data"), 2)
+        own.append(-10 * np.log10(float(((up - hr)[..., 2:-2, 2:-2] ** 2).mean())))
+    assert scores["crop_psnr"] == pytest.approx(np.mean(own), abs=1e-4)
+    assert scores["crop_psnr"] >= scores["psnr"]  # the mean of logs against the log of a mean
+    by_map = scores["by_map"]
+    assert sum(e["crops"] for e in by_map.values()) == len(crops) and set(by_map) == types
+    for m, e in by_map.items():
+        mine = [v for (n, _), v in zip(crops, own, strict=True) if n.endswith(f":{m}")]
+        assert e["crop_psnr"] == pytest.approx(np.mean(mine), abs=1e-4)
+    md = _table({"data": {"crops": len(crops), "materials": 2, "2": {"bicubic": scores}}})
+    assert "| prior | x2 PSNR | x2 crop mean | x2 s |" in md
+    head = f"| prior | roughness ({by_map['roughness']['crops']}) x2 | metallic ("
+    row = next(line for line in md.splitlines() if line.startswith(head))
+    assert row.endswith(f"({by_map['metallic']['crops']}) x2 |")
+
+
 def test_report_leaves_out_the_scales_a_set_cannot_run(tmp_path):
     """A set of x4 networks only has no x2 (nor x8) entry; its x4 is scored."""
     from pbrsr_core.prior.train.report import write_report
