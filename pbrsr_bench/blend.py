@@ -87,14 +87,15 @@ def score_crop(
     rules: list[tuple[float, float, float | None, bool, float | None]],
     max_prior_scale: int | None = None,
     jpeg: int | None = None,
+    subsampled: bool = False,
 ) -> tuple[list[dict], dict[str, int], dict[str, int]]:
     """One material crop: per channel of ``present`` that its check does not find flat, the
     gains over bicubic at the real scale (rows); per rule the networks the blend runs, and
     their runs (one per network and channel)."""
     kw = {"max_prior_scale": max_prior_scale}
     (lr_c, stored_c), (lr_d, stored_d) = (
-        presets_low_res(colour, scale, jpeg),
-        presets_low_res(packed, scale, jpeg),
+        presets_low_res(colour, scale, jpeg, subsampled=subsampled),
+        presets_low_res(packed, scale, jpeg, subsampled=subsampled),
     )
     c_check = prior_self_check(prior, lr_c, scale, "colour", stored=stored_c, **kw)
     by_name = {p.name: p for p in prior.candidates("colour")}
@@ -230,13 +231,14 @@ def run(
     max_prior_scale: int | None = None,
     jpeg: int | None = None,
     channel_dbs: tuple[float | None, ...] = (None,),
+    subsampled: bool = False,
 ) -> dict:
     """Score the blend of ``prior``'s data upscales at ``scale`` for every rule of
     ``margins``, ``network_dbs``, ``pick_dbs`` (None: no pick rule), ``pick_floors``
     (``blend_pick_floor``: networks kept where a channel needs them to reach its pick) and
     ``channel_dbs`` (``blend_channel_db``; None: off) on
     packed crops of ``size`` HR pixels of the held-out materials, the LR crops stored as JPEG
-    of quality ``jpeg`` when given."""
+    of quality ``jpeg`` when given (4:2:0 with ``subsampled``)."""
     if scale not in (2, 4, 8):
         raise ValueError(f"scale must be 2, 4 or 8, not {scale}")
     if size < 16 * scale:
@@ -261,7 +263,7 @@ def run(
         for name, colour, packed in packed_crops(mat, size):
             log(f"{name}: {', '.join(PACKED[c] for c in present)}")
             crop_rows, networks, runs = score_crop(p, colour, packed, present, scale, rules,
-                                             max_prior_scale, jpeg)  # fmt: skip
+                                             max_prior_scale, jpeg, subsampled)  # fmt: skip
             if not crop_rows:
                 continue
             rows += [{"map": f"{name}[{r['channel']}]", **r} for r in crop_rows]
@@ -278,6 +280,7 @@ def run(
         "size": size,
         "max_prior_scale": max_prior_scale,
         "jpeg": jpeg,
+        "subsampled": subsampled,
         "materials": held,
         "rules": [rule_name(*r) for r in rules],
         "rule_values": rules,

@@ -53,26 +53,32 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
     return min(psnr(a, b), 100.0)
 
 
-def low_res(hr: np.ndarray, scale: int, jpeg: int | None = None) -> np.ndarray:
+def low_res(
+    hr: np.ndarray, scale: int, jpeg: int | None = None, subsampled: bool = False
+) -> np.ndarray:
     """The LR map of an HR crop (H, W, 3): the protocol's degradation, then with ``jpeg`` a
-    JPEG file's pixels at that quality (4:4:4)."""
+    JPEG file's pixels at that quality (4:4:4, or 4:2:0 with ``subsampled``)."""
     lr = degrade_image(hr, scale)
     if jpeg is None:
         return lr
     t = torch.from_numpy(np.ascontiguousarray(lr)).permute(2, 0, 1)[None]
-    return compress(t, standard_quant(jpeg))[0].permute(1, 2, 0).numpy()
+    return compress(t, standard_quant(jpeg, subsampled))[0].permute(1, 2, 0).numpy()
 
 
 def presets_low_res(
-    hr: np.ndarray, scale: int, jpeg: int | None = None, deblock_jpeg: bool = True
+    hr: np.ndarray,
+    scale: int,
+    jpeg: int | None = None,
+    deblock_jpeg: bool = True,
+    subsampled: bool = False,
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """(the LR map as the presets check and upscale it, the map as stored where that differs):
     with ``jpeg`` (and ``deblock_jpeg``) the file's pixels deblocked with its tables, and those
-    pixels."""
-    lr = low_res(hr, scale, jpeg)
+    pixels; ``subsampled``: the file's chroma at half resolution (4:2:0)."""
+    lr = low_res(hr, scale, jpeg, subsampled)
     if jpeg is None or not deblock_jpeg:
         return lr, None
-    return deblock(lr, standard_quant(jpeg)), lr
+    return deblock(lr, standard_quant(jpeg, subsampled)), lr
 
 
 def score_map(
@@ -83,10 +89,11 @@ def score_map(
     name: str,
     jpeg: int | None = None,
     deblock_jpeg: bool = True,
+    subsampled: bool = False,
 ) -> list[dict]:
     """One HR crop (H, W, 3) in [0, 1]: the check's decision and every option's PSNR at the
     real scale, per part (the whole map for colour, each distinct channel for data)."""
-    lr, stored = presets_low_res(hr, scale, jpeg, deblock_jpeg)
+    lr, stored = presets_low_res(hr, scale, jpeg, deblock_jpeg, subsampled)
     check = prior_self_check(prior, lr, scale, kind, stored=stored)
     candidates = prior.candidates(kind)
     ups = {c.name: upscale_map(c, lr, kind, scale) for c in candidates}
@@ -160,11 +167,12 @@ def run(
     sizes: tuple[int, ...] = (1024, 512),
     jpeg: int | None = None,
     deblock_jpeg: bool = True,
+    subsampled: bool = False,
 ) -> dict:
     """Score the self-check of ``prior`` at ``scale`` on centre-placed crops of ``sizes`` HR
     pixels (one per held-out material and kind; a material smaller than a size is skipped),
-    the LR crops stored as JPEG of quality ``jpeg`` when given (deblocked unless
-    ``deblock_jpeg`` is off)."""
+    the LR crops stored as JPEG of quality ``jpeg`` when given (4:2:0 with ``subsampled``;
+    deblocked unless ``deblock_jpeg`` is off)."""
     if scale not in (2, 4, 8):
         raise ValueError(f"scale must be 2, 4 or 8, not {scale}")
     if not sizes or min(sizes) < 16 * scale:
@@ -181,7 +189,8 @@ def run(
             for name, crop in crops:
                 log(f"{kind} {size}: {name}")
                 hr = crop.astype(np.float32) / 255.0
-                rows += score_map(p, hr, kind, scale, name.split("#")[0], jpeg, deblock_jpeg)
+                rows += score_map(p, hr, kind, scale, name.split("#")[0], jpeg, deblock_jpeg,
+                                  subsampled)  # fmt: skip
     if not rows:
         raise ValueError(f"no held-out material in {textures} has maps of {min(sizes)} px")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -189,6 +198,7 @@ def run(
         "prior": p.name,
         "scale": scale,
         "jpeg": jpeg,
+        "subsampled": subsampled,
         "deblock": deblock_jpeg,
         "materials": held,
         "rows": rows,
@@ -201,7 +211,8 @@ def _jpeg_note(result: dict) -> str:
     if not result.get("jpeg"):
         return ""
     done = "deblocked" if result.get("deblock", True) else "not deblocked"
-    return f", LR stored as JPEG quality {result['jpeg']}, {done}"
+    chroma = "4:2:0" if result.get("subsampled") else "4:4:4"
+    return f", LR stored as JPEG quality {result['jpeg']} {chroma}, {done}"
 
 
 def markdown_table(result: dict) -> str:

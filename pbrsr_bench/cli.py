@@ -105,6 +105,9 @@ def check_cmd(
     deblock: bool = typer.Option(
         True, help="Deblock the JPEG crops with their tables before the check, as the presets do."
     ),
+    chroma: str = typer.Option(
+        "4:4:4", help="With --jpeg: the crops' chroma at full (4:4:4) or half resolution (4:2:0)."
+    ),
 ) -> None:
     """The prior's self-check against the real scale on held-out texture materials: the gain
     over bicubic of the check's choices, of each candidate alone and of the oracle, and the
@@ -122,7 +125,15 @@ def check_cmd(
         sizes=_ints(sizes),
         jpeg=jpeg,
         deblock_jpeg=deblock,
+        subsampled=_subsampled(chroma),
     )
+
+
+def _subsampled(chroma: str) -> bool:
+    """--chroma: 4:2:0 (True) or 4:4:4 (False); anything else is refused."""
+    if chroma not in ("4:4:4", "4:2:0"):
+        _bad_input(ValueError(f"--chroma takes 4:4:4 or 4:2:0, not {chroma!r}"))
+    return chroma == "4:2:0"
 
 
 def _floats(text: str) -> tuple[float, ...]:
@@ -167,8 +178,10 @@ def blend_cmd(
         None,
         min=1,
         max=100,
-        help="Store the LR crops as JPEG at this quality (4:4:4) and deblock them, as the "
-        "presets do.",
+        help="Store the LR crops as JPEG at this quality and deblock them, as the presets do.",
+    ),
+    chroma: str = typer.Option(
+        "4:4:4", help="With --jpeg: the crops' chroma at full (4:4:4) or half resolution (4:2:0)."
     ),
 ) -> None:
     """The presets' blend of data channels on held-out texture materials, rule by rule: the
@@ -206,6 +219,7 @@ def blend_cmd(
         max_prior_scale=max_prior_scale,
         jpeg=jpeg,
         channel_dbs=channel_values,
+        subsampled=_subsampled(chroma),
     )
 
 

@@ -214,5 +214,5 @@ def test_jpeg_lr_crops_are_deblocked_as_the_presets_deblock_them(
     )
     assert code == 0, err
     saved = json.loads((tmp_path / "blend.json").read_text())
-    assert saved["jpeg"] == 60 and "JPEG quality 60, deblocked" in markdown_table(saved)
+    assert saved["jpeg"] == 60 and "JPEG quality 60 4:4:4, deblocked" in markdown_table(saved)
     assert saved["rules"] == ["margin 0, networks 0.1", "margin 0.1, networks 0.1"]

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from pbrsr_bench.check import markdown_table, run
 from tests.clirun import run_cli
@@ -93,7 +94,7 @@ def test_jpeg_lr_crops_are_scored_as_a_jpeg_file_holds_them(folder, tmp_path: Pa
     )
     assert code == 0, err
     saved = json.loads((tmp_path / "check.json").read_text())
-    assert saved["jpeg"] == 60 and "JPEG quality 60, deblocked" in markdown_table(saved)
+    assert saved["jpeg"] == 60 and "JPEG quality 60 4:4:4, deblocked" in markdown_table(saved)
     code, err = run_cli(
         ["bench", "check", "-o", str(tmp_path), "--textures", str(folder), "--prior", "bicubic"]
         + ["--scale", "2", "--sizes", "128", "--jpeg", "60", "--no-deblock"],
@@ -101,8 +102,34 @@ def test_jpeg_lr_crops_are_scored_as_a_jpeg_file_holds_them(folder, tmp_path: Pa
     )
     assert code == 0, err
     raw = json.loads((tmp_path / "check.json").read_text())
-    assert not raw["deblock"] and "JPEG quality 60, not deblocked" in markdown_table(raw)
+    assert not raw["deblock"] and "JPEG quality 60 4:4:4, not deblocked" in markdown_table(raw)
     code, err = run_cli(
         ["bench", "check", "-o", str(tmp_path), "--textures", str(folder), "--jpeg", "0"], capfd
     )
     assert code == 2 and "--jpeg" in err
+
+
+def test_jpeg_lr_crops_can_hold_their_chroma_at_half_resolution(folder, tmp_path: Path, capfd):
+    """--chroma 4:2:0: the LR crops as a 4:2:0 file holds them (the chroma averaged over 2x2),
+    deblocked with that file's tables; a grey crop has no chroma to lose."""
+    from pbrsr_bench.check import low_res, presets_low_res
+    from pbrsr_core.asset.jpeg import compress, deblock, standard_quant
+    from pbrsr_core.degrade import degrade_image
+
+    hr = np.random.default_rng(0).random((64, 64, 3)).astype(np.float32)
+    full, half = low_res(hr, 2, jpeg=90), low_res(hr, 2, jpeg=90, subsampled=True)
+    t = torch.from_numpy(degrade_image(hr, 2)).permute(2, 0, 1)[None]
+    want = compress(t, standard_quant(90, True))[0].permute(1, 2, 0).numpy()
+    assert (half == want).all() and np.abs(half - full).mean() > 0.01
+    lr, stored = presets_low_res(hr, 2, jpeg=90, subsampled=True)
+    assert (stored == half).all() and (lr == deblock(half, standard_quant(90, True))).all()
+    grey = np.repeat(hr[..., :1], 3, axis=2)
+    assert np.abs(low_res(grey, 2, 90, True) - low_res(grey, 2, 90)).max() <= 1 / 255 + 1e-6
+    base = ["bench", "check", "-o", str(tmp_path), "--textures", str(folder), "--prior"]
+    base += ["bicubic", "--scale", "2", "--sizes", "128", "--jpeg", "60"]
+    code, err = run_cli([*base, "--chroma", "4:2:0"], capfd)
+    assert code == 0, err
+    saved = json.loads((tmp_path / "check.json").read_text())
+    assert saved["subsampled"] and "JPEG quality 60 4:2:0, deblocked" in markdown_table(saved)
+    code, err = run_cli([*base, "--chroma", "4:2:2"], capfd)
+    assert code == 2 and "--chroma takes 4:4:4 or 4:2:0" in err
