@@ -18,7 +18,8 @@ beats bicubic), of each upscale alone (and its gain one scale down, as the check
 the oracle; per rule, the networks it runs per map and their runs (a network's run on one
 channel). The plot puts each rule's mean gain against its network runs per map. With ``jpeg``
 both LR crops are stored as JPEG files of that quality hold them (4:4:4, as ``pbrsr degrade``
-writes JPEG maps) and checked and upscaled as the presets do (``check.presets_low_res``).
+writes JPEG maps, or 4:2:0 with ``subsampled``) and checked and upscaled as the presets do
+(``check.presets_low_res``).
 """
 
 from __future__ import annotations

@@ -13,7 +13,8 @@ candidates and bicubic, known only with the HR crop); how many of the check's ch
 below bicubic and by how much at worst; and how many maps the check left to bicubic where a
 candidate gains. The plot puts each map's margin one scale down against its gain at the real
 scale. With ``jpeg`` the LR crops are stored as JPEG files of that quality would hold them
-(4:4:4, as ``pbrsr degrade`` writes JPEG maps), as real assets ship their maps, and checked
+(4:4:4, as ``pbrsr degrade`` writes JPEG maps, or with ``subsampled`` 4:2:0, the chroma at
+half resolution as many published maps store it), as real assets ship their maps, and checked
 and upscaled as the presets do: deblocked with those tables, the check told the map as
 stored (its flat floor counts the noise the deblocking took out); the gains are then over
 bicubic of the deblocked crop, the presets' own bicubic (``deblock_jpeg=False``: the file's

@@ -125,14 +125,17 @@ def check_cmd(
         sizes=_ints(sizes),
         jpeg=jpeg,
         deblock_jpeg=deblock,
-        subsampled=_subsampled(chroma),
+        subsampled=_subsampled(chroma, jpeg),
     )
 
 
-def _subsampled(chroma: str) -> bool:
-    """--chroma: 4:2:0 (True) or 4:4:4 (False); anything else is refused."""
+def _subsampled(chroma: str, jpeg: int | None) -> bool:
+    """--chroma: 4:2:0 (True) or 4:4:4 (False), of the --jpeg files; anything else, or 4:2:0
+    without --jpeg, is refused."""
     if chroma not in ("4:4:4", "4:2:0"):
         _bad_input(ValueError(f"--chroma takes 4:4:4 or 4:2:0, not {chroma!r}"))
+    if chroma == "4:2:0" and jpeg is None:
+        _bad_input(ValueError("--chroma 4:2:0 is the chroma of the --jpeg files: give --jpeg Q"))
     return chroma == "4:2:0"
 
 
@@ -219,7 +222,7 @@ def blend_cmd(
         max_prior_scale=max_prior_scale,
         jpeg=jpeg,
         channel_dbs=channel_values,
-        subsampled=_subsampled(chroma),
+        subsampled=_subsampled(chroma, jpeg),
     )
 
 

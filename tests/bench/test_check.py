@@ -133,3 +133,5 @@ def test_jpeg_lr_crops_can_hold_their_chroma_at_half_resolution(folder, tmp_path
     assert saved["subsampled"] and "JPEG quality 60 4:2:0, deblocked" in markdown_table(saved)
     code, err = run_cli([*base, "--chroma", "4:2:2"], capfd)
     assert code == 2 and "--chroma takes 4:4:4 or 4:2:0" in err
+    code, err = run_cli([*base[:-2], "--chroma", "4:2:0"], capfd)
+    assert code == 2 and "give --jpeg Q" in err
