@@ -289,9 +289,7 @@ def validation_crops(
     return out
 
 
-def crop_map(name: str, kind: str) -> str:
-    """The map type of a :func:`validation_crops` crop: basecolor, normal, or the scalar map
-    a data crop holds."""
-    if kind == "data":
-        return name.rpartition(":")[2]
-    return "basecolor" if kind == "colour" else "normal"
+def crop_map(name: str) -> str:
+    """The scalar map (roughness, metallic, ao, height) a :func:`validation_crops` data crop
+    holds."""
+    return name.rpartition(":")[2]

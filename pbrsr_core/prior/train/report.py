@@ -70,7 +70,7 @@ def score_prior(
     if kind == "data":
         by_map: dict[str, list[float]] = {}
         for (name, _), v in zip(crops, each, strict=True):
-            by_map.setdefault(crop_map(name, kind), []).append(v)
+            by_map.setdefault(crop_map(name), []).append(v)
         out["by_map"] = {
             m: {"crops": len(v), "crop_psnr": float(np.mean(v))} for m, v in by_map.items()
         }
@@ -168,7 +168,7 @@ def _table(results: dict) -> str:
 
         def cell(s: str, label: str, key: str, by_scale=by_scale) -> str:
             entry = by_scale[s].get(label)
-            return "-" if entry is None or key not in entry else f"{entry[key]:.2f}"
+            return "-" if entry is None else f"{entry[key]:.2f}"
 
         for label in labels:
             row = [cell(s, label, "psnr") for s in scales]
