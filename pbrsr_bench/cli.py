@@ -341,7 +341,9 @@ def upscale_cmd(
     ),
     procedural_size: int = typer.Option(512, help="HR texture size of the procedural asset."),
     lr_format: str = typer.Option(
-        "same", help="LR image format (pbrsr degrade --format): same, png, png16, exr."
+        "same",
+        help="LR image format (pbrsr degrade --format): same, png, png16, exr, jpeg, jpeg:Q, "
+        "jpeg:Q:420 (JPEG of quality Q, chroma at half resolution).",
     ),
     kernel: str = typer.Option(
         "gaussian",

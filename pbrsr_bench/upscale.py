@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from pbrsr_core.asset import load_asset, make_cutout_asset, make_demo_asset
+from pbrsr_core.asset.images import jpeg_request
 from pbrsr_core.asset.model import Asset
 from pbrsr_core.degrade import check_kernels, degrade_asset
 from pbrsr_core.metrics import RenderEvaluator, eval_cameras, map_metrics
@@ -282,6 +283,7 @@ def run(
 
     check_methods(methods, prior)
     check_kernels((kernel,))
+    jpeg_request(lr_format)
     out_dir.mkdir(parents=True, exist_ok=True)
     lights, light_names = eval_lights(shared)
     work_root = Path(tempfile.mkdtemp(prefix="pbrsr-bench-"))
@@ -537,6 +539,10 @@ def published_summary(out_dir: Path) -> str:
     lr = "" if kernel == "gaussian" else f", LR by the {kernel} kernel (`pbrsr degrade --kernel`)"
     if kernel != "gaussian":
         command += f" --kernel {kernel}"
+    lr_format = data.get("lr_format", "same")
+    if lr_format != "same":
+        lr += f", LR maps stored as `{lr_format}` (`pbrsr degrade --format`)"
+        command += f" --lr-format {lr_format}"
     shared = sorted({r["asset"] for r in rows} - {*PROCEDURAL_ASSETS, *BENCH_VARIANTS})
     return (
         f"x{data['scale']}{lr}, prior `{data['prior']}`, render PSNR over "

@@ -188,9 +188,14 @@ def degrade_asset(
     """Write ``out_path`` (.glb/.gltf): the asset at ``in_path`` with every material image
     degraded by ``scale``, stored as ``image_format`` ("same" keeps each image's format, so
     JPEG textures are JPEG-compressed again; "png", "png16", "exr": lossless, the protocol's
-    LR values as they are; see ``asset.images.output_format``), each made by ``kernel``
-    (``KERNELS``; gaussian: the protocol). Returns the written paths, main file first."""
+    LR values as they are; "jpeg:Q", "jpeg:Q:420": every image without alpha a JPEG of
+    quality Q, 4:4:4 or its chroma at half resolution; see ``asset.images.output_format``),
+    each made by ``kernel`` (``KERNELS``; gaussian: the protocol). Returns the written paths,
+    main file first."""
     from .asset.gltf import load_asset, save_asset
+    from .asset.images import jpeg_request
+
+    jpeg_request(image_format)  # a malformed JPEG request is refused before any work
 
     if scale not in (2, 3, 4, 8, 16):
         raise InvalidOptions(f"scale must be 2, 3, 4, 8 or 16, not {scale}")

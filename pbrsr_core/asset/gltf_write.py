@@ -41,7 +41,9 @@ from .images import (
     TEXTURE_FORMATS,
     EncodedImage,
     ImageFormat,
+    JpegEncoding,
     encode_image,
+    jpeg_request,
     output_encoding,
     output_format,
 )
@@ -242,7 +244,9 @@ def encode_images(
     asset: Asset, new_images: Mapping[int, np.ndarray | EncodedImage], image_format: str = "same"
 ) -> dict[int, EncodedImage]:
     """{image index: :class:`EncodedImage`} for every replaced image, in the format
-    :func:`output_format` picks for it (images given already encoded are kept as they are).
+    :func:`output_format` picks for it (images given already encoded are kept as they are);
+    ``image_format`` "jpeg:Q" or "jpeg:Q:420" writes the images that become JPEG at quality Q,
+    the chroma at half resolution with 420 (:func:`jpeg_request`).
 
     The PNG/JPEG fallback of a replaced KTX2/WebP/AVIF image
     (:func:`~pbrsr_core.asset.gltf_textures.fallback_images`) is replaced by the same pixels,
@@ -253,10 +257,12 @@ def encode_images(
     The images are encoded on up to as many threads as the process may use cores: the PNG
     and JPEG encoders release the GIL (four 2048² PNGs: 1.85 s on one thread, 1.13 s on two,
     the same bytes)."""
+    image_format, jpeg = jpeg_request(image_format)
     by_index = {im.index: im for im in asset.images}
     n_images = len(asset.document.get("images", []))
     out: dict[int, EncodedImage] = {}
-    todo: dict[int, tuple[np.ndarray, int, ImageFormat, str, str, TextureEncoding | None]] = {}
+    Encoding = TextureEncoding | JpegEncoding | None
+    todo: dict[int, tuple[np.ndarray, int, ImageFormat, str, str, Encoding]] = {}
     fallbacks = fallback_images(asset.document)
     new_images = dict(new_images)
     for fallback, shown in fallbacks.items():
@@ -285,7 +291,7 @@ def encode_images(
         if i in fallbacks and image_format in TEXTURE_FORMATS:
             requested = "same"
         fmt, bits, mime, ext = output_format(probe, requested)
-        encoding = output_encoding(probe, fmt)
+        encoding: Encoding = jpeg if fmt == "jpeg" and jpeg else output_encoding(probe, fmt)
         if isinstance(encoding, Ktx2Encoding):
             arr = transfer(arr, bool(probe.roles & SRGB_ROLES), encoding.srgb)
         todo[i] = (arr, bits, fmt, mime, ext, encoding)
@@ -527,7 +533,8 @@ def save_asset(
     :class:`EncodedImage` from :func:`encode_images`}) replaced.
 
     ``image_format``: "same", "png", "png16", "exr", "jpeg", "ktx2", "webp" or "avif" (see
-    :func:`pbrsr_core.asset.images.output_format`: precision never drops below the input's).
+    :func:`pbrsr_core.asset.images.output_format`: precision never drops below the input's),
+    or "jpeg:Q" / "jpeg:Q:420" (:func:`~pbrsr_core.asset.images.jpeg_request`).
     A ``.glb`` embeds PNG, JPEG, KTX2, WebP and AVIF: a replaced image written as EXR/TIFF goes
     to a file beside the ``.glb`` instead. Textures name their images through the image
     extensions their formats need (``gltf_textures.sync_texture_extensions``). Returns the

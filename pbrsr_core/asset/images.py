@@ -67,6 +67,40 @@ FORMAT_OF_MIME: dict[str, ImageFormat] = {v: k for k, v in MIME.items()}
 _LOSSLESS_MIMES = {"image/png", "image/x-exr", "image/tiff"}
 
 
+class JpegEncoding(NamedTuple):
+    """How :func:`write_image` stores a JPEG: its quality (libjpeg's 1-100 scale of the
+    standard quantisation tables) and whether its chroma is kept at full resolution (4:4:4)
+    or at half in each direction (4:2:0, as most image editors and web pipelines store it)."""
+
+    quality: int = 95
+    subsampling: Literal["4:4:4", "4:2:0"] = "4:4:4"
+
+
+JPEG_SUBSAMPLING = {"444": "4:4:4", "420": "4:2:0"}
+
+
+def jpeg_request(requested: str) -> tuple[str, JpegEncoding | None]:
+    """An image format request, and the JPEG encoding it names: ``jpeg:Q`` (quality Q at
+    4:4:4) or ``jpeg:Q:420`` / ``jpeg:Q:444`` -> ("jpeg", that encoding); any other request
+    -> (it, None). A malformed ``jpeg:`` request is refused (:class:`InvalidOptions`)."""
+    if not requested.startswith("jpeg:"):
+        return requested, None
+    parts = requested.split(":")[1:]
+    quality = parts[0] if parts else ""
+    chroma = parts[1] if len(parts) > 1 else "444"
+    if (
+        len(parts) > 2
+        or not quality.isdigit()
+        or not 1 <= int(quality) <= 100
+        or chroma not in JPEG_SUBSAMPLING
+    ):
+        raise InvalidOptions(
+            f"bad JPEG format {requested!r}: use jpeg:QUALITY or jpeg:QUALITY:420 (chroma at "
+            "half resolution) or jpeg:QUALITY:444, QUALITY 1-100"
+        )
+    return "jpeg", JpegEncoding(int(quality), JPEG_SUBSAMPLING[chroma])  # type: ignore[arg-type]
+
+
 class EncodedImage(NamedTuple):
     """An image's encoded file bytes, with what they were encoded as."""
 
@@ -277,11 +311,12 @@ def write_image(
     pixels: np.ndarray,
     bit_depth: int,
     fmt: ImageFormat,
-    encoding: TextureEncoding | None = None,
+    encoding: TextureEncoding | JpegEncoding | None = None,
 ) -> Path:
     """Write ``pixels`` (H, W, C) float32 [0, 1], C in 1..4, to ``path`` atomically.
 
-    ``fmt``: "png" (8/16), "jpeg" (8, quality 95, 4:4:4; no alpha: C must be 1 or 3), "exr"
+    ``fmt``: "png" (8/16), "jpeg" (8, as ``encoding`` says, by default quality 95 and 4:4:4;
+    no alpha: C must be 1 or 3), "exr"
     (16 half / 32 float, zip compression), "tiff" (8/16/32); "ktx2", "webp", "avif" (8) as
     ``encoding`` says (:func:`pbrsr_core.asset.texture_codecs.encode_texture`).
     """
@@ -306,14 +341,16 @@ def write_image(
     os.close(fd)
     try:
         if fmt in TEXTURE_FORMATS:
-            Path(tmp).write_bytes(encode_texture(arr, cast(TextureFormat, fmt), encoding))
+            texture_encoding = cast(TextureEncoding | None, encoding)
+            Path(tmp).write_bytes(encode_texture(arr, cast(TextureFormat, fmt), texture_encoding))
             os.replace(tmp, path)
             return path
         spec = oiio.ImageSpec(w, h, c, _oiio_type(fmt, bit_depth))
         spec.attribute("oiio:UnassociatedAlpha", 1)
         if fmt == "jpeg":
-            spec.attribute("Compression", "jpeg:95")
-            spec.attribute("jpeg:subsampling", "4:4:4")
+            jpeg = encoding if isinstance(encoding, JpegEncoding) else JpegEncoding()
+            spec.attribute("Compression", f"jpeg:{jpeg.quality}")
+            spec.attribute("jpeg:subsampling", jpeg.subsampling)
         elif fmt == "exr" or fmt == "tiff":
             spec.attribute("compression", "zip")
         out = oiio.ImageOutput.create(tmp)
@@ -335,7 +372,10 @@ def write_image(
 
 
 def encode_image(
-    pixels: np.ndarray, bit_depth: int, fmt: ImageFormat, encoding: TextureEncoding | None = None
+    pixels: np.ndarray,
+    bit_depth: int,
+    fmt: ImageFormat,
+    encoding: TextureEncoding | JpegEncoding | None = None,
 ) -> bytes:
     """The encoded bytes of :func:`write_image`'s file (for embedding in a GLB/data URI)."""
     with tempfile.TemporaryDirectory(prefix="pbrsr-enc-") as d:

@@ -17,7 +17,8 @@ def register(app: typer.Typer) -> None:
             "same",
             "--format",
             help="LR image format: same (JPEG stays JPEG, compressed again; KTX2, WebP, AVIF "
-            "keep their encodings), png, png16, exr, jpeg, ktx2, webp, avif.",
+            "keep their encodings), png, png16, exr, jpeg (quality 95, 4:4:4), jpeg:Q (quality "
+            "Q), jpeg:Q:420 (quality Q, chroma at half resolution), ktx2, webp, avif.",
         ),
         kernel: str = typer.Option(
             "gaussian",

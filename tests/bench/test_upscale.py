@@ -461,3 +461,24 @@ def test_the_lr_kernel_is_checked_first_and_named_in_the_summary(tmp_path):
         text = published_summary(tmp_path)
         assert ("x4, LR by the area kernel" in text) is named
         assert ("--eval-views 40 --kernel area`" in text) is named
+
+
+def test_the_lr_format_is_checked_first_and_named_in_the_summary(tmp_path):
+    """A malformed JPEG format is refused before anything runs; a run whose LR maps were
+    stored in another format than the asset's own says so, and its command names it."""
+    from pbrsr_bench.upscale import published_summary
+    from pbrsr_core.errors import InvalidOptions
+    from pbrsr_core.options import DEFAULT_PRIOR
+
+    with pytest.raises(InvalidOptions, match="bad JPEG format 'jpeg:85:422'"):
+        run(out_dir=tmp_path / "never", lr_format="jpeg:85:422", include_shared=False)
+    assert not (tmp_path / "never").exists()
+    rows = [_row("a", "bicubic", 28.0, 27.0, 1.0), _row("a", "fast", 28.4, 27.5, 10.0)]
+    meta = {"scale": 4, "prior": DEFAULT_PRIOR, "eval_res": 256, "eval_views": 40}
+    meta.update(lights=["a.hdr"], machine="a test CPU")
+    for lr_format, named in (("jpeg:85:420", True), ("same", False), (None, False)):
+        data = {**meta, "rows": rows, **({"lr_format": lr_format} if lr_format else {})}
+        (tmp_path / "results.json").write_text(json.dumps(data))
+        text = published_summary(tmp_path)
+        assert ("x4, LR maps stored as `jpeg:85:420`" in text) is named
+        assert ("--eval-views 40 --lr-format jpeg:85:420`" in text) is named

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from pbrsr_core.asset import load_asset, make_test_asset
+from pbrsr_core.asset.jpeg import standard_quant
 from pbrsr_core.degrade import (
     KERNELS,
     degrade_asset,
@@ -116,6 +117,44 @@ def test_degrade_asset_format(tmp_path):
         want = degrade_image(a.pixels, 4, normal_map="normal" in a.roles)
         assert np.abs(c.pixels - want).max() <= 0.5 / 255 + 1e-6  # 8-bit rounding only
         assert np.abs(b.pixels - want).max() > 0.5 / 255  # JPEG changes more than rounding
+
+
+@pytest.mark.parametrize(("request_", "quality", "subsampled"), [
+    ("jpeg:85:420", 85, True), ("jpeg:60", 60, False), ("jpeg:90:444", 90, False),
+])  # fmt: skip
+def test_degrade_asset_stores_jpeg_at_a_quality_and_chroma(tmp_path, request_, quality, subsampled):
+    """``jpeg:Q[:420]`` writes every LR map without alpha as a JPEG with the standard tables of
+    quality Q, its chroma at half resolution with 420 (as real assets often ship their maps);
+    the file says so, and its pixels are the protocol's values within that compression."""
+    src = make_test_asset(tmp_path / "hr.glb", size=128)
+    hr = load_asset(src)
+    lr = load_asset(degrade_asset(src, tmp_path / "lr" / "lr.glb", 4, image_format=request_)[0])
+    want_quant = standard_quant(quality, subsampled)
+    jpegs = 0
+    for a, b in zip(hr.images, lr.images, strict=True):
+        if a.channels == 4 or a.bit_depth > 8:  # no alpha, 8 bits only in JPEG: kept lossless
+            assert b.mime == "image/png" and b.bit_depth == a.bit_depth
+            continue
+        jpegs += 1
+        assert b.mime == "image/jpeg" and b.jpeg is not None
+        assert b.jpeg.full == ((True, False, False) if subsampled else (True, True, True))
+        for got, want in zip(b.jpeg.tables, want_quant.tables, strict=True):
+            np.testing.assert_array_equal(got, want)
+        values = degrade_image(a.pixels, 4, normal_map="normal" in a.roles)
+        err = np.sqrt(np.mean((b.pixels - values) ** 2))
+        luma = np.array([0.299, 0.587, 0.114], np.float32)  # JPEG's Y, kept at full resolution
+        luma_err = np.sqrt(np.mean(((b.pixels - values) @ luma) ** 2))
+        assert 0.5 / 255 < err < values.std()  # compressed, not another image
+        assert luma_err < 0.04
+    assert jpegs == 3  # normal, occlusion, emissive
+
+
+def test_a_malformed_jpeg_request_is_refused(tmp_path):
+    src = make_test_asset(tmp_path / "hr.glb", size=32)
+    for bad in ("jpeg:", "jpeg:0", "jpeg:101", "jpeg:85:422", "jpeg:85:420:1", "jpeg:high"):
+        with pytest.raises(InvalidOptions, match="bad JPEG format"):
+            degrade_asset(src, tmp_path / "lr" / "lr.glb", 4, image_format=bad)
+    assert not (tmp_path / "lr").exists()
 
 
 @pytest.mark.parametrize("scale", [2, 3, 4, 8])

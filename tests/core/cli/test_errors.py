@@ -130,6 +130,14 @@ def test_degrade_rejects_unknown_format(quad, tmp_path, capfd):
     assert not out.exists()
 
 
+def test_degrade_rejects_a_bad_jpeg_quality(quad, tmp_path, capfd):
+    out = tmp_path / "lr.glb"
+    code, err = run_cli(["degrade", str(quad), "-o", str(out), "--format", "jpeg:101"], capfd)
+    assert code == InvalidOptions.exit_code, err
+    assert_one_line(err, "bad JPEG format 'jpeg:101'")
+    assert not out.exists()
+
+
 def test_degrade_rejects_unknown_kernel(quad, tmp_path, capfd):
     out = tmp_path / "lr.glb"
     code, err = run_cli(["degrade", str(quad), "-o", str(out), "--kernel", "box"], capfd)
