@@ -44,10 +44,15 @@ def deblocked_lr(images, config: PbrsrConfig, timer: StageTimer):
 
 
 def self_checks(asset, images, prior, lr_pixels, s, kinds, max_prior_scale, timer, progress,
-                kept=None):  # fmt: skip
+                kept=None, storage=False):  # fmt: skip
     """The self-check (prior/selfcheck.py) of each image of a kind in ``kinds``, over the
     texels a viewer sees: {image index: report, or None for a map too small to check}.
-    ``kept``: filled with {data image index: what its check compared}."""
+    ``kept``: filled with {data image index: what its check compared}. ``storage``: a JPEG
+    map's check models its file one scale down (``PbrsrConfig.check_storage``)."""
+    from functools import partial
+
+    from .asset.jpeg import stored_as
+
     checks: dict[int, dict | None] = {}
     todo = [img for img in images if kind_of(img.roles) in kinds]
     if not todo:
@@ -62,6 +67,7 @@ def self_checks(asset, images, prior, lr_pixels, s, kinds, max_prior_scale, time
                 px = img.pixels
                 visible = px[..., px.shape[2] - 1] > hidden_to
                 seen = visible if seen is None else seen & visible
+            as_read = lr_pixels[img.index] is img.pixels  # not deblocked
             checks[img.index] = prior_self_check(
                 prior,
                 lr_pixels[img.index],
@@ -73,7 +79,10 @@ def self_checks(asset, images, prior, lr_pixels, s, kinds, max_prior_scale, time
                 keep=kept.setdefault(img.index, {})
                 if kept is not None and kind_of(img.roles) == "data"
                 else None,
-                stored=None if lr_pixels[img.index] is img.pixels else img.pixels,
+                stored=None if as_read else img.pixels,
+                store=partial(stored_as, quant=img.jpeg, deblocked=not as_read)
+                if storage and img.jpeg is not None
+                else None,
             )
     return checks
 
@@ -95,7 +104,8 @@ def prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, pr
         return channels, None, {i: [prior if c else None for c in ch] for i, ch in channels.items()}
     used = [img for img in images if any(channels[img.index])]
     found = self_checks(asset, used, prior, lr_pixels, s, set(config.check_prior),
-                        config.max_prior_scale, timer, progress, kept)  # fmt: skip
+                        config.max_prior_scale, timer, progress, kept,
+                        config.check_storage)  # fmt: skip
     checks: list[dict] = []
     for img in used:
         kind = kind_of(img.roles)

@@ -247,7 +247,7 @@ def _direct_maps(asset, images, prior, s, wraps, cutouts, unseen, timer, progres
         and any(read[img.index])
     ]
     found = self_checks(asset, offered, prior, lr_pixels, s, CHECK_PRIOR_CPU, None, timer,
-                        progress)  # fmt: skip
+                        progress, storage=BALANCED.check_storage)  # fmt: skip
     picks = {img.index: _direct_picks(prior, img, found.get(img.index)) for img in offered}
     chose = {  # a data map none of whose channels a material reads: bicubic's
         i: picks.get(i, [prior]) if any(r) else [None] * len(r) for i, r in read.items()

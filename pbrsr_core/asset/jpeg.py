@@ -174,21 +174,26 @@ def _from_ycc(ycc: torch.Tensor) -> torch.Tensor:
 
 
 def compress(pixels: torch.Tensor, quant: JpegQuant) -> torch.Tensor:
-    """RGB images (N, 3, H, W) in [0, 1] -> what a baseline JPEG with ``quant``'s tables
-    (three components) decodes to: 8-bit YCbCr samples, chroma averaged over 2x2 where the
-    tables say it is subsampled, each component's 8x8 DCT blocks quantised, samples rounded
-    to 8 bits again, chroma upsampled (the triangle filter of libjpeg's fancy upsampling),
-    RGB in 8-bit steps. Matches libjpeg's own encode and decode to within its integer
-    arithmetic (tests/core/asset/test_jpeg.py)."""
-    if len(quant.tables) != 3 or pixels.shape[1] != 3:
-        raise ValueError("compress takes RGB images and three-component tables")
+    """RGB images (N, 3, H, W) in [0, 1] and three-component tables, or grey ones (N, 1, H, W)
+    and one table -> what a baseline JPEG with ``quant``'s tables decodes them to: 8-bit
+    samples (YCbCr for RGB), chroma averaged over 2x2 where the tables say it is subsampled,
+    each component's 8x8 DCT blocks quantised, samples rounded to 8 bits again, chroma
+    upsampled (the triangle filter of libjpeg's fancy upsampling), RGB in 8-bit steps.
+    Matches libjpeg's own encode and decode to within its integer arithmetic
+    (tests/core/asset/test_jpeg.py)."""
+    ncomp = len(quant.tables)
+    if ncomp not in (1, 3) or pixels.shape[1] != ncomp:
+        raise ValueError("compress takes RGB images and three tables, or grey ones and one")
     out = []
     for img in pixels.to(torch.float64):
         h, w = img.shape[1:]
-        rgb = torch.round(img.clamp(0.0, 1.0) * 255.0).permute(1, 2, 0)
-        ycc = torch.round(_to_ycc(rgb)).permute(2, 0, 1)  # 8-bit samples, level-shifted
+        samples = torch.round(img.clamp(0.0, 1.0) * 255.0).permute(1, 2, 0)
+        if ncomp == 3:
+            ycc = torch.round(_to_ycc(samples)).permute(2, 0, 1)  # 8-bit samples, level-shifted
+        else:
+            ycc = samples.permute(2, 0, 1) - 128.0
         comps = []
-        for c in range(3):
+        for c in range(ncomp):
             q = torch.from_numpy(quant.tables[c])[None, None, None]
             if quant.full[c]:
                 comps.append(torch.round(_requantise(ycc[c : c + 1], q)[0]).clamp(-128, 127))
@@ -197,7 +202,7 @@ def compress(pixels: torch.Tensor, quant: JpegQuant) -> torch.Tensor:
             small = torch.round(_requantise(half[0], q)).clamp(-128, 127)[None]
             up = F.interpolate(small, scale_factor=2, mode="bilinear", align_corners=False)
             comps.append(up[0, 0, :h, :w])
-        back = _from_ycc(torch.stack(comps, -1))
+        back = _from_ycc(torch.stack(comps, -1)) if ncomp == 3 else comps[0][..., None] + 128.0
         out.append(torch.round(back.clamp(0.0, 255.0)).permute(2, 0, 1) / 255.0)
     return torch.stack(out).to(pixels.dtype)
 
@@ -233,3 +238,20 @@ def deblock(pixels: np.ndarray, quant: JpegQuant) -> np.ndarray:
     filled = min(c, 3) if ncomp == 1 else ncomp  # grey was expanded to RGB on reading
     out[..., :filled] = (y / 255.0).clamp(0.0, 1.0).to(torch.float32).numpy()
     return out
+
+
+def stored_as(pixels: np.ndarray, quant: JpegQuant, deblocked: bool) -> np.ndarray:
+    """(H, W, C) float32 [0, 1] -> what a JPEG file with ``quant``'s tables and chroma sampling
+    decodes the image to (:func:`compress`; a one-component file stores the first channel,
+    grey, as the file's reader expands it), then with ``deblocked`` what :func:`deblock`
+    makes of that: an image as the pipeline sees a map stored so. Channels beyond the
+    file's components stay."""
+    arr = np.asarray(pixels, dtype=np.float32)
+    ncomp = len(quant.tables)
+    if arr.shape[2] < ncomp:
+        return arr.copy()
+    x = torch.from_numpy(np.ascontiguousarray(arr[..., :ncomp])).permute(2, 0, 1)[None]
+    y = compress(x, quant)[0].permute(1, 2, 0).numpy()
+    out = arr.copy()
+    out[..., : ncomp if ncomp == 3 else min(3, arr.shape[2])] = y
+    return deblock(out, quant) if deblocked else out

@@ -118,6 +118,11 @@ class PbrsrConfig:
     quantisation tables (every component of 4:4:4 files, the luma of chroma-subsampled ones)
     before they become the init and the consistency target (asset/jpeg.py). The paper takes
     the LR maps as they are."""
+    check_storage: bool = False
+    """The self-check models a JPEG map's storage one scale down: the downscaled crop is
+    compressed with the file's own tables and chroma sampling (and deblocked with them under
+    ``deblock_jpeg``) before each candidate upscales it, as the LR map itself was stored
+    (asset/jpeg.py ``stored_as``). Off: the crop as the protocol's degradation leaves it."""
     # --- pseudo-GT -------------------------------------------------------------------------
     lr_render: Literal["supersample", "raster"] = "supersample"
     """How the LR render handed to the prior is made: area-averaged from the HR render

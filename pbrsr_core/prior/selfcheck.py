@@ -111,6 +111,7 @@ def prior_self_check(
     cutout: float | None = None,
     keep: dict | None = None,
     stored: np.ndarray | None = None,
+    store: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> dict | None:
     """``{"priors", "prior_db", "bicubic_db", "candidates", "texels", "use_prior",
     "channels", "margins", "flat", "scale"}`` for one map (H, W, C) as stored, or None when it
@@ -138,7 +139,9 @@ def prior_self_check(
     shape), for a decision made from the same upscales (prior/blend.py). ``stored`` (the
     map's shape): the map as stored where ``lr_map`` is it deblocked; what the deblocking
     took out, its RMS per channel over the compared texels, raises the flat floor
-    (:data:`FLAT_STD`)."""
+    (:data:`FLAT_STD`). ``store``: the map's storage (an image -> as its file would hold it
+    and the run reads it; asset/jpeg.py ``stored_as``), applied to the crop one scale down
+    before the candidates upscale it, as it was to the map itself."""
     a = np.asarray(lr_map, dtype=np.float32)
     n_colour = 3 if a.shape[2] >= 3 else 1
     crop = _centre(a, CROP)
@@ -149,6 +152,8 @@ def prior_self_check(
     if covered is not None and covered.shape != a.shape[:2]:
         raise ValueError(f"coverage mask {covered.shape} does not match the map {a.shape[:2]}")
     small = degrade_image(crop, scale, normal_map=kind == "normal", kernel=run_kernel())
+    if store is not None:
+        small = store(small)
     ups = [
         upscale_map(c, small, kind, scale, max_prior_scale=max_prior_scale, cutout=cutout)
         for c in candidates

@@ -12,7 +12,7 @@ import torch
 from PIL import Image
 
 from pbrsr_core.asset import encode_image, load_asset, make_test_asset, read_image
-from pbrsr_core.asset.jpeg import compress, deblock, quant_tables, standard_quant
+from pbrsr_core.asset.jpeg import compress, deblock, quant_tables, standard_quant, stored_as
 from pbrsr_core.optim.presets import get_preset
 from pbrsr_core.options import UpscaleOptions
 from pbrsr_core.pipeline import upscale_asset
@@ -93,6 +93,39 @@ def test_compress_decodes_as_a_real_jpeg_file(quality, subsampling):
     # libjpeg's integer arithmetic (measured here: 44-56 dB, the input 24-30 dB from the file)
     ref = (np.round(img * 255) / 255).astype(np.float32)
     assert _psnr(ours, real) > max(43.0, _psnr(ref, real) + 10.0), _psnr(ours, real)
+
+
+@pytest.mark.parametrize("quality", [40, 90])
+def test_compress_decodes_a_grey_image_as_a_real_grey_jpeg_file(quality):
+    img = _noisy_texture(70)[:, :61, :1]
+    data = _pil_jpeg(img, quality, subsampling=0, mode="L")
+    real = read_image(data, "g.jpg")[0][..., :1]  # grey is read as RGB
+    quant = quant_tables(data)
+    assert quant is not None and len(quant.tables) == 1
+    ours = compress(torch.from_numpy(img).permute(2, 0, 1)[None], quant)[0].permute(1, 2, 0)
+    ref = (np.round(img * 255) / 255).astype(np.float32)
+    assert _psnr(ours.numpy(), real) > max(43.0, _psnr(ref, real) + 10.0)
+    with pytest.raises(ValueError, match="three tables, or grey ones and one"):
+        compress(torch.from_numpy(img).permute(2, 0, 1)[None], standard_quant(quality))
+
+
+def test_an_image_stored_as_a_file_would_store_it():
+    """``stored_as``: the image through the file's compression (its chroma sampling kept),
+    and with ``deblocked`` the deblocking the pipeline applies to such a file; a grey file
+    stores the first channel and is read back as grey in every colour channel."""
+    img = _noisy_texture(64)
+    rgba = np.concatenate([img, np.full_like(img[..., :1], 0.5)], -1)
+    for quant in (standard_quant(85, subsampled=True), standard_quant(60)):
+        want = compress(torch.from_numpy(img).permute(2, 0, 1)[None], quant)[0].permute(1, 2, 0)
+        got = stored_as(rgba, quant, deblocked=False)
+        np.testing.assert_array_equal(got[..., :3], want.numpy())
+        np.testing.assert_array_equal(got[..., 3], rgba[..., 3])  # beyond the file: kept
+        np.testing.assert_array_equal(stored_as(img, quant, True), deblock(got[..., :3], quant))
+    grey_quant = quant_tables(_pil_jpeg(img, 70, subsampling=0, mode="L"))
+    assert grey_quant is not None
+    grey = stored_as(img, grey_quant, deblocked=False)
+    assert np.array_equal(grey[..., 0], grey[..., 1]) and np.array_equal(grey[..., 0], grey[..., 2])
+    assert 25.0 < _psnr(grey[..., 0], img[..., 0]) < 60.0  # compressed, and the first channel's
 
 
 def test_files_it_cannot_model_give_none():

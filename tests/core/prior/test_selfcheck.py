@@ -535,3 +535,41 @@ def test_a_jpeg_maps_noise_raises_the_flat_floor(tmp_path):
 
     assert checks({0: deblocked}) == [False, False, True]
     assert checks({0: stored}) == [False, False, False]  # not deblocked: the 8-bit floor
+
+
+def test_a_jpeg_maps_check_can_model_its_file_one_scale_down(tmp_path):
+    """With ``storage`` (``check_storage``) the crop one scale down goes through the map's own
+    file's compression (its tables and chroma sampling), and its deblocking where the run
+    deblocked the map, before the candidates see it; a map stored losslessly, or a check
+    without it, sees the protocol's crop."""
+    from pbrsr_core.asset import make_test_asset
+    from pbrsr_core.asset.jpeg import stored_as
+    from pbrsr_core.degrade import degrade_asset
+    from pbrsr_core.initial_maps import self_checks
+    from pbrsr_core.prior import load_prior
+    from pbrsr_core.progress import StageTimer
+
+    src = make_test_asset(tmp_path / "t.glb", size=512)  # its RGBA colour map stays PNG
+    asset = load_asset(degrade_asset(src, tmp_path / "lr.glb", 2, image_format="jpeg:80:420")[0])
+    prior = load_prior("bicubic", "cpu")
+    images = [im for im in asset.images if im.roles and im.channels >= 3]
+    assert any(im.jpeg is not None for im in images) and any(im.jpeg is None for im in images)
+    deblocked = {im.index: (im.pixels if im.jpeg is None else im.pixels * 0.5) for im in images}
+    modelled = 0
+    for lr_pixels in (deblocked, {im.index: im.pixels for im in images}):
+        for storage in (False, True):
+            kept: dict = {}
+            self_checks(asset, images, prior, lr_pixels, 4, ("data", "colour"), None,
+                        StageTimer(), None, kept, storage)  # fmt: skip
+            for im in images:
+                if im.index not in kept:  # colour maps keep nothing
+                    continue
+                small = degrade_image(kept[im.index]["crop"], 4)
+                if storage and im.jpeg is not None:
+                    as_read = lr_pixels[im.index] is im.pixels
+                    plain = small
+                    small = stored_as(small, im.jpeg, deblocked=not as_read)
+                    assert np.abs(small - plain).max() > 1 / 255
+                    modelled += 1
+                np.testing.assert_array_equal(kept[im.index]["small"], small)
+    assert modelled >= 2  # a JPEG data map, deblocked and as read
