@@ -43,7 +43,7 @@ from pbrsr_core.prior.train.data import (
     texture_folder,
 )
 
-from .check import _jpeg_note, _psnr, presets_low_res
+from .check import _jpeg_note, _psnr, presets_low_res, storage_model
 from .results import pyplot, write_result
 
 PACKED = ("ao", "roughness", "metallic")
@@ -89,16 +89,18 @@ def score_crop(
     max_prior_scale: int | None = None,
     jpeg: int | None = None,
     subsampled: bool = False,
+    storage: bool = False,
 ) -> tuple[list[dict], dict[str, int], dict[str, int]]:
     """One material crop: per channel of ``present`` that its check does not find flat, the
     gains over bicubic at the real scale (rows); per rule the networks the blend runs, and
     their runs (one per network and channel)."""
     kw = {"max_prior_scale": max_prior_scale}
+    store = storage_model(jpeg, subsampled, True, storage)
     (lr_c, stored_c), (lr_d, stored_d) = (
         presets_low_res(colour, scale, jpeg, subsampled=subsampled),
         presets_low_res(packed, scale, jpeg, subsampled=subsampled),
     )
-    c_check = prior_self_check(prior, lr_c, scale, "colour", stored=stored_c, **kw)
+    c_check = prior_self_check(prior, lr_c, scale, "colour", stored=stored_c, store=store, **kw)
     by_name = {p.name: p for p in prior.candidates("colour")}
     src = None
     if c_check is None or c_check["channels"][0]:
@@ -110,7 +112,9 @@ def score_crop(
         return upscale_map(src, px, "colour", f, **kw)
 
     kept: dict = {}
-    check = prior_self_check(prior, lr_d, scale, "data", keep=kept, stored=stored_d, **kw)
+    check = prior_self_check(
+        prior, lr_d, scale, "data", keep=kept, stored=stored_d, store=store, **kw
+    )
     if check is None:
         return [], {}, {}
     todo = [c for c in present if not check["flat"][c]]
@@ -233,13 +237,15 @@ def run(
     jpeg: int | None = None,
     channel_dbs: tuple[float | None, ...] = (None,),
     subsampled: bool = False,
+    storage: bool = False,
 ) -> dict:
     """Score the blend of ``prior``'s data upscales at ``scale`` for every rule of
     ``margins``, ``network_dbs``, ``pick_dbs`` (None: no pick rule), ``pick_floors``
     (``blend_pick_floor``: networks kept where a channel needs them to reach its pick) and
     ``channel_dbs`` (``blend_channel_db``; None: off) on
     packed crops of ``size`` HR pixels of the held-out materials, the LR crops stored as JPEG
-    of quality ``jpeg`` when given (4:2:0 with ``subsampled``)."""
+    of quality ``jpeg`` when given (4:2:0 with ``subsampled``; with ``storage`` the checks
+    model that storage one scale down)."""
     if scale not in (2, 4, 8):
         raise ValueError(f"scale must be 2, 4 or 8, not {scale}")
     if size < 16 * scale:
@@ -264,7 +270,8 @@ def run(
         for name, colour, packed in packed_crops(mat, size):
             log(f"{name}: {', '.join(PACKED[c] for c in present)}")
             crop_rows, networks, runs = score_crop(p, colour, packed, present, scale, rules,
-                                             max_prior_scale, jpeg, subsampled)  # fmt: skip
+                                             max_prior_scale, jpeg, subsampled,
+                                             storage)  # fmt: skip
             if not crop_rows:
                 continue
             rows += [{"map": f"{name}[{r['channel']}]", **r} for r in crop_rows]
@@ -282,6 +289,7 @@ def run(
         "max_prior_scale": max_prior_scale,
         "jpeg": jpeg,
         "subsampled": subsampled,
+        "storage": storage and jpeg is not None,
         "materials": held,
         "rules": [rule_name(*r) for r in rules],
         "rule_values": rules,

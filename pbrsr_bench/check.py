@@ -18,17 +18,21 @@ half resolution as many published maps store it), as real assets ship their maps
 and upscaled as the presets do: deblocked with those tables, the check told the map as
 stored (its flat floor counts the noise the deblocking took out); the gains are then over
 bicubic of the deblocked crop, the presets' own bicubic (``deblock_jpeg=False``: the file's
-pixels as they are, as with ``deblock_jpeg`` off).
+pixels as they are, as with ``deblock_jpeg`` off). With ``storage`` as well the check models
+that storage one scale down (``check_storage``: the crop it upscales compressed with the same
+tables and deblocked as the LR crop was).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from pbrsr_core.asset.jpeg import compress, deblock, standard_quant
+from pbrsr_core.asset.jpeg import compress, deblock, standard_quant, stored_as
 from pbrsr_core.degrade import degrade_image
 from pbrsr_core.metrics import psnr
 from pbrsr_core.prior import load_prior
@@ -82,6 +86,16 @@ def presets_low_res(
     return deblock(lr, standard_quant(jpeg, subsampled)), lr
 
 
+def storage_model(
+    jpeg: int | None, subsampled: bool, deblock_jpeg: bool, storage: bool
+) -> Callable[[np.ndarray], np.ndarray] | None:
+    """The self-check's ``store`` for LR crops stored as JPEG of quality ``jpeg`` (4:2:0 with
+    ``subsampled``, deblocked with ``deblock_jpeg``) when ``storage`` asks for it, else None."""
+    if not storage or jpeg is None:
+        return None
+    return partial(stored_as, quant=standard_quant(jpeg, subsampled), deblocked=deblock_jpeg)
+
+
 def score_map(
     prior,
     hr: np.ndarray,
@@ -91,11 +105,13 @@ def score_map(
     jpeg: int | None = None,
     deblock_jpeg: bool = True,
     subsampled: bool = False,
+    storage: bool = False,
 ) -> list[dict]:
     """One HR crop (H, W, 3) in [0, 1]: the check's decision and every option's PSNR at the
     real scale, per part (the whole map for colour, each distinct channel for data)."""
     lr, stored = presets_low_res(hr, scale, jpeg, deblock_jpeg, subsampled)
-    check = prior_self_check(prior, lr, scale, kind, stored=stored)
+    store = storage_model(jpeg, subsampled, deblock_jpeg, storage)
+    check = prior_self_check(prior, lr, scale, kind, stored=stored, store=store)
     candidates = prior.candidates(kind)
     ups = {c.name: upscale_map(c, lr, kind, scale) for c in candidates}
     bic = bicubic_map(lr, kind, scale)
@@ -169,11 +185,12 @@ def run(
     jpeg: int | None = None,
     deblock_jpeg: bool = True,
     subsampled: bool = False,
+    storage: bool = False,
 ) -> dict:
     """Score the self-check of ``prior`` at ``scale`` on centre-placed crops of ``sizes`` HR
     pixels (one per held-out material and kind; a material smaller than a size is skipped),
     the LR crops stored as JPEG of quality ``jpeg`` when given (4:2:0 with ``subsampled``;
-    deblocked unless ``deblock_jpeg`` is off)."""
+    deblocked unless ``deblock_jpeg`` is off; with ``storage`` the check models that)."""
     if scale not in (2, 4, 8):
         raise ValueError(f"scale must be 2, 4 or 8, not {scale}")
     if not sizes or min(sizes) < 16 * scale:
@@ -191,7 +208,7 @@ def run(
                 log(f"{kind} {size}: {name}")
                 hr = crop.astype(np.float32) / 255.0
                 rows += score_map(p, hr, kind, scale, name.split("#")[0], jpeg, deblock_jpeg,
-                                  subsampled)  # fmt: skip
+                                  subsampled, storage)  # fmt: skip
     if not rows:
         raise ValueError(f"no held-out material in {textures} has maps of {min(sizes)} px")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -201,6 +218,7 @@ def run(
         "jpeg": jpeg,
         "subsampled": subsampled,
         "deblock": deblock_jpeg,
+        "storage": storage and jpeg is not None,
         "materials": held,
         "rows": rows,
         "summary": summarise(rows),
@@ -213,7 +231,8 @@ def _jpeg_note(result: dict) -> str:
         return ""
     done = "deblocked" if result.get("deblock", True) else "not deblocked"
     chroma = "4:2:0" if result.get("subsampled") else "4:4:4"
-    return f", LR stored as JPEG quality {result['jpeg']} {chroma}, {done}"
+    modelled = ", that storage modelled in the check" if result.get("storage") else ""
+    return f", LR stored as JPEG quality {result['jpeg']} {chroma}, {done}{modelled}"
 
 
 def markdown_table(result: dict) -> str:

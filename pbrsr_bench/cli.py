@@ -108,6 +108,10 @@ def check_cmd(
     chroma: str = typer.Option(
         "4:4:4", help="With --jpeg: the crops' chroma at full (4:4:4) or half resolution (4:2:0)."
     ),
+    storage: bool = typer.Option(
+        False,
+        help="With --jpeg: the self-check models that storage one scale down (check_storage).",
+    ),
 ) -> None:
     """The prior's self-check against the real scale on held-out texture materials: the gain
     over bicubic of the check's choices, of each candidate alone and of the oracle, and the
@@ -125,13 +129,16 @@ def check_cmd(
         sizes=_ints(sizes),
         jpeg=jpeg,
         deblock_jpeg=deblock,
-        subsampled=_subsampled(chroma, jpeg),
+        subsampled=_subsampled(chroma, jpeg, storage),
+        storage=storage,
     )
 
 
-def _subsampled(chroma: str, jpeg: int | None) -> bool:
+def _subsampled(chroma: str, jpeg: int | None, storage: bool = False) -> bool:
     """--chroma: 4:2:0 (True) or 4:4:4 (False), of the --jpeg files; anything else, or 4:2:0
-    without --jpeg, is refused."""
+    or --storage without --jpeg, is refused."""
+    if storage and jpeg is None:
+        _bad_input(ValueError("--storage models the --jpeg files in the check: give --jpeg Q"))
     if chroma not in ("4:4:4", "4:2:0"):
         _bad_input(ValueError(f"--chroma takes 4:4:4 or 4:2:0, not {chroma!r}"))
     if chroma == "4:2:0" and jpeg is None:
@@ -186,6 +193,10 @@ def blend_cmd(
     chroma: str = typer.Option(
         "4:4:4", help="With --jpeg: the crops' chroma at full (4:4:4) or half resolution (4:2:0)."
     ),
+    storage: bool = typer.Option(
+        False,
+        help="With --jpeg: the self-check models that storage one scale down (check_storage).",
+    ),
 ) -> None:
     """The presets' blend of data channels on held-out texture materials, rule by rule: the
     gain over bicubic per channel and the networks run per map (and their runs, one per
@@ -222,7 +233,8 @@ def blend_cmd(
         max_prior_scale=max_prior_scale,
         jpeg=jpeg,
         channel_dbs=channel_values,
-        subsampled=_subsampled(chroma, jpeg),
+        subsampled=_subsampled(chroma, jpeg, storage),
+        storage=storage,
     )
 
 

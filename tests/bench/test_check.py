@@ -135,3 +135,53 @@ def test_jpeg_lr_crops_can_hold_their_chroma_at_half_resolution(folder, tmp_path
     assert code == 2 and "--chroma takes 4:4:4 or 4:2:0" in err
     code, err = run_cli([*base[:-2], "--chroma", "4:2:0"], capfd)
     assert code == 2 and "give --jpeg Q" in err
+
+
+def test_the_check_can_model_the_lr_crops_jpeg_storage(folder, tmp_path: Path, capfd, monkeypatch):
+    """--storage: the self-check of check and blend compresses its crop one scale down with
+    the LR crops' own tables and deblocks it as they were (``check_storage``); only with
+    --jpeg."""
+    import pbrsr_bench.blend as bench_blend
+    import pbrsr_bench.check as bench_check
+    from pbrsr_bench.check import storage_model
+    from pbrsr_core.asset.jpeg import standard_quant, stored_as
+    from pbrsr_core.prior import load_prior
+    from pbrsr_core.prior.selfcheck import prior_self_check
+
+    img = np.random.default_rng(2).random((32, 32, 3)).astype(np.float32)
+    assert (
+        storage_model(90, True, True, False) is None
+        and storage_model(None, True, True, True) is None
+    )
+    for subsampled, deblocked in ((True, True), (False, False)):
+        store = storage_model(90, subsampled, deblocked, True)
+        want = stored_as(img, standard_quant(90, subsampled), deblocked)
+        assert store is not None and (store(img) == want).all()
+    stores = []
+
+    def recorded_check(prior, lr, scale, kind, **kw):
+        stores.append(kw.get("store"))
+        return prior_self_check(prior, lr, scale, kind, **kw)
+
+    monkeypatch.setattr(bench_check, "prior_self_check", recorded_check)
+    monkeypatch.setattr(bench_blend, "prior_self_check", recorded_check)
+    prior = load_prior("bicubic", "cpu")
+    hr = np.random.default_rng(3).random((128, 128, 3)).astype(np.float32)
+    bench_check.score_map(prior, hr, "colour", 4, "m", jpeg=80, subsampled=True, storage=True)
+    bench_check.score_map(prior, hr, "colour", 4, "m", jpeg=80, subsampled=True)
+    bench_blend.score_crop(prior, hr, hr, [1], 4, [(0.0, 0.0, None, False, None)], jpeg=80,
+                           storage=True)  # fmt: skip
+    assert len(stores) == 4 and stores[1] is None
+    for s in (stores[0], *stores[2:]):
+        assert (s(img) == stored_as(img, standard_quant(80, s is stores[0]), True)).all()
+    base = ["bench", "check", "-o", str(tmp_path), "--textures", str(folder), "--prior"]
+    base += ["bicubic", "--scale", "2", "--sizes", "128", "--storage"]
+    code, err = run_cli(base, capfd)
+    assert code == 2 and "--storage models the --jpeg files in the check: give --jpeg Q" in err
+    code, err = run_cli([*base, "--jpeg", "70"], capfd)
+    assert code == 0, err
+    saved = json.loads((tmp_path / "check.json").read_text())
+    assert saved["storage"]
+    assert "JPEG quality 70 4:4:4, deblocked, that storage modelled in the check" in (
+        markdown_table(saved)
+    )
