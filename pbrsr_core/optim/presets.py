@@ -115,8 +115,9 @@ class PbrsrConfig:
     not measured, the prior runs on every map of ``prior_maps``."""
     deblock_jpeg: bool = False
     """LR maps stored as JPEG have their block artefacts reduced with the file's own
-    quantisation tables (every component of 4:4:4 files, the luma of chroma-subsampled ones)
-    before they become the init and the consistency target (asset/jpeg.py). The paper takes
+    quantisation tables (every component of 4:4:4 files; the luma of chroma-subsampled ones,
+    their chroma rebuilt from it) before they become the init and the consistency target
+    (asset/jpeg.py). The paper takes
     the LR maps as they are."""
     check_storage: bool = False
     """The self-check models a JPEG map's storage one scale down: the downscaled crop is
