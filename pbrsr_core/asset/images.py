@@ -67,16 +67,20 @@ FORMAT_OF_MIME: dict[str, ImageFormat] = {v: k for k, v in MIME.items()}
 _LOSSLESS_MIMES = {"image/png", "image/x-exr", "image/tiff"}
 
 
+JpegSubsampling = Literal["4:4:4", "4:2:0"]
+
+
 class JpegEncoding(NamedTuple):
     """How :func:`write_image` stores a JPEG: its quality (libjpeg's 1-100 scale of the
     standard quantisation tables) and whether its chroma is kept at full resolution (4:4:4)
     or at half in each direction (4:2:0, as most image editors and web pipelines store it)."""
 
     quality: int = 95
-    subsampling: Literal["4:4:4", "4:2:0"] = "4:4:4"
+    subsampling: JpegSubsampling = "4:4:4"
 
 
-JPEG_SUBSAMPLING = {"444": "4:4:4", "420": "4:2:0"}
+JPEG_SUBSAMPLING: dict[str, JpegSubsampling] = {"444": "4:4:4", "420": "4:2:0"}
+"""The chroma suffixes of a ``jpeg:Q:...`` request and the sampling each names."""
 
 
 def jpeg_request(requested: str) -> tuple[str, JpegEncoding | None]:
@@ -98,7 +102,7 @@ def jpeg_request(requested: str) -> tuple[str, JpegEncoding | None]:
             f"bad JPEG format {requested!r}: use jpeg:QUALITY or jpeg:QUALITY:420 (chroma at "
             "half resolution) or jpeg:QUALITY:444, QUALITY 1-100"
         )
-    return "jpeg", JpegEncoding(int(quality), JPEG_SUBSAMPLING[chroma])  # type: ignore[arg-type]
+    return "jpeg", JpegEncoding(int(quality), JPEG_SUBSAMPLING[chroma])
 
 
 class EncodedImage(NamedTuple):
