@@ -352,6 +352,12 @@ def upscale_cmd(
         True, help="Include the shared assets (their HDRs light the evaluation either way)."
     ),
     procedural_size: int = typer.Option(512, help="HR texture size of the procedural asset."),
+    assets_dir: Path | None = typer.Option(
+        None,
+        "--assets-dir",
+        help="A folder laid out as the shared assets (a folder per asset, a .gltf or .glb in "
+        "each) whose assets run instead of the shared ones; the shared HDRs light them.",
+    ),
     lr_format: str = typer.Option(
         "same",
         help="LR image format (pbrsr degrade --format): same, png, png16, exr, jpeg, jpeg:Q, "
@@ -392,6 +398,7 @@ def upscale_cmd(
         procedural_size=procedural_size,
         lr_format=lr_format,
         kernel=kernel,
+        assets_dir=assets_dir,
     )
     _publish(out, docs)
 

@@ -277,13 +277,20 @@ def run(
     lr_format: str = "same",
     kernel: str = "gaussian",
     shared: Path = SHARED_ASSETS,
+    assets_dir: Path | None = None,
     log=print,
 ) -> list[dict]:
-    """Run the benchmark; write ``results.json``, ``results.md`` and ``speed_vs_error.png``."""
+    """Run the benchmark; write ``results.json``, ``results.md`` and ``speed_vs_error.png``.
+
+    ``assets_dir``: a folder laid out as the shared one (a folder per asset, a glTF or GLB in
+    each) whose assets run instead of the shared ones (no variants); the shared HDRs still
+    light the evaluation."""
 
     check_methods(methods, prior)
     check_kernels((kernel,))
     jpeg_request(lr_format)
+    if assets_dir is not None and not find_assets(assets_dir, None):
+        raise ValueError(f"{assets_dir} holds no folder with a .gltf or .glb in it")
     out_dir.mkdir(parents=True, exist_ok=True)
     lights, light_names = eval_lights(shared)
     work_root = Path(tempfile.mkdtemp(prefix="pbrsr-bench-"))
@@ -297,17 +304,18 @@ def run(
         "lr_format": lr_format,
         "kernel": kernel,
         "machine": machine(),
+        **({"assets_dir": str(assets_dir)} if assets_dir is not None else {}),
     }
     try:
         todo = bench_assets(
             work_root,
             include_procedural,
             procedural_size,
-            shared,
+            shared if assets_dir is None else assets_dir,
             assets,
             log,
             include_shared,
-            variants=True,
+            variants=assets_dir is None,
         )
         for name, gt_path in todo:
             log(f"== {name}: degrade x{scale} ({kernel})")
@@ -543,12 +551,16 @@ def published_summary(out_dir: Path) -> str:
     if lr_format != "same":
         lr += f", LR maps stored as `{lr_format}` (`pbrsr degrade --format`)"
         command += f" --lr-format {lr_format}"
-    shared = sorted({r["asset"] for r in rows} - {*PROCEDURAL_ASSETS, *BENCH_VARIANTS})
+    real = sorted({r["asset"] for r in rows} - {*PROCEDURAL_ASSETS, *BENCH_VARIANTS})
+    where = "shared assets"
+    if data.get("assets_dir"):
+        where = f"assets of `{data['assets_dir']}`"
+        command += f" --assets-dir {data['assets_dir']}"
     return (
         f"x{data['scale']}{lr}, prior `{data['prior']}`, render PSNR over "
         f"{data['eval_views']} views at {data['eval_res']}² under "
         f"{' and '.join(data['lights'])}, mean over "
-        f"{len(shared)} shared assets ({', '.join(shared)}); run time is the method's own "
+        f"{len(real)} {where} ({', '.join(real)}); run time is the method's own "
         f"(load to save), on {data.get('machine') or machine()}. Measured by `{command}`.\n\n"
         + summary_table(rows)
     )

@@ -251,6 +251,42 @@ def test_bench_assets_refuses_an_unknown_name(tmp_path: Path):
     assert [name for name, _ in only] == ["procedural", "procedural-cutout"] and said == []
 
 
+def test_an_assets_folder_runs_in_place_of_the_shared_assets(tmp_path: Path):
+    """--assets-dir: each folder's glTF runs (no variants: a WaterBottle there is any asset),
+    the summary names the folder and its command the option; a folder holding no asset is
+    refused before anything runs (exit 2)."""
+    from typer.testing import CliRunner
+
+    from pbrsr_bench.upscale import published_summary
+
+    mine = tmp_path / "mine"
+    (mine / "WaterBottle").mkdir(parents=True)
+    make_test_asset(mine / "WaterBottle" / "left.glb", size=16)
+    rows = run(
+        out_dir=tmp_path / "out",
+        methods=("bicubic",),
+        eval_res=32,
+        eval_views=2,
+        include_procedural=False,
+        shared=tmp_path / "no-shared-assets",
+        assets_dir=mine,
+        log=print,
+    )
+    assert [(r["asset"], r["method"]) for r in rows] == [("WaterBottle", "bicubic")]
+    text = published_summary(tmp_path / "out")
+    assert f"mean over 1 assets of `{mine}` (WaterBottle)" in text
+    assert f"--eval-views 2 --assets-dir {mine}`" in text
+    empty = tmp_path / "empty"
+    (empty / "notes").mkdir(parents=True)
+    for folder in (empty, tmp_path / "absent"):
+        out = tmp_path / "never"
+        res = CliRunner().invoke(
+            _bench_cli(), ["bench", "upscale", "-o", str(out), "--assets-dir", str(folder)]
+        )
+        assert res.exit_code == 2 and f"{folder} holds no folder with a .gltf or .glb" in res.output
+        assert not out.exists()
+
+
 def test_bench_assets_adds_the_draco_variant_of_the_water_bottle(tmp_path: Path):
     shared = tmp_path / "shared"
     (shared / "WaterBottle").mkdir(parents=True)
