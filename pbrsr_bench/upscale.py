@@ -568,7 +568,7 @@ def published_summary(out_dir: Path) -> str:
 
 def plot(rows: list[dict], path: Path, columns: int = 4) -> None:
     """A grid: first the summary (per method, mean render-PSNR gain over bicubic against
-    mean run time, over the shared assets), then one panel per asset (render PSNR against
+    mean run time, over the real assets), then one panel per asset (render PSNR against
     wall seconds: curves over iterations where a method has them, a point where not, bicubic
     as a dashed line). A method keeps its colour in every panel."""
     import matplotlib
@@ -610,7 +610,7 @@ def plot(rows: list[dict], path: Path, columns: int = 4) -> None:
 
 def _plot_summary(ax, rows: list[dict], colour: dict[str, str]) -> None:
     if not rows:
-        ax.text(0.5, 0.5, "no shared asset with a bicubic row", ha="center", va="center")
+        ax.text(0.5, 0.5, "no real asset with a bicubic row", ha="center", va="center")
         ax.axis("off")
         return
     most = max(r["assets"] for r in rows)
@@ -621,7 +621,7 @@ def _plot_summary(ax, rows: list[dict], colour: dict[str, str]) -> None:
                     xytext=(4, 4), textcoords="offset points")  # fmt: skip
     ax.axhline(0.0, color="gray", linestyle="--", linewidth=0.8)
     ax.set_xscale("log")
-    ax.set_title(f"mean over {most} shared assets", fontsize=10)
+    ax.set_title(f"mean over {most} real assets", fontsize=10)
     ax.set_xlabel("mean run seconds (log)")
     ax.set_ylabel("render PSNR gain over bicubic (dB)")
     ax.grid(alpha=0.3)
