@@ -289,6 +289,8 @@ def run(
     check_methods(methods, prior)
     check_kernels((kernel,))
     jpeg_request(lr_format)
+    if assets_dir is not None and not assets_dir.is_dir():
+        raise ValueError(f"--assets-dir {assets_dir} is not a folder")
     if assets_dir is not None and not find_assets(assets_dir, None):
         raise ValueError(f"{assets_dir} holds no folder with a .gltf or .glb in it")
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -278,12 +278,16 @@ def test_an_assets_folder_runs_in_place_of_the_shared_assets(tmp_path: Path):
     assert f"--eval-views 2 --assets-dir {mine}`" in text
     empty = tmp_path / "empty"
     (empty / "notes").mkdir(parents=True)
-    for folder in (empty, tmp_path / "absent"):
+    said = {
+        empty: f"{empty} holds no folder with a .gltf or .glb",
+        tmp_path / "absent": f"--assets-dir {tmp_path / 'absent'} is not a folder",
+    }
+    for folder, reason in said.items():
         out = tmp_path / "never"
         res = CliRunner().invoke(
             _bench_cli(), ["bench", "upscale", "-o", str(out), "--assets-dir", str(folder)]
         )
-        assert res.exit_code == 2 and f"{folder} holds no folder with a .gltf or .glb" in res.output
+        assert res.exit_code == 2 and reason in res.output
         assert not out.exists()
 
 
