@@ -30,6 +30,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..filters import box_mean
+
 # zig-zag position -> natural (row-major) index of the 8x8 block
 _ZIGZAG = (
     0, 1, 8, 16, 9, 2, 3, 10, 17, 24, 32, 25, 18, 11, 4, 5,
@@ -184,12 +186,6 @@ def _spread(x: torch.Tensor, step: tuple[int, int], h: int, w: int) -> torch.Ten
     return up[..., :h, :w]
 
 
-def _box(x: torch.Tensor, r: int) -> torch.Tensor:
-    """The mean over the (2r + 1)² window around each texel of (N, 1, H, W), edges
-    replicated."""
-    return F.avg_pool2d(F.pad(x, (r, r, r, r), mode="replicate"), 2 * r + 1, stride=1)
-
-
 def _to_ycc(rgb: torch.Tensor) -> torch.Tensor:
     """(H, W, 3) RGB in 0..255 -> level-shifted YCbCr (every component centred on 0)."""
     y = rgb @ _RGB_TO_YCC.to(rgb.dtype).T
@@ -261,10 +257,10 @@ def _chroma_from_luma(
     lum, chr_ = luma[None, None], chroma[None, None]
     ls, cs = _pooled(lum, step), _pooled(chr_, step)
     r = CHROMA_RADIUS
-    ml, mc = _box(ls, r), _box(cs, r)
-    a = (_box(ls * cs, r) - ml * mc) / (_box(ls * ls, r) - ml * ml + CHROMA_EPS)
+    ml, mc = box_mean(ls, r), box_mean(cs, r)
+    a = (box_mean(ls * cs, r) - ml * mc) / (box_mean(ls * ls, r) - ml * ml + CHROMA_EPS)
     b = mc - a * ml
-    out = _spread(_box(a, r), step, h, w) * lum + _spread(_box(b, r), step, h, w)
+    out = _spread(box_mean(a, r), step, h, w) * lum + _spread(box_mean(b, r), step, h, w)
     out = out + _spread(cs - _pooled(out, step), step, h, w)
     return out[0, 0]
 

@@ -26,6 +26,7 @@ import torch.nn.functional as F
 
 from ..asset.model import Asset
 from ..degrade import degrade_image, run_kernel
+from ..filters import box_mean
 from .backproject import back_project
 from .selfcheck import CROP, _centre
 
@@ -66,10 +67,6 @@ def _t(a: np.ndarray, dtype: type = np.float64) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(a, dtype=dtype)).permute(2, 0, 1)[None]
 
 
-def _box(x: torch.Tensor, r: int) -> torch.Tensor:
-    return F.avg_pool2d(F.pad(x, (r,) * 4, mode="replicate"), 2 * r + 1, stride=1)
-
-
 def _resize(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     if tuple(x.shape[-2:]) == size:
         return x
@@ -95,10 +92,11 @@ def guided_upscale(
     with torch.inference_mode():
         i_lr = _resize(_t(guide_lr[..., :3]), (h, w))
         i_hr = _resize(_t(guide_hr[..., :3], np.float32), size_hr)  # the HR side in float32
-        m_i = _box(i_lr, radius)
+        m_i = box_mean(i_lr, radius)
         var = torch.stack(
             [
-                _box(i_lr[:, j : j + 1] * i_lr[:, k : k + 1], radius)[:, 0] - m_i[:, j] * m_i[:, k]
+                box_mean(i_lr[:, j : j + 1] * i_lr[:, k : k + 1], radius)[:, 0]
+                - m_i[:, j] * m_i[:, k]
                 for j in range(3)
                 for k in range(3)
             ],
@@ -107,11 +105,11 @@ def guided_upscale(
         out = []
         for c in range(lr.shape[2]):
             p = _t(lr[..., c : c + 1])
-            m_p = _box(p, radius)
-            cov = (_box(i_lr * p, radius) - m_i * m_p)[0].permute(1, 2, 0).reshape(h * w, 3, 1)
+            m_p = box_mean(p, radius)
+            cov = (box_mean(i_lr * p, radius) - m_i * m_p)[0].permute(1, 2, 0).reshape(h * w, 3, 1)
             a = torch.linalg.solve(var, cov)[..., 0].reshape(h, w, 3).permute(2, 0, 1)[None]
             b = m_p - (a * m_i).sum(1, keepdim=True)
-            a, b = _box(a, radius).float(), _box(b, radius).float()
+            a, b = box_mean(a, radius).float(), box_mean(b, radius).float()
             q = F.interpolate(b, size=size_hr, mode="bilinear")
             for k in range(3):  # one HR coefficient plane at a time
                 q += (
