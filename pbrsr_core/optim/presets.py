@@ -319,16 +319,18 @@ PAPER = PbrsrConfig(
 #   are renormalised after the blur, which the LR model does not invert).
 PRIOR_MAPS_CPU = MAP_NAMES
 PROJECT_LR_CPU = ("colour", "data")
-# * check_prior colour and data, not normal maps. On the nine normal maps of the shared and
-#   procedural assets, the back-projected prior against bicubic, one scale down (what the
-#   check sees) / at the real scale against the GT (covered texels): Avocado +1.85 / +0.21 dB,
-#   BoomBox +0.68 / +2.26, ToyCar +0.01 / -0.05, ToyCar fabric +0.62 / +0.39, WaterBottle
-#   +0.95 / +0.23, cabinet +0.50 / +1.16, tea set +0.37 / -0.05, table +0.63 / +0.55,
-#   procedural -0.12 / +1.21. The check decides wrongly on three of nine; where the prior loses
-#   it loses at most 0.05 dB, and the procedural normal map the check rejects costs 1.4 dB of
-#   render PSNR against the direct prior. Colour and data maps are checked: unchecked, the
-#   prior would cost the Avocado's roughness 0.67 dB (-0.04 one scale down) and the BoomBox's
-#   constant occlusion channel 72 dB (-47 one scale down).
+# * check_prior colour and data, not normal maps. Unchecked, the prior would cost the Avocado's
+#   roughness 0.67 dB (-0.04 one scale down) and the BoomBox's constant occlusion channel 72 dB
+#   (-47 one scale down). Normal maps checked too (`check_prior=colour|data|normal`, pbr-srmd's
+#   normal network and waifu2x-photo as candidates, bicubic the fallback; `pbrsr bench upscale`,
+#   the seven shared assets, 40 evaluation views): at x4 the ToyCar's normal map goes to
+#   waifu2x-photo's (direct 29.51 -> 29.61 dB, render +0.02) and no other map moves (a WebXR
+#   trigger's, docs/BENCHMARKS.md, from 26.96 to 27.78, above bicubic's 27.62); at x2 the ToyCar's
+#   goes to bicubic, whose one-scale-down score ties the networks' (27.26 dB, waifu2x-photo
+#   27.24, the network 27.16) where at the real scale they gain +2.6 to +3.3 dB, and the
+#   WaterBottle's, flat one scale down, where the network gains +0.6: direct's mean render
+#   gain over bicubic +2.46 against +2.63, balanced +2.50 against +2.69 (docs/METHOD.md,
+#   "Colour and data maps only").
 CHECK_PRIOR_CPU = ("colour", "data")
 # * reach_db: None in every preset. At 25 dB (`+reach_db=25` in `pbrsr bench upscale`, x4, the
 #   seven shared assets, 40 evaluation views) the renders move by -0.01..0.00 dB per asset and
