@@ -329,8 +329,9 @@ PROJECT_LR_CPU = ("colour", "data")
 #   goes to bicubic, whose one-scale-down score ties the networks' (27.26 dB, waifu2x-photo
 #   27.24, the network 27.16) where at the real scale they gain +2.6 to +3.3 dB, and the
 #   WaterBottle's, flat one scale down, where the network gains +0.6: direct's mean render
-#   gain over bicubic +2.46 against +2.63, balanced +2.50 against +2.69 (docs/METHOD.md,
-#   "Colour and data maps only").
+#   gain over bicubic +2.46 against +2.63, balanced +2.50 against +2.69. A pick between the
+#   two networks alone (no bicubic, no flat rule) gains +0.01 dB at x2 and costs 0.11 at x8
+#   (docs/METHOD.md, "Colour and data maps only").
 CHECK_PRIOR_CPU = ("colour", "data")
 # * reach_db: None in every preset. At 25 dB (`+reach_db=25` in `pbrsr bench upscale`, x4, the
 #   seven shared assets, 40 evaluation views) the renders move by -0.01..0.00 dB per asset and
