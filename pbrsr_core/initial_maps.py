@@ -18,7 +18,13 @@ from .prior.blend import blend, blend_check, blend_plan, check_picks
 from .prior.direct import bicubic_map, upscale_map
 from .prior.guided import CHANNELS as GUIDED_CHANNELS
 from .prior.guided import guide_pairs, guided_check_upscale, guided_upscale
-from .prior.selfcheck import chosen, prior_self_check, upscale_channels, upscale_each
+from .prior.selfcheck import (
+    chosen,
+    prior_self_check,
+    upscale_channels,
+    upscale_each,
+    with_gain,
+)
 from .progress import MapProgress, Progress, StageTimer, emit
 from .uvmask import coverage_masks
 
@@ -201,10 +207,19 @@ def blended_channels(asset, images, prior, channels, checks, sources, kept, lr_p
     return blends
 
 
-def initial_maps(images, sources, blends, lr_pixels, s, wraps, config, timer, progress):
+def check_gains(checks: list[dict] | None) -> dict[int, list[float]]:
+    """{image: per channel entry, the detail gain its self-check fitted} from the reports of
+    :func:`prior_channels_checked` (``PbrsrConfig.detail_gain``)."""
+    return {c["index"]: c["gains"] for c in checks or () if "gains" in c}
+
+
+def initial_maps(images, sources, blends, lr_pixels, s, wraps, config, timer, progress,
+                 gains=None):  # fmt: skip
     """The optimiser's start: bicubic, with a prior's upscale in the channels ``sources``
     gives one for (per image, per channel: the prior or None), and the blends of ``blends``
-    (:func:`blended_channels`; the colour maps that guide one come first). Returns
+    (:func:`blended_channels`; the colour maps that guide one come first); a map with
+    ``gains`` ({image: per channel entry}, :func:`check_gains`) departs from bicubic by
+    ``config.detail_gain`` of them (prior/selfcheck.py ``with_gain``). Returns
     ({image: HR map, stored encoding}, the same as optimisation parameters, the LR maps as
     parameters)."""
     init_encoded, init, lr = {}, {}, {}
@@ -215,15 +230,20 @@ def initial_maps(images, sources, blends, lr_pixels, s, wraps, config, timer, pr
         for img in order:
             kind = kind_of(img.roles)
             px = lr_pixels[img.index]
-            hr = bicubic_map(px, kind, s, wraps[img.index])  # px: a cutout's already filled
+            plain = bicubic_map(px, kind, s, wraps[img.index])  # px: a cutout's already filled
             tiles.on(img)(0, 1)
-            if img.index in blends:  # hr is this call's own array
-                hr = _blend_map(hr, px, blends[img.index], init_encoded, lr_pixels, s, kind,
-                                wraps[img.index], config, tiles.on(img))  # fmt: skip
+            gain = (gains or {}).get(img.index) if config.detail_gain else None
+            if img.index in blends:  # the blends are written into this call's own array
+                hr = _blend_map(plain if gain is None else plain.copy(), px, blends[img.index],
+                                init_encoded, lr_pixels, s, kind, wraps[img.index], config,
+                                tiles.on(img))  # fmt: skip
             else:
-                hr = upscale_channels(sources.get(img.index, [None]), px, kind, s, hr,
+                hr = upscale_channels(sources.get(img.index, [None]), px, kind, s, plain,
                                       max_prior_scale=config.max_prior_scale,
                                       progress=tiles.on(img), wrap=wraps[img.index])  # fmt: skip
+            if gain is not None:
+                hr = with_gain(hr, plain, gain, kind, config.detail_gain)
+            del plain
             tiles.on(img)(1, 1)  # done, whether a prior ran on it or not
             init_encoded[img.index] = hr
             init[img.index] = encoded_to_param(torch.from_numpy(hr), kind)

@@ -39,6 +39,7 @@ from .errors import PbrsrError, StorageError, UnprocessableAsset
 from .footprint import check_memory, estimate_peak_bytes
 from .initial_maps import (
     blended_channels,
+    check_gains,
     deblocked_lr,
     initial_maps,
     prior_channels,
@@ -78,6 +79,7 @@ from .prior.selfcheck import (
     chosen,
     merge_channels,
     upscale_channels,
+    with_gain,
 )
 from .progress import MapProgress, Progress, ProgressFn, StageTimer, emit
 from .render.light import EnvLight
@@ -232,23 +234,34 @@ def _merge_report(into: dict, part: dict) -> None:
 def _direct_maps(asset, images, prior, s, wraps, cutouts, unseen, timer, progress):
     """The direct method on ``images`` at ``s``: JPEG maps deblocked with their own tables,
     as every preset does; where the prior offers candidates, the self-check picks one per
-    colour and data map; the entries ``unseen`` names ({image: entries}) keep bicubic.
+    colour and data map; the entries ``unseen`` names ({image: entries}) keep bicubic. The
+    prior's detail in a checked map is scaled by balanced's share of its fitted gain
+    (``PbrsrConfig.detail_gain``; a prior of one candidate is checked for the gain alone).
     Returns (HR maps, report fields)."""
     from .optim.presets import BALANCED, CHECK_PRIOR_CPU
 
     lr_pixels, deblocked = deblocked_lr(images, BALANCED, timer)
     read = {img.index: prior_channels(img, BALANCED) for img in images}
     n = {i: len(r) for i, r in read.items()}  # channel entries
+
+    def several(img) -> bool:
+        return len(prior.candidates(kind_of(img.roles))) > 1
+
     offered = [
         img
         for img in images
-        if len(prior.candidates(kind_of(img.roles))) > 1
+        if (several(img) or BALANCED.detail_gain and prior.is_network)
         and len(unseen.get(img.index, ())) < n[img.index]
         and any(read[img.index])
     ]
     found = self_checks(asset, offered, prior, lr_pixels, s, CHECK_PRIOR_CPU, None, timer,
                         progress, storage=BALANCED.check_storage)  # fmt: skip
-    picks = {img.index: _direct_picks(prior, img, found.get(img.index)) for img in offered}
+    picks = {
+        img.index: _direct_picks(prior, img, found.get(img.index))
+        for img in offered
+        if several(img)
+    }
+    gains = check_gains([{"index": i, **c} for i, c in found.items() if c])
     chose = {  # a data map none of whose channels a material reads: bicubic's
         i: picks.get(i, [prior]) if any(r) else [None] * len(r) for i, r in read.items()
     }
@@ -260,19 +273,35 @@ def _direct_maps(asset, images, prior, s, wraps, cutouts, unseen, timer, progres
             kind = kind_of(img.roles)
             sources = sources_of[img.index]
             px, wrap, cutout = lr_pixels[img.index], wraps[img.index], cutouts[img.index]
-            base = None if any(sources) else bicubic_map(px, kind, s, wrap, cutout)
-            out[img.index] = upscale_channels(
+            gain = gains.get(img.index) if BALANCED.detail_gain and any(sources) else None
+            base = bicubic_map(px, kind, s, wrap, cutout) if gain or not any(sources) else None
+            hr = upscale_channels(
                 sources, px, kind, s, base, wrap=wrap, cutout=cutout, progress=tiles.on(img)
             )
+            if gain is not None and base is not None:
+                hr = with_gain(hr, base, gain, kind, BALANCED.detail_gain)
+            out[img.index] = hr
     names = {img.index: img.name for img in images}
-    checked = [{"image": names[i], "index": i, **c} for i, c in found.items() if c]
+    checked = [
+        {"image": names[i], "index": i, **c, **({} if i in picks else _gain_only(c))}
+        for i, c in found.items()
+        if c
+    ]
     made_by = _made_by(images, sources_of, {}, checked, unseen)
     return out, {
         "prior_precision": _precisions(prior, images),
         "jpeg_deblocked": deblocked,
         "made_by": made_by,
-        **({"prior_check": checked} if picks else {}),
+        **({"prior_check": checked} if checked else {}),
     }
+
+
+def _gain_only(check: dict) -> dict:
+    """A check's report where direct takes its gain alone (a prior of one candidate, which
+    upscales each map the materials read): the channels say what direct used."""
+    n = len(check["channels"])
+    note = "the prior's only candidate upscales every channel; the check fits its gain"
+    return {"channels": [True] * n, "use_prior": True, "note": note}
 
 
 def _without(sources: list, entries: set[int] | None, n: int) -> list:
@@ -351,7 +380,7 @@ def _pbrsr_maps(asset, groups, static, prior, options, config, device, timer, pr
         every = {i: sources.get(i) or [None] * len(c) for i, c in ch.items()}
         made_by.update(_made_by(group, every, blends, found, unseen))
         enc, par, low = initial_maps(group, sources, blends, px, s, wraps, config, timer,
-                                     progress)  # fmt: skip
+                                     progress, check_gains(found))  # fmt: skip
         init_encoded.update(enc)
         init.update(par)
         lr.update(low)

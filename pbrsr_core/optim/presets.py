@@ -124,6 +124,12 @@ class PbrsrConfig:
     compressed with the file's own tables and chroma sampling (and deblocked with them under
     ``deblock_jpeg``) before each candidate upscales it, as the LR map itself was stored
     (asset/jpeg.py ``stored_as``). Off: the crop as the protocol's degradation leaves it."""
+    detail_gain: float = 0.0
+    """Share (0 to 1) of the self-check's detail gain taken: a checked colour or data map's
+    upscale departs from bicubic's by ``1 + detail_gain (k - 1)`` times the prior's
+    departure, ``k`` the least-squares scale of that departure one scale down, per channel
+    entry, within [0.5, 1.5] (prior/selfcheck.py ``detail_gain``); blends take their pick's.
+    0: the prior's upscale as it is (the paper)."""
     # --- pseudo-GT -------------------------------------------------------------------------
     lr_render: Literal["supersample", "raster"] = "supersample"
     """How the LR render handed to the prior is made: area-averaged from the HR render
@@ -196,6 +202,7 @@ class PbrsrConfig:
             (set(self.prior_maps) <= set(MAP_NAMES), f"prior_maps must be among {MAP_NAMES}"),
             (set(self.project_lr) <= set(MAP_KINDS), f"project_lr must be among {MAP_KINDS}"),
             (set(self.check_prior) <= set(MAP_KINDS), f"check_prior must be among {MAP_KINDS}"),
+            (0.0 <= self.detail_gain <= 1.0, "detail_gain must be within 0 and 1"),
             (
                 self.max_prior_scale is None or self.max_prior_scale >= 2,
                 "max_prior_scale must be None or >= 2",
@@ -369,6 +376,13 @@ CHECK_PRIOR_CPU = ("colour", "data")
 #   the ToyCar's -0.01, mean +2.42 dB either way; at x2 it leaves the table's metallic 0.07 dB
 #   below bicubic (0.02 without), a map the renders do not show (docs/METHOD.md, "A network
 #   per channel").
+# * detail_gain 0.5 in fast, balanced and quality (direct takes balanced's): a colour or data
+#   map's departure from bicubic scaled by half its gain fitted one scale down. The published x4
+#   run (the seven shared assets, 40 evaluation views) against the same table without it:
+#   direct +2.28 -> +2.30 dB over bicubic, fast +2.42 -> +2.49 (BoomBox +0.37), balanced +2.41
+#   either way, direct with waifu2x-photo +1.91 -> +1.98. The full gain on every map kind lost
+#   0.025 dB in direct's renders, on normal maps alone 0.059 (docs/METHOD.md, "The network's
+#   detail scaled by a gain fitted one scale down").
 # * self_ensemble_by_kind {"normal": 2} in balanced: normal maps on two copies of the prior, the
 #   other kinds on one. Published runs, the seven shared assets, 40 evaluation views, balanced
 #   against `balanced+blend_channel_db=null+self_ensemble_by_kind={}`: x4 +2.41 against +2.36
@@ -428,6 +442,7 @@ _CPU = PbrsrConfig(
     prior_maps=PRIOR_MAPS_CPU,
     map_lr={"normal": 0.3, "emissive": 0.0},
     blend_channel_db=0.1,
+    detail_gain=0.5,
     project_lr=PROJECT_LR_CPU,
     lambda_pix=1.0,
     mask_unseen=True,

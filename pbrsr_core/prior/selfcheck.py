@@ -62,6 +62,15 @@ after deblocking and 1.0 taken out, scores 0.14 dB above bicubic in direct with 
 0.21 below without. A map stored without loss keeps the 8-bit floor."""
 
 
+GAIN_RANGE = (0.5, 1.5)
+"""The range a map entry's detail gain (:func:`detail_gain`) is kept in."""
+GAIN_KINDS = ("colour", "data")
+"""Map kinds whose upscale takes the gain (:func:`with_gain`). Not normal maps: on the seven
+shared assets (x4, direct, 40 evaluation views) the fitted gain brought their normal maps
+0.14 dB closer to the ground truth and cost the renders 0.06 dB on average (the cabinet's
+0.37, docs/METHOD.md, "The network's detail scaled by a gain fitted one scale down")."""
+
+
 def check_factor(side: int, scale: int, priors: Sequence[Prior] = ()) -> int:
     """The factor a map of ``side`` texels (its shorter side, at most ``CROP``) is checked
     at: ``scale``, halved while the crop one scale down would hold fewer than ``MIN_SIDE``
@@ -100,6 +109,42 @@ def scorer(
     return db, mask
 
 
+def detail_gain(up: np.ndarray, bicubic: np.ndarray, ref: np.ndarray) -> float:
+    """The ``k`` (within :data:`GAIN_RANGE`) for which ``bicubic + k (up - bicubic)`` is
+    closest to ``ref`` in least squares, the three given over the same texels: how much of
+    an upscale's departure from bicubic's the map bears out. 1 where the upscale is
+    bicubic's."""
+    d = (up.astype(np.float64) - bicubic).ravel()
+    dd = float(d @ d)
+    if dd <= 1e-12:
+        return 1.0
+    k = float(d @ (ref.astype(np.float64) - bicubic).ravel()) / dd
+    return float(np.clip(k, *GAIN_RANGE))
+
+
+def with_gain(hr: np.ndarray, bicubic: np.ndarray, gains: Sequence[float], kind: str,
+              share: float) -> np.ndarray:  # fmt: skip
+    """``hr`` (sH, sW, C, an upscale of a map of ``kind``) with its departure from
+    ``bicubic`` (the same map's bicubic upscale) scaled per channel entry by
+    ``1 + share (k - 1)``, ``k`` the entry's fitted gain (``gains``, a
+    :func:`prior_self_check` report's); clamped to [0, 1], alpha kept. Texels where ``hr`` is
+    bicubic's stay bicubic's. Unchanged when ``share`` is 0 or ``kind`` is not in
+    :data:`GAIN_KINDS`."""
+    if not share or kind not in GAIN_KINDS:
+        return hr
+    n_colour = 3 if hr.shape[2] >= 3 else 1
+    parts = [slice(c, c + 1) for c in range(n_colour)] if kind == "data" else [slice(0, n_colour)]
+    if len(gains) != len(parts):
+        raise ValueError(f"{len(gains)} gains for a {kind} map of {len(parts)} channel entries")
+    out = hr.copy()
+    for part, k in zip(parts, gains, strict=True):
+        g = 1.0 + share * (float(k) - 1.0)
+        if g != 1.0:
+            b = bicubic[..., part]
+            out[..., part] = np.clip(b + g * (hr[..., part] - b), 0.0, 1.0)
+    return out
+
+
 def prior_self_check(
     prior: Prior,
     lr_map: np.ndarray,
@@ -114,10 +159,10 @@ def prior_self_check(
     store: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> dict | None:
     """``{"priors", "prior_db", "bicubic_db", "candidates", "texels", "use_prior",
-    "channels", "margins", "flat", "scale"}`` for one map (H, W, C) as stored, or None when it
-    is not at least ``4 * scale`` texels a side (nothing to check on: the prior is used, as the
-    paper does). The report's ``scale`` is the factor the map was checked at: ``scale``, or
-    less for a small map (:func:`check_factor`).
+    "channels", "margins", "gains", "flat", "scale"}`` for one map (H, W, C) as stored, or
+    None when it is not at least ``4 * scale`` texels a side (nothing to check on: the prior
+    is used, as the paper does). The report's ``scale`` is the factor the map was checked
+    at: ``scale``, or less for a small map (:func:`check_factor`).
 
     Each of ``prior.candidates(kind)`` upscales the map from one scale down; ``candidates``
     gives each one's PSNR by name, ``prior_db`` the best of them. ``kind`` is the map's
@@ -126,7 +171,9 @@ def prior_self_check(
     decided on its own: per colour channel (one entry for colour and normal maps),
     ``priors`` names the candidate that reconstructs it best and ``channels`` says whether
     that one beats bicubic (the prior initialises it), ``margins`` by how many dB (negative:
-    bicubic is closer); ``use_prior`` is whether any does. ``flat`` per entry: its compared
+    bicubic is closer), ``gains`` its :func:`detail_gain` (the scale of that candidate's
+    departure from bicubic that fits the map best one scale down); ``use_prior`` is whether
+    any does. ``flat`` per entry: its compared
     texels vary less than :data:`FLAT_STD` in every channel; such an entry keeps bicubic
     whatever its margin.
     ``max_prior_scale`` as in :func:`~.direct.upscale_map`: the check scores the upscaling
@@ -178,13 +225,15 @@ def prior_self_check(
     floor = np.full(a.shape[2], FLAT_STD)
     if stored is not None:  # the stored file's noise the deblocking took out, per channel
         floor = floor + (_centre(np.asarray(stored, np.float32), CROP)[:h, :w][mask] - seen).std(0)
-    best, channels, margins, flat = [], [], [], []
+    best, channels, margins, gains, flat = [], [], [], [], []
     for part in parts:
         scores = [db(up, part) for up in ups]
         i = max(range(len(ups)), key=lambda k: (scores[k], -k))  # ties: the earlier one
         best.append(candidates[i].name)
         margin = scores[i] - db(up_b, part)
         margins.append(round(margin, 3))
+        gains.append(round(detail_gain(ups[i][:h, :w][mask][:, part], up_b[:h, :w][mask][:, part],
+                                       seen[:, part]), 3))  # fmt: skip
         flat.append(bool((seen[:, part].std(axis=0) < floor[part]).all()))
         channels.append(margin > 0 and not flat[-1])
     each = {c.name: round(db(up, whole), 3) for c, up in zip(candidates, ups, strict=True)}
@@ -197,6 +246,7 @@ def prior_self_check(
         "use_prior": any(channels),
         "channels": channels,
         "margins": margins,
+        "gains": gains,
         "flat": flat,
         "scale": scale,
     }

@@ -180,7 +180,7 @@ def test_pipeline_reports_the_check_and_uses_bicubic_when_the_prior_loses(tmp_pa
     monkeypatch.setitem(presets.PRESETS, "fast", every_kind)
     report = upscale_asset(asset, out, UpscaleOptions(preset="fast", prior="blurring"))
     keys = {"image", "index", "priors", "prior_db", "bicubic_db", "candidates", "texels"}
-    keys |= {"use_prior", "channels", "margins", "flat", "scale"}
+    keys |= {"use_prior", "channels", "margins", "gains", "flat", "scale"}
     assert all(set(c) == keys and not c["use_prior"] for c in report["prior_check"])
     check = next(c for c in report["prior_check"] if c["image"] == "bricks_albedo")
     assert check["channels"] == [False]
@@ -401,9 +401,11 @@ def test_direct_and_the_presets_upscale_each_map_with_the_candidate_the_check_ch
     kept, report = albedo_out("blurs", method="direct")
     assert _made_by(report, "base_color.png") == ["bicubic"]
     assert np.array_equal(kept, albedo_out("blurs", method="bicubic")[0])
-    # a single-candidate prior is not checked by direct
+    # a single-candidate prior upscales every map in direct, checked for its gain alone
     report = albedo_out("selective", method="direct")[1]
-    assert "prior_check" not in report and _made_by(report, "base_color.png") == ["selective"]
+    (check,) = report["prior_check"]
+    assert "only candidate" in check["note"] and check["gains"] == [1.0]  # perfect: no gain
+    assert _made_by(report, "base_color.png") == ["selective"]
     monkeypatch.setitem(presets.PRESETS, "fast", presets.FAST.with_(max_prior_scale=None))
     picked, report = albedo_out("offering", preset="fast")
     (check,) = report["prior_check"]
