@@ -109,6 +109,15 @@ def scorer(
     return db, mask
 
 
+def channel_entries(kind: str, channels: int) -> list[slice]:
+    """The channel entries of a map of ``kind`` with ``channels`` channels (alpha included),
+    as the check decides them: each colour channel of a data map on its own (occlusion,
+    roughness and metallic packed in one image are unrelated images), a colour or normal map
+    as a whole."""
+    n_colour = 3 if channels >= 3 else 1
+    return [slice(c, c + 1) for c in range(n_colour)] if kind == "data" else [slice(0, n_colour)]
+
+
 def detail_gain(up: np.ndarray, bicubic: np.ndarray, ref: np.ndarray) -> float:
     """The ``k`` (within :data:`GAIN_RANGE`) for which ``bicubic + k (up - bicubic)`` is
     closest to ``ref`` in least squares, the three given over the same texels: how much of
@@ -132,8 +141,7 @@ def with_gain(hr: np.ndarray, bicubic: np.ndarray, gains: Sequence[float], kind:
     :data:`GAIN_KINDS`."""
     if not share or kind not in GAIN_KINDS:
         return hr
-    n_colour = 3 if hr.shape[2] >= 3 else 1
-    parts = [slice(c, c + 1) for c in range(n_colour)] if kind == "data" else [slice(0, n_colour)]
+    parts = channel_entries(kind, hr.shape[2])
     if len(gains) != len(parts):
         raise ValueError(f"{len(gains)} gains for a {kind} map of {len(parts)} channel entries")
     out = hr.copy()
@@ -218,8 +226,7 @@ def prior_self_check(
 
     whole = slice(0, n_colour)
     b = db(up_b, whole)
-    # a data map's channels are decided one by one, a colour or normal map as a whole
-    parts = [slice(c, c + 1) for c in range(n_colour)] if kind == "data" else [whole]
+    parts = channel_entries(kind, a.shape[2])
     h, w = mask.shape
     seen = crop[:h, :w][mask]
     floor = np.full(a.shape[2], FLAT_STD)
