@@ -274,11 +274,12 @@ def _direct_maps(asset, images, prior, s, wraps, cutouts, unseen, timer, progres
             sources = sources_of[img.index]
             px, wrap, cutout = lr_pixels[img.index], wraps[img.index], cutouts[img.index]
             gain = gains.get(img.index) if BALANCED.detail_gain and any(sources) else None
-            base = bicubic_map(px, kind, s, wrap, cutout) if gain or not any(sources) else None
+            plain = gain is not None or not any(sources)
+            base = bicubic_map(px, kind, s, wrap, cutout) if plain else None
             hr = upscale_channels(
                 sources, px, kind, s, base, wrap=wrap, cutout=cutout, progress=tiles.on(img)
             )
-            if gain is not None and base is not None:
+            if gain is not None and base is not None:  # base: bicubic's whenever gain is set
                 hr = with_gain(hr, base, gain, kind, BALANCED.detail_gain)
             out[img.index] = hr
     names = {img.index: img.name for img in images}
