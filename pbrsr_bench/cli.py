@@ -341,7 +341,9 @@ def upscale_cmd(
         "bicubic,direct,fast,balanced",
         help="bicubic, direct and preset names, comma-separated; each as NAME[@PRIOR]"
         "[+key=value...]: a preset's numbers, or max_size for any method (its maps scored "
-        "as bicubic upscales to the ground truth's size).",
+        "as bicubic upscales to the ground truth's size). closest:A|B (after A and B): "
+        "per map entry the one of their outputs closest to the ground truth, a bound on "
+        "any check choosing among them.",
     ),
     scale: int = typer.Option(4, help="Upscaling factor (the LR input is degraded by it)."),
     prior: str = typer.Option(DEFAULT_PRIOR, help="Image prior for direct and PBR-SR."),

@@ -12,6 +12,7 @@ over the paper's evaluation views under two environment maps.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import shutil
 import subprocess
@@ -32,6 +33,7 @@ from pbrsr_core.options import DEFAULT_PRIOR
 from pbrsr_core.render.light import EnvLight
 from pbrsr_core.scene import procedural_light, rotated_procedural_light
 
+from . import closest
 from .docs import machine
 from .shared import SHARED_ASSETS
 from .variants import BENCH_VARIANTS
@@ -171,7 +173,8 @@ def preset_changes(method: str) -> dict:
 
 def check_methods(methods: tuple[str, ...], prior: str) -> None:
     """Raise ValueError naming the first method (its prior or a preset change) that is
-    unknown."""
+    unknown, and any ``closest:`` method (pbrsr_bench/closest.py) that does not pick among
+    methods listed before it."""
     from pydantic import ValidationError
 
     from pbrsr_core.errors import PbrsrError
@@ -179,7 +182,8 @@ def check_methods(methods: tuple[str, ...], prior: str) -> None:
     from pbrsr_core.options import UpscaleOptions
     from pbrsr_core.prior.registry import check_name
 
-    for m in methods:
+    closest.check(methods)
+    for m in (m for m in methods if closest.parts(m) is None):
         name, own_prior, _ = parse_method(m)
         changes = preset_changes(m)
         if name not in ("bicubic", "direct") and name not in PRESETS:
@@ -330,7 +334,18 @@ def run(
             )[0]
             gt = load_asset(gt_path)
             evaluator = cpu_evaluator(gt, eval_res, eval_views, lights)
+            made: dict[str, tuple[dict, Asset]] = {}  # what closest: methods pick from
             for method in methods:
+                if closest.parts(method) is not None:
+                    score = functools.partial(_score, gt=gt, evaluator=evaluator)
+                    row = closest.row_of(method, made, gt, score)
+                    if row is None:
+                        log(f"   {method}: a method it picks from has no run here")
+                    else:
+                        rows.append(row)
+                        log("   " + _row_text(row))
+                        _write_results(out_dir, rows, meta)
+                    continue
                 work = work_root / name / method
                 work.mkdir(parents=True)
                 spec = {
@@ -368,6 +383,8 @@ def run(
                     "curve": curve,
                 }
                 rows.append(row)
+                if any(method in (closest.parts(m) or ()) for m in methods):
+                    made[method] = (row, at_gt_size(pred, gt))
                 log("   " + _row_text(row))
                 _write_results(out_dir, rows, meta)
     finally:
