@@ -49,7 +49,8 @@ def closest_maps(preds: dict[str, Asset], gt: Asset) -> tuple[Asset, dict[str, l
     at the ground truth's size) to ``gt`` by mean squared error over the covered texels, and
     per image the method each entry came from. Colour and normal maps are one entry (their
     first three channels decide; the winner's image is taken whole); data maps one entry per
-    channel. Images no material samples keep the first output's."""
+    channel. Images no material samples keep the first output's. The picks are keyed
+    ``INDEX:NAME`` (two images of an asset may share a name)."""
     masks = coverage_masks(gt)
     first = next(iter(preds.values()))
     pixels: dict[int, np.ndarray] = {}
@@ -78,7 +79,7 @@ def closest_maps(preds: dict[str, Asset], gt: Asset) -> tuple[Asset, dict[str, l
             taken = zip(chosen, entries, strict=True)
             out = np.stack([candidates[k][..., c] for k, (c,) in taken], axis=-1)
         pixels[ref.index] = out
-        picks[ref.name] = chosen
+        picks[f"{ref.index}:{ref.name}"] = chosen
     images = [
         dataclasses.replace(im, pixels=pixels[im.index]) if im.index in pixels else im
         for im in first.images

@@ -33,16 +33,19 @@ def test_each_data_channel_comes_from_the_output_closest_in_it(tmp_path: Path):
     """Two outputs, each with one channel of the metallic-roughness image spoilt: the bound
     takes each channel from the other, so that image matches the truth exactly. A colour map
     spoilt in one channel in one output and in all three in the other goes whole to the
-    first."""
+    first. Images that share a name keep a pick each."""
     gt = load_asset(make_test_asset(tmp_path / "gt.glb", size=32))
     data = next(im.index for im in gt.images if kind_of(im.roles) == "data")
     colour = next(im.index for im in gt.images if "base_color" in im.roles)
     a = _noisy(_noisy(gt, data, [1], 0.2, 1), colour, [0], 0.1, 2)
     b = _noisy(_noisy(gt, data, [2], 0.2, 3), colour, [0, 1, 2], 0.1, 4)
     best, picks = closest_maps({"a": a, "b": b}, gt)
-    name = {im.index: im.name for im in gt.images}
+    name = {im.index: f"{im.index}:{im.name}" for im in gt.images}
     assert picks[name[data]][1:3] == ["b", "a"]
     assert picks[name[colour]] == ["a"]
+    same = dataclasses.replace(gt, images=[dataclasses.replace(i, name="map") for i in gt.images])
+    _, named = closest_maps({"a": a, "b": b}, same)  # images sharing a name keep their picks
+    assert named == {k.split(":")[0] + ":map": v for k, v in picks.items()}
     np.testing.assert_array_equal(
         best.images[data].pixels[..., 1:3], gt.images[data].pixels[..., 1:3]
     )
