@@ -36,6 +36,7 @@ from pbrsr_core.scene import procedural_light, rotated_procedural_light
 from . import closest
 from .docs import machine
 from .shared import SHARED_ASSETS
+from .targets import targets_table, worst_map
 from .variants import BENCH_VARIANTS
 
 DEFAULT_METHODS = ("bicubic", "direct", "fast", "balanced")
@@ -395,7 +396,8 @@ def run(
 def _write_results(out_dir: Path, rows: list[dict], meta: dict) -> None:
     """Written after every run, so an interrupted benchmark keeps what it measured."""
     (out_dir / "results.json").write_text(json.dumps({**meta, "rows": rows}, indent=2))
-    (out_dir / "results.md").write_text(markdown_table(rows) + "\n" + summary_table(rows))
+    text = markdown_table(rows) + "\n" + summary_table(rows) + targets_text(rows, meta["scale"])
+    (out_dir / "results.md").write_text(text)
     plot(rows, out_dir / "speed_vs_error.png")
 
 
@@ -466,12 +468,7 @@ def summary(
         if method == "bicubic" or not mine:
             continue
         gains = [r["render.psnr"] - bic[r["asset"]]["render.psnr"] for r in mine]
-        worst, worst_at = float("inf"), ""
-        for r in mine:
-            ref = bic[r["asset"]]
-            for key in (k for k in r if k.startswith("maps.") and k.endswith(".psnr")):
-                if key in ref and r[key] - ref[key] < worst:
-                    worst, worst_at = r[key] - ref[key], f"{r['asset']} {key[5:-5]}"
+        worst, worst_at = worst_map(mine, bic)
         picked = [
             r["lr_model"]["kernel"] for r in mine if (r.get("lr_model") or {}).get("estimated")
         ]
@@ -550,6 +547,15 @@ def summary_table(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def targets_text(rows: list[dict], scale: int) -> str:
+    """The targets of pbrsr_bench/targets.py the rows hold, as a paragraph and a table: at
+    x4, where they are set; empty at another scale or without their methods."""
+    table = targets_table(rows, (*PROCEDURAL_ASSETS, *BENCH_VARIANTS)) if scale == 4 else ""
+    if not table:
+        return ""
+    return "\nThe targets of the texture priors and the optimiser at x4:\n\n" + table
+
+
 def published_summary(out_dir: Path) -> str:
     """The summary of ``out_dir/results.json`` as a documentation section: what was measured,
     where and by which command, then :func:`summary_table`."""
@@ -582,6 +588,7 @@ def published_summary(out_dir: Path) -> str:
         f"{len(real)} {where} ({', '.join(real)}); run time is the method's own "
         f"(load to save), on {data.get('machine') or machine()}. Measured by `{command}`.\n\n"
         + summary_table(rows)
+        + targets_text(rows, data["scale"])
     )
 
 
