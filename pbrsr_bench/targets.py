@@ -60,7 +60,7 @@ def targets(rows: list[dict], exclude: Collection[str] = ()) -> list[dict]:
     bic, direct = _by_asset(rows, "bicubic", skip), _by_asset(rows, "direct", skip)
     photo, balanced = _by_asset(rows, PHOTO, skip), _by_asset(rows, "balanced", skip)
     out = []
-    if direct and photo:
+    if set(direct) & set(photo):
         lead, ahead, common = _lead(direct, photo)
         out.append({
             "target": "prior",
@@ -69,17 +69,17 @@ def targets(rows: list[dict], exclude: Collection[str] = ()) -> list[dict]:
             "assets": len(common),
             "detail": f"ahead on {ahead} of {len(common)} assets",
         })  # fmt: skip
-    if direct and bic:
-        worst, at = worst_map([direct[k] for k in sorted(set(direct) & set(bic))], bic)
-        if at:
-            out.append({
-                "target": "maps",
-                "value_db": round(worst, 2),
-                "met": round(worst, 2) >= 0.0,
-                "assets": len(set(direct) & set(bic)),
-                "detail": at,
-            })  # fmt: skip
-    if balanced and direct:
+    both = sorted(set(direct) & set(bic))
+    worst, at = worst_map([direct[k] for k in both], bic)
+    if at:  # a map both score
+        out.append({
+            "target": "maps",
+            "value_db": round(worst, 2),
+            "met": round(worst, 2) >= 0.0,
+            "assets": len(both),
+            "detail": at,
+        })  # fmt: skip
+    if set(balanced) & set(direct):
         lead, ahead, common = _lead(balanced, direct)
         maps = [
             balanced[k][f"maps.{m}.psnr"] - direct[k][f"maps.{m}.psnr"]

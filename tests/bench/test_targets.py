@@ -82,3 +82,15 @@ def test_the_summary_of_an_x4_run_states_the_targets(tmp_path):
             "| no map of direct below bicubic on any asset | -0.05 dB (a emissive)" in text
         ) is (stated)
     assert targets_text(_rows(), 8) == ""
+
+
+def test_methods_that_ran_on_different_assets_give_no_target():
+    rows = [r for r in _rows() if (r["asset"], r["method"]) != ("a", "direct")]
+    rows = [
+        r for r in rows if (r["asset"], r["method"]) not in {("b", "bicubic"), ("b", "balanced")}
+    ]
+    rows = [r for r in rows if (r["asset"], r["method"]) != ("a", "direct@waifu2x-photo")]
+    # direct ran on b only, waifu2x-photo on b, bicubic and balanced on a only
+    got = {t["target"]: t for t in targets(rows, exclude=("procedural",))}
+    assert set(got) == {"prior"} and got["prior"]["assets"] == 1
+    assert got["prior"]["value_db"] == -0.2
