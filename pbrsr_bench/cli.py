@@ -377,7 +377,7 @@ def upscale_cmd(
     """Speed against error: bicubic, direct prior and each PBR-SR preset on degraded assets;
     wall time, peak memory, PSNR per map and render PSNR, with curves over iterations."""
     from pbrsr_bench.docs import section_span
-    from pbrsr_bench.upscale import markdown_table, run, summary_table
+    from pbrsr_bench.upscale import results_text, run
 
     for path in docs:  # before hours of benchmark, not after
         try:
@@ -386,7 +386,7 @@ def upscale_cmd(
             _bad_input(ValueError(str(exc)))
     _report(
         run,
-        lambda rows: typer.echo(markdown_table(rows) + "\n" + summary_table(rows)),
+        lambda rows: typer.echo(results_text(rows, scale)),
         [out / "results.json", out / "results.md", out / "speed_vs_error.png"],
         out_dir=out,
         assets=asset or None,

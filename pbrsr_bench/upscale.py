@@ -396,8 +396,7 @@ def run(
 def _write_results(out_dir: Path, rows: list[dict], meta: dict) -> None:
     """Written after every run, so an interrupted benchmark keeps what it measured."""
     (out_dir / "results.json").write_text(json.dumps({**meta, "rows": rows}, indent=2))
-    text = markdown_table(rows) + "\n" + summary_table(rows) + targets_text(rows, meta["scale"])
-    (out_dir / "results.md").write_text(text)
+    (out_dir / "results.md").write_text(results_text(rows, meta["scale"]))
     plot(rows, out_dir / "speed_vs_error.png")
 
 
@@ -547,6 +546,12 @@ def summary_table(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def results_text(rows: list[dict], scale: int) -> str:
+    """``results.md`` as a run at ``scale`` writes it and the command prints it: the table of
+    every row, the summary and, at x4, the targets."""
+    return markdown_table(rows) + "\n" + summary_table(rows) + targets_text(rows, scale)
+
+
 def targets_text(rows: list[dict], scale: int) -> str:
     """The targets of pbrsr_bench/targets.py the rows hold, as a paragraph and a table: at
     x4, where they are set; empty at another scale or without their methods."""
@@ -558,7 +563,7 @@ def targets_text(rows: list[dict], scale: int) -> str:
 
 def published_summary(out_dir: Path) -> str:
     """The summary of ``out_dir/results.json`` as a documentation section: what was measured,
-    where and by which command, then :func:`summary_table`."""
+    where and by which command, then :func:`summary_table` and :func:`targets_text`."""
     data = json.loads((Path(out_dir) / "results.json").read_text())
     rows = data["rows"]
     methods = ",".join(dict.fromkeys(r["method"] for r in rows))

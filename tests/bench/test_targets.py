@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 
 from pbrsr_bench.targets import targets, targets_table
-from pbrsr_bench.upscale import published_summary, targets_text
+from pbrsr_bench.upscale import published_summary, results_text, targets_text
 from pbrsr_core.options import DEFAULT_PRIOR
 
 
@@ -82,6 +82,10 @@ def test_the_summary_of_an_x4_run_states_the_targets(tmp_path):
             "| no map of direct below bicubic on any asset | -0.05 dB (a emissive)" in text
         ) is (stated)
     assert targets_text(_rows(), 8) == ""
+    # results.md and the command's printout: every row, the summary, the targets at x4
+    text = results_text(_rows(), 4)
+    assert "| a | direct |" in text and "| direct | 2 |" in text
+    assert text.endswith(targets_text(_rows(), 4)) and "at x4" not in results_text(_rows(), 2)
 
 
 def test_methods_that_ran_on_different_assets_give_no_target():
