@@ -371,7 +371,12 @@ def upscale_cmd(
         "area, bicubic, lanczos.",
     ),
     docs: list[Path] = typer.Option(  # noqa: B006
-        [], "--docs", help="Markdown file whose bench:upscale section gets the summary."
+        [], "--docs", help="Markdown file whose --section gets the summary (repeatable)."
+    ),
+    section: str = typer.Option(
+        "upscale",
+        help="The docs' section to write: between <!-- bench:SECTION --> and "
+        "<!-- /bench:SECTION -->.",
     ),
 ) -> None:
     """Speed against error: bicubic, direct prior and each PBR-SR preset on degraded assets;
@@ -381,7 +386,7 @@ def upscale_cmd(
 
     for path in docs:  # before hours of benchmark, not after
         try:
-            section_span(path, "upscale")
+            section_span(path, section)
         except (OSError, ValueError) as exc:
             _bad_input(ValueError(str(exc)))
     _report(
@@ -402,10 +407,10 @@ def upscale_cmd(
         kernel=kernel,
         assets_dir=assets_dir,
     )
-    _publish(out, docs)
+    _publish(out, docs, section)
 
 
-def _publish(out: Path, docs: list[Path]) -> None:
+def _publish(out: Path, docs: list[Path], section: str) -> None:
     from pbrsr_bench.docs import write_section
     from pbrsr_bench.upscale import published_summary
 
@@ -414,24 +419,29 @@ def _publish(out: Path, docs: list[Path]) -> None:
     text = published_summary(out)
     for path in docs:
         try:
-            write_section(path, "upscale", text)
+            write_section(path, section, text)
         except (OSError, ValueError) as exc:
             _bad_input(ValueError(str(exc)))
-        typer.echo(f"wrote the summary into {path}")
+        typer.echo(f"wrote the summary into {path}, section {section}")
 
 
 @bench_app.command("publish")
 def publish_cmd(
     out: Path = typer.Argument(..., help="Output directory of a `pbrsr bench upscale` run."),
     docs: list[Path] = typer.Option(  # noqa: B006
-        ..., "--docs", help="Markdown file with a bench:upscale section (repeatable)."
+        ..., "--docs", help="Markdown file with the --section's markers (repeatable)."
+    ),
+    section: str = typer.Option(
+        "upscale",
+        help="The section to write: between <!-- bench:SECTION --> and <!-- /bench:SECTION -->.",
     ),
 ) -> None:
     """Write the summary of a finished `pbrsr bench upscale` run into documentation files,
-    between their <!-- bench:upscale --> and <!-- /bench:upscale --> markers."""
+    between their <!-- bench:SECTION --> and <!-- /bench:SECTION --> markers (a file may hold
+    one section per run it quotes)."""
     if not (out / "results.json").is_file():
         _bad_input(ValueError(f"{out} holds no results.json of pbrsr bench upscale"))
-    _publish(out, docs)
+    _publish(out, docs, section)
 
 
 def _load_report(out: Path, **options: Any) -> None:

@@ -9,10 +9,19 @@ from __future__ import annotations
 
 import os
 import platform
+import re
 from pathlib import Path
+
+_KEY = re.compile(r"[a-z0-9]+(-[a-z0-9]+)*")
 
 
 def markers(key: str) -> tuple[str, str]:
+    """The two markers of section ``key``: lower-case letters and digits, words joined by '-'
+    (ValueError otherwise)."""
+    if not _KEY.fullmatch(key):
+        raise ValueError(
+            f"section name {key!r}: use lower-case letters and digits, words joined by '-'"
+        )
     return f"<!-- bench:{key} -->", f"<!-- /bench:{key} -->"
 
 

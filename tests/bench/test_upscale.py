@@ -419,6 +419,17 @@ def _bench_cli():
     return app
 
 
+def _results_dir(path, rows):
+    """``path`` made a finished x4 run's output folder holding ``rows``."""
+    from pbrsr_core.options import DEFAULT_PRIOR
+
+    meta = {"scale": 4, "prior": DEFAULT_PRIOR, "eval_res": 256, "eval_views": 40}
+    meta.update(lights=["a.hdr", "b.hdr"], machine="a test CPU, 2 cores")
+    path.mkdir()
+    (path / "results.json").write_text(json.dumps({**meta, "rows": rows}))
+    return path
+
+
 def test_publish_writes_the_summary_between_the_markers_only(tmp_path):
     from typer.testing import CliRunner
 
@@ -429,13 +440,7 @@ def test_publish_writes_the_summary_between_the_markers_only(tmp_path):
         _row("b", "bicubic", 30.0, 31.0, 1.0),
         _row("b", "fast", 31.0, 31.2, 14.0),
     ]
-    from pbrsr_core.options import DEFAULT_PRIOR
-
-    meta = {"scale": 4, "prior": DEFAULT_PRIOR, "eval_res": 256, "eval_views": 40}
-    meta.update(lights=["a.hdr", "b.hdr"], machine="a test CPU, 2 cores")
-    out = tmp_path / "out"
-    out.mkdir()
-    (out / "results.json").write_text(json.dumps({**meta, "rows": rows}))
+    out = _results_dir(tmp_path / "out", rows)
     doc = tmp_path / "README.md"
     head, tail = "# Title\n\ntext before\n", "\ntext after\n"
     doc.write_text(head + "<!-- bench:upscale -->\nold numbers\n<!-- /bench:upscale -->" + tail)
@@ -450,6 +455,27 @@ def test_publish_writes_the_summary_between_the_markers_only(tmp_path):
     # a second run replaces the section again, nothing else
     again = CliRunner().invoke(_bench_cli(), ["bench", "publish", str(out), "--docs", str(doc)])
     assert again.exit_code == 0 and doc.read_text() == text
+
+
+def test_publish_writes_the_named_section_and_leaves_the_others(tmp_path):
+    from typer.testing import CliRunner
+
+    rows = [_row("a", "bicubic", 28.0, 27.0, 1.0), _row("a", "fast", 28.4, 27.5, 10.0)]
+    out = _results_dir(tmp_path / "out", rows)
+    doc = tmp_path / "BENCH.md"
+    first = "<!-- bench:upscale -->\nshared numbers\n<!-- /bench:upscale -->\n"
+    doc.write_text(first + "<!-- bench:upscale-unseen -->\nold\n<!-- /bench:upscale-unseen -->\n")
+    cli = _bench_cli()
+    args = ["bench", "publish", str(out), "--docs", str(doc)]
+    res = CliRunner().invoke(cli, [*args, "--section", "upscale-unseen"])
+    assert res.exit_code == 0, res.output
+    text = doc.read_text()
+    assert text.startswith(first) and "\nold\n" not in text
+    assert "| fast | 1 | +0.40 dB |" in text.split("<!-- bench:upscale-unseen -->")[1]
+    for bad, message in (("nowhere", "no '<!-- bench:nowhere -->'"), ("Up Scale", "section name")):
+        res = CliRunner().invoke(cli, [*args, "--section", bad])
+        assert res.exit_code == 2 and message in res.output
+        assert doc.read_text() == text
 
 
 def test_a_list_change_stays_one_cell_and_its_command_is_quoted(tmp_path):
