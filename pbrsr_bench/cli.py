@@ -327,6 +327,12 @@ def step_cmd(
     )
 
 
+_SECTION = typer.Option(
+    "upscale",
+    help="The docs' section to write: between <!-- bench:SECTION --> and <!-- /bench:SECTION -->.",
+)
+
+
 @bench_app.command("upscale")
 def upscale_cmd(
     out: Path = typer.Option(Path("bench-out/upscale"), "--out", "-o", help="Output directory."),
@@ -373,22 +379,19 @@ def upscale_cmd(
     docs: list[Path] = typer.Option(  # noqa: B006
         [], "--docs", help="Markdown file whose --section gets the summary (repeatable)."
     ),
-    section: str = typer.Option(
-        "upscale",
-        help="The docs' section to write: between <!-- bench:SECTION --> and "
-        "<!-- /bench:SECTION -->.",
-    ),
+    section: str = _SECTION,
 ) -> None:
     """Speed against error: bicubic, direct prior and each PBR-SR preset on degraded assets;
     wall time, peak memory, PSNR per map and render PSNR, with curves over iterations."""
-    from pbrsr_bench.docs import section_span
+    from pbrsr_bench.docs import markers, section_span
     from pbrsr_bench.upscale import results_text, run
 
-    for path in docs:  # before hours of benchmark, not after
-        try:
+    try:  # before hours of benchmark, not after
+        markers(section)
+        for path in docs:
             section_span(path, section)
-        except (OSError, ValueError) as exc:
-            _bad_input(ValueError(str(exc)))
+    except (OSError, ValueError) as exc:
+        _bad_input(ValueError(str(exc)))
     _report(
         run,
         lambda rows: typer.echo(results_text(rows, scale)),
@@ -431,10 +434,7 @@ def publish_cmd(
     docs: list[Path] = typer.Option(  # noqa: B006
         ..., "--docs", help="Markdown file with the --section's markers (repeatable)."
     ),
-    section: str = typer.Option(
-        "upscale",
-        help="The section to write: between <!-- bench:SECTION --> and <!-- /bench:SECTION -->.",
-    ),
+    section: str = _SECTION,
 ) -> None:
     """Write the summary of a finished `pbrsr bench upscale` run into documentation files,
     between their <!-- bench:SECTION --> and <!-- /bench:SECTION --> markers (a file may hold

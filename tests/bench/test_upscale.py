@@ -504,6 +504,11 @@ def test_docs_without_markers_are_refused_before_the_bench_runs(tmp_path):
     assert res.exit_code == 2
     assert "no '<!-- bench:upscale -->'" in res.output
     assert not out.exists() and doc.read_text() == "# no markers\n"
+    # a section name no marker can hold is refused before the run, with or without --docs
+    res = CliRunner().invoke(
+        _bench_cli(), ["bench", "upscale", "-o", str(out), "--section", "x y", "--no-shared"]
+    )
+    assert res.exit_code == 2 and "section name 'x y'" in res.output and not out.exists()
     res = CliRunner().invoke(_bench_cli(), ["bench", "publish", str(out), "--docs", str(doc)])
     assert res.exit_code == 2 and "no results.json" in res.output
 
