@@ -509,6 +509,22 @@ def test_a_flat_channel_keeps_bicubic_even_where_a_network_wins_the_check(tmp_pa
         assert made_by[2] == "bicubic (flat)"
 
 
+def test_one_texel_far_from_the_rest_is_a_feature_not_flatness():
+    """Metallic at 0.3 but for one texel of a 128² map: 0.3 + 0.4 (an LED, a sparse mask) is
+    under a level RMS, yet no noise puts a texel that far off, so it is checked; 0.3 + 12
+    levels, within the peak, stays flat. A deviation just past the peak is not flat."""
+    from pbrsr_core.prior import load_prior
+    from pbrsr_core.prior.selfcheck import FLAT_PEAK, FLAT_STD
+
+    prior = load_prior("bicubic", "cpu")
+    lr = _texture(128, seed=2)
+    for offset, flat in ((0.4, False), (12 / 255, True), (FLAT_PEAK + 2 / 255, False)):
+        lr[..., 2] = 0.3
+        lr[64, 64, 2] = 0.3 + offset
+        assert lr[..., 2].std() < FLAT_STD
+        assert prior_self_check(prior, lr, 4, "data")["flat"] == [False, False, flat]
+
+
 def test_a_jpeg_maps_noise_raises_the_flat_floor(tmp_path):
     """A metallic that varies by 1.5 levels is not flat; stored as a JPEG whose deblocking
     takes out 1.2 levels of noise, variation of that size is the file's: flat. The pipeline's
