@@ -177,7 +177,7 @@ def prior_self_check(
     store: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> dict | None:
     """``{"priors", "prior_db", "bicubic_db", "candidates", "texels", "use_prior",
-    "channels", "margins", "gains", "flat", "scale"}`` for one map (H, W, C) as stored, or
+    "channels", "margins", "gains", "flat", "spread", "scale"}`` for one map (H, W, C) as stored, or
     None when it is not at least ``4 * scale`` texels a side (nothing to check on: the prior
     is used, as the paper does). The report's ``scale`` is the factor the map was checked
     at: ``scale``, or less for a small map (:func:`check_factor`).
@@ -194,6 +194,7 @@ def prior_self_check(
     any does. ``flat`` per entry: its compared
     texels vary less than :data:`FLAT_STD` in every channel and none departs from the median
     by more than :data:`FLAT_PEAK`; such an entry keeps bicubic whatever its margin.
+    ``spread`` per entry: those numbers in 8-bit levels (:func:`spread`).
     ``max_prior_scale`` as in :func:`~.direct.upscale_map`: the check scores the upscaling
     the init will use.
     ``covered`` (H, W) bool: the texels the mesh's UVs cover; only those are compared (all of
@@ -242,7 +243,7 @@ def prior_self_check(
     floor = np.full(a.shape[2], FLAT_STD)
     if stored is not None:  # the stored file's noise the deblocking took out, per channel
         floor = floor + (_centre(np.asarray(stored, np.float32), CROP)[:h, :w][mask] - seen).std(0)
-    best, channels, margins, gains, flat = [], [], [], [], []
+    best, channels, margins, gains, spreads = [], [], [], [], []
     for part in parts:
         scores = [db(up, part) for up in ups]
         i = max(range(len(ups)), key=lambda k: (scores[k], -k))  # ties: the earlier one
@@ -251,8 +252,8 @@ def prior_self_check(
         margins.append(round(margin, 3))
         gains.append(round(detail_gain(ups[i][:h, :w][mask][:, part], up_b[:h, :w][mask][:, part],
                                        seen[:, part]), 3))  # fmt: skip
-        flat.append(_flat(seen[:, part], floor[part]))
-        channels.append(margin > 0 and not flat[-1])
+        spreads.append(spread(seen[:, part], floor[part]))
+        channels.append(margin > 0 and not spreads[-1]["flat"])
     each = {c.name: round(db(up, whole), 3) for c, up in zip(candidates, ups, strict=True)}
     return {
         "priors": best,
@@ -264,16 +265,25 @@ def prior_self_check(
         "channels": channels,
         "margins": margins,
         "gains": gains,
-        "flat": flat,
+        "flat": [d.pop("flat") for d in spreads],
+        "spread": spreads,
         "scale": scale,
     }
 
 
-def _flat(texels: np.ndarray, floor: np.ndarray) -> bool:
-    """Whether ``texels`` (N, C) vary less than ``floor`` (C) in every channel and none is more
-    than :data:`FLAT_PEAK` from its channel's median."""
-    peak = np.abs(texels - np.median(texels, axis=0)).max()
-    return bool((texels.std(axis=0) < floor).all() and peak <= FLAT_PEAK)
+def spread(texels: np.ndarray, floor: np.ndarray) -> dict:
+    """How ``texels`` (N, C, one entry's compared texels) vary, in 8-bit levels: ``rms`` per
+    channel, the ``floor`` (C) it is held to, and the ``peak`` deviation from a channel's
+    median; and whether that makes the entry ``flat``: under the floor in every channel, and
+    no texel more than :data:`FLAT_PEAK` off."""
+    rms = texels.std(axis=0)
+    peak = float(np.abs(texels - np.median(texels, axis=0)).max())
+    return {
+        "flat": bool((rms < floor).all() and peak <= FLAT_PEAK),
+        "rms": [round(float(v) * 255, 2) for v in rms],
+        "floor": [round(float(v) * 255, 2) for v in floor],
+        "peak": round(peak * 255, 1),
+    }
 
 
 def chosen(prior: Prior, kind: str, check: dict | None, n: int) -> list[Prior]:

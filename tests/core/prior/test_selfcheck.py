@@ -180,7 +180,7 @@ def test_pipeline_reports_the_check_and_uses_bicubic_when_the_prior_loses(tmp_pa
     monkeypatch.setitem(presets.PRESETS, "fast", every_kind)
     report = upscale_asset(asset, out, UpscaleOptions(preset="fast", prior="blurring"))
     keys = {"image", "index", "priors", "prior_db", "bicubic_db", "candidates", "texels"}
-    keys |= {"use_prior", "channels", "margins", "gains", "flat", "scale"}
+    keys |= {"use_prior", "channels", "margins", "gains", "flat", "spread", "scale"}
     assert all(set(c) == keys and not c["use_prior"] for c in report["prior_check"])
     check = next(c for c in report["prior_check"] if c["image"] == "bricks_albedo")
     assert check["channels"] == [False]
@@ -522,7 +522,11 @@ def test_one_texel_far_from_the_rest_is_a_feature_not_flatness():
         lr[..., 2] = 0.3
         lr[64, 64, 2] = 0.3 + offset
         assert lr[..., 2].std() < FLAT_STD
-        assert prior_self_check(prior, lr, 4, "data")["flat"] == [False, False, flat]
+        check = prior_self_check(prior, lr, 4, "data")
+        assert check["flat"] == [False, False, flat]
+        metallic = check["spread"][2]  # as the report gives it, in 8-bit levels
+        assert metallic["peak"] == pytest.approx(offset * 255, abs=0.1)
+        assert metallic["rms"][0] < metallic["floor"][0] == 1.0
 
 
 def test_a_jpeg_maps_noise_raises_the_flat_floor(tmp_path):
