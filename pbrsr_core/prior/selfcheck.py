@@ -177,10 +177,10 @@ def prior_self_check(
     store: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> dict | None:
     """``{"priors", "prior_db", "bicubic_db", "candidates", "texels", "use_prior",
-    "channels", "margins", "gains", "flat", "spread", "scale"}`` for one map (H, W, C) as stored, or
-    None when it is not at least ``4 * scale`` texels a side (nothing to check on: the prior
-    is used, as the paper does). The report's ``scale`` is the factor the map was checked
-    at: ``scale``, or less for a small map (:func:`check_factor`).
+    "channels", "margins", "gains", "flat", "spread", "scale"}`` for one map (H, W, C) as
+    stored, or None when it is not at least ``4 * scale`` texels a side (nothing to check
+    on: the prior is used, as the paper does). The report's ``scale`` is the factor the map
+    was checked at: ``scale``, or less for a small map (:func:`check_factor`).
 
     Each of ``prior.candidates(kind)`` upscales the map from one scale down; ``candidates``
     gives each one's PSNR by name, ``prior_db`` the best of them. ``kind`` is the map's
@@ -243,7 +243,7 @@ def prior_self_check(
     floor = np.full(a.shape[2], FLAT_STD)
     if stored is not None:  # the stored file's noise the deblocking took out, per channel
         floor = floor + (_centre(np.asarray(stored, np.float32), CROP)[:h, :w][mask] - seen).std(0)
-    best, channels, margins, gains, spreads = [], [], [], [], []
+    best, channels, margins, gains, flat, spreads = [], [], [], [], [], []
     for part in parts:
         scores = [db(up, part) for up in ups]
         i = max(range(len(ups)), key=lambda k: (scores[k], -k))  # ties: the earlier one
@@ -252,8 +252,10 @@ def prior_self_check(
         margins.append(round(margin, 3))
         gains.append(round(detail_gain(ups[i][:h, :w][mask][:, part], up_b[:h, :w][mask][:, part],
                                        seen[:, part]), 3))  # fmt: skip
-        spreads.append(spread(seen[:, part], floor[part]))
-        channels.append(margin > 0 and not spreads[-1]["flat"])
+        is_flat, levels = spread(seen[:, part], floor[part])
+        flat.append(is_flat)
+        spreads.append(levels)
+        channels.append(margin > 0 and not is_flat)
     each = {c.name: round(db(up, whole), 3) for c, up in zip(candidates, ups, strict=True)}
     return {
         "priors": best,
@@ -265,25 +267,25 @@ def prior_self_check(
         "channels": channels,
         "margins": margins,
         "gains": gains,
-        "flat": [d.pop("flat") for d in spreads],
+        "flat": flat,
         "spread": spreads,
         "scale": scale,
     }
 
 
-def spread(texels: np.ndarray, floor: np.ndarray) -> dict:
-    """How ``texels`` (N, C, one entry's compared texels) vary, in 8-bit levels: ``rms`` per
-    channel, the ``floor`` (C) it is held to, and the ``peak`` deviation from a channel's
-    median; and whether that makes the entry ``flat``: under the floor in every channel, and
-    no texel more than :data:`FLAT_PEAK` off."""
+def spread(texels: np.ndarray, floor: np.ndarray) -> tuple[bool, dict]:
+    """(whether the entry is flat, how it varies in 8-bit levels) for ``texels`` (N, C, one
+    entry's compared texels) held to ``floor`` (C): flat when under the floor in every
+    channel and no texel is more than :data:`FLAT_PEAK` from its channel's median; the
+    levels are the ``rms`` and ``floor`` per channel and that ``peak`` deviation."""
     rms = texels.std(axis=0)
     peak = float(np.abs(texels - np.median(texels, axis=0)).max())
-    return {
-        "flat": bool((rms < floor).all() and peak <= FLAT_PEAK),
+    levels = {
         "rms": [round(float(v) * 255, 2) for v in rms],
         "floor": [round(float(v) * 255, 2) for v in floor],
         "peak": round(peak * 255, 1),
     }
+    return bool((rms < floor).all() and peak <= FLAT_PEAK), levels
 
 
 def chosen(prior: Prior, kind: str, check: dict | None, n: int) -> list[Prior]:
