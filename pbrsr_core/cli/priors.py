@@ -274,10 +274,12 @@ _TEXTURES = typer.Option(None, help="Texture folder with manifest.json ($PBRSR_T
 _NAME = typer.Option("pbr-upconv7", help="Weights name; per kind: NAME-KIND.")
 _KINDS = typer.Option("colour,data,normal", help="Map kinds: colour, data, normal.")
 _JOINT = typer.Option(False, "--joint", help="One network for all kinds.")
-_SCALE = typer.Option(2, help="Training scale (2: one x2 pass; 4: two chained).")
+_SCALE = typer.Option(2, help="Training scale: 2, 4 or 8 (passes of --stride chained).")
 _BATCH = typer.Option(8, help="Crops per step.")
 _PATCH = typer.Option(96, help="HR crop side (px).")
-_STRIDE = typer.Option(2, help="Upscaling of one network pass: 2 or 4 (x4 in one pass).")
+_STRIDE = typer.Option(
+    2, help="Upscaling of one network pass: 2, 4 or 8 (SRMD: x4 or x8 in one pass)."
+)
 _SEED = typer.Option(0, help="Seed of the start weights and the batches.")
 _JPEG = typer.Option(
     None,

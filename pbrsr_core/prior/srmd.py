@@ -17,6 +17,7 @@ networks are safetensors files (:mod:`pbrsr_core.prior.train.weights`).
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import torch
@@ -54,8 +55,8 @@ NCNN_CODE = (
 
 
 class SRMD(nn.Module):
-    """``convs`` convolutions of ``feat`` features with ReLU, then the head of ``stride`` (2, 3
-    or 4): SRMD's own is 11 and the head, 12 in all. The input is padded by reflection
+    """``convs`` convolutions of ``feat`` features with ReLU, then the head of ``stride`` (2, 3,
+    4 or 8): SRMD's own is 11 and the head, 12 in all. The input is padded by reflection
     (``PREPAD`` pixels, fewer on a smaller input) and the result cropped, so borders see
     texture rather than zero padding."""
 
@@ -65,8 +66,8 @@ class SRMD(nn.Module):
         super().__init__()
         if feat < 1 or convs < 1:
             raise ValueError(f"feat and convs must be positive: {feat}, {convs}")
-        if stride not in (2, 3, 4):
-            raise ValueError(f"stride must be 2, 3 or 4, got {stride}")
+        if stride not in (2, 3, 4, 8):
+            raise ValueError(f"stride must be 2, 3, 4 or 8, got {stride}")
         self.feat, self.convs, self.stride = int(feat), int(convs), stride
         self.code = nn.Parameter(torch.tensor(NCNN_CODE))
         self.body = nn.ModuleList([nn.Conv2d(3 + CODE_SIZE, feat, 3, padding=1)])
@@ -181,6 +182,21 @@ def model_files(stride: int) -> tuple[Path, Path] | None:
     """The installed ``.param`` and ``.bin`` of the start model of ``stride``, or None when
     the package (at the pinned version) is not installed."""
     return package_model(DISTRIBUTION, VERSION, MODEL.format(stride=stride))
+
+
+def nearest_head(head: nn.Conv2d) -> dict[str, torch.Tensor]:
+    """The weights of a head of twice ``head``'s stride whose output is ``head``'s enlarged x2
+    by nearest neighbour: sub-pixel (i, j) of the new stride takes the filter of sub-pixel
+    (i // 2, j // 2) of the old (the start of an x8 head from an x4 network)."""
+    s = math.isqrt(head.out_channels // 3)
+    t = 2 * s
+    idx = torch.arange(t)
+    src = (idx // 2).view(-1, 1) * s + (idx // 2).view(1, -1)  # (t, t) old sub-pixel index
+    order = (torch.arange(3).view(-1, 1, 1) * s * s + src).reshape(-1)
+    out = {"weight": head.weight.detach()[order].clone()}
+    if head.bias is not None:
+        out["bias"] = head.bias.detach()[order].clone()
+    return out
 
 
 def start_network(stride: int = 4) -> SRMD:

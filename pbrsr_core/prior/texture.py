@@ -1,6 +1,6 @@
 """Texture priors: networks (UpConv7, compact, SPAN or SRMD) trained on PBR texture maps
 (``pbrsr priors finetune``), one set of weights per map kind (colour, data, normal) or one
-shared by several kinds, of stride 2 or 4.
+shared by several kinds, of stride 2, 4 or 8.
 
 The shipped sets (:data:`SHIPPED`) are files in ``pbrsr_core/prior/weights/<set>/`` (each made
 by the command in its folder's MODEL_CARD.md); ``texture:<folder or file>`` loads any set
@@ -95,7 +95,7 @@ def weight_files(source: Path | list[Path]) -> dict[Key, Path]:
         if step not in ("first", "later") or (step == "later" and stride != 2):
             raise PriorUnavailable(f"'{f.name}': unknown pass {step!r} of an x{stride} network")
         for kind in meta.get("kinds", "").split(","):
-            if kind in KINDS and stride in (2, 4):
+            if kind in KINDS and stride in (2, 4, 8):
                 if (kind, stride, step) in out:
                     raise PriorUnavailable(
                         f"'{source}' has two x{stride} {step}-pass weights files for {kind} maps"
@@ -147,7 +147,7 @@ def installed_stats(name: str) -> tuple[int | None, int | None]:
 
 
 class TexturePrior(Prior):
-    """Networks trained on texture maps: per kind an x2 network, an x4 network or both; a
+    """Networks trained on texture maps: per kind networks of stride 2, 4 or 8 (any of them); a
     scale runs as the fewest passes whose strides multiply to it (x8: x4 then x2), but for
     the ``x4_only`` kinds, whose x4 network runs only for x4 (x8: three x2 passes)."""
 
@@ -255,7 +255,7 @@ class TexturePrior(Prior):
         # one pass of a stride-4 network has every layer but its head at the LR size: the
         # overlap a tile recomputes costs more than the memory traffic of a larger tile (SRMD,
         # x4 of a 1024² input on a 2-core EPYC: 28.9 s untiled, 32.2 s in 9 tiles)
-        if self._passes(kind, scale) == [4] and not self.spandrel:
+        if self._passes(kind, scale) in ([4], [8]) and not self.spandrel:
             return self.one_pass_bytes_per_pixel, 1024
         return self.bytes_per_pixel, self.cpu_tile_max
 

@@ -71,7 +71,7 @@ class TrainConfig:
     ``spandrel:<file>``: the file's architecture and scale, no widths)."""
     widths: tuple[int, ...] = (16, 32, 64, 128, 128, 256)
     stride: int = 2
-    """Upscaling of one network pass: 2 (``scale`` 4 chains two passes) or 4."""
+    """Upscaling of one network pass: 2 (``scale`` 4 chains two passes), 4 or 8 (SRMD)."""
     residual: bool = False
     """UpConv7 only: the network's output is added to a bicubic resize of its input (at
     random start weights: bicubic exactly)."""
@@ -93,7 +93,8 @@ class TrainConfig:
     """Start weights: ``waifu2x-photo`` (UpConv7), ``realesr-animevideov3`` (compact), ``srmdnf``
     (SRMD, of the run's stride), a weights file, ``spandrel:<file>`` (any SR model spandrel
     recognises, of the run's stride), or ``random`` (seeded). Start weights of
-    another stride give the convolutions; the new head starts at random."""
+    another stride give the convolutions; the new head starts at random, except that an SRMD
+    head of half the run's stride starts as its own output enlarged x2 by nearest neighbour."""
     jpeg: tuple[int, int] | None = None
     """JPEG stage of the LR model: a quality range (inclusive) for ``jpeg_share`` of the LR
     crops (:func:`~pbrsr_core.prior.train.data.jpeg_lr`); None: the protocol's blur + bicubic
@@ -123,9 +124,10 @@ class TrainConfig:
         for k in self.kinds:
             if k not in KINDS:
                 raise InvalidOptions(f"unknown map kind {k!r}: use {', '.join(KINDS)}")
-        if self.scale not in (2, 4):
-            raise InvalidOptions(f"training scale must be 2 or 4, not {self.scale}")
-        if self.stride not in (2, 4) or self.scale % self.stride:
+        if self.scale not in (2, 4, 8):
+            raise InvalidOptions(f"training scale must be 2, 4 or 8, not {self.scale}")
+        powers = {self.stride**k for k in (1, 2, 3)}  # the scale is whole passes of the stride
+        if self.stride not in (2, 4, 8) or self.scale not in powers:
             raise InvalidOptions(
                 f"a network of stride {self.stride} cannot be trained at x{self.scale}"
             )
@@ -331,6 +333,8 @@ def build_network(config: TrainConfig, materials: list[Material] | None = None) 
     if start.stride != config.stride:  # the convolutions only; the head stays as built
         head = weights.head_prefix(start)
         state = {k: v for k, v in state.items() if not k.startswith(head)}
+        if isinstance(start, srmd.SRMD) and config.stride == 2 * start.stride:
+            state.update({f"{head}{k}": v for k, v in srmd.nearest_head(start.head).items()})
     net.load_state_dict(state, strict=False)
     return net
 

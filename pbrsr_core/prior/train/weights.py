@@ -231,7 +231,7 @@ def resolve_start(source: str, kind: str, stride: int, later: bool = False) -> s
             f"{', '.join(SHIPPED)}, texture:<folder>, spandrel:<file> or a .safetensors file"
         )
     files = weight_files(folder)
-    keys = [(kind, stride, "first"), *((kind, s, "first") for s in (2, 4) if s != stride)]
+    keys = [(kind, stride, "first"), *((kind, s, "first") for s in (8, 4, 2) if s != stride)]
     for key in ([(kind, 2, "later")] if later else []) + keys:
         if key in files:
             return str(files[key])

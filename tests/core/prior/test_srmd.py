@@ -130,6 +130,49 @@ def test_cli_trains_an_srmd_set_stored_as_float16(tmp_path, capfd):
     assert code == InvalidOptions.exit_code and "equal widths" in err
 
 
+def test_an_x8_network_starts_as_its_x4_network_enlarged_and_runs_x8_in_one_pass(tmp_path, capfd):
+    """An x8 head from an x4 network's weights starts as that network's output enlarged x2 by
+    nearest neighbour (every sub-pixel of a 2x2 block the same); fine-tuned through the CLI,
+    the set runs x8 in one pass and no other scale; an x4 network is not trained at x8."""
+    from pbrsr_core.prior.train.loop import TrainConfig, build_network
+    from pbrsr_core.prior.train.weights import save_network
+
+    torch.manual_seed(3)
+    x4 = srmd.SRMD(8, 3, 4).eval()
+    for conv in [*x4.body, x4.head]:
+        torch.nn.init.normal_(conv.bias, 0.0, 0.1)
+    start = tmp_path / "x4.safetensors"
+    save_network(x4, start, TrainConfig(kinds=("colour",), arch="srmd", widths=(8,) * 3,
+                                        stride=4, scale=4), {})  # fmt: skip
+    x4 = load_network(start).eval()
+    cfg = TrainConfig(kinds=("colour",), arch="srmd", widths=(8,) * 3, stride=8, scale=8)
+    cfg.init = str(start)
+    cfg.check()
+    x8 = build_network(cfg).eval()
+    lr = torch.rand(1, 3, 9, 11)
+    with torch.no_grad():
+        want = F.interpolate(x4(lr), scale_factor=2, mode="nearest")
+        got = x8(lr)
+    assert got.shape == (1, 3, 72, 88)
+    assert torch.allclose(got, want, atol=1e-6)
+    assert float(want.std()) > 0.01  # the head's sub-pixels differ: the check can fail
+    with pytest.raises(InvalidOptions, match="stride 4 cannot be trained at x8"):
+        TrainConfig(kinds=("colour",), arch="srmd", widths=(8,) * 3, stride=4, scale=8).check()
+    folder = make_texture_folder(tmp_path / "tex", n=10, size=256)
+    out = tmp_path / "out"
+    args = ["priors", "finetune", "--from", str(start), "-o", str(out), "--textures", str(folder)]
+    args += ["--kinds", "colour"]
+    args += ["--stride", "8", "--scale", "8", "--steps", "2", "--batch", "2", "--patch", "80"]
+    code, err = run_cli([*args, "-q"], capfd)
+    assert code == 0, err
+    (file,) = out.glob("*/*.safetensors")
+    assert read_metadata(file)["stride"] == "8"
+    prior = TexturePrior(out).for_kind("colour")
+    assert prior.scales == (8,)
+    up = prior.upscale(torch.rand(1, 3, 10, 10), 8)
+    assert up.shape == (1, 3, 80, 80) and torch.isfinite(up).all()
+
+
 @needs_start
 def test_cli_finetunes_from_the_start_weights(tmp_path, capfd):
     folder = make_texture_folder(tmp_path / "tex", n=10, size=128)
