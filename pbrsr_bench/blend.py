@@ -34,7 +34,7 @@ from pbrsr_core.prior.blend import blend, blend_check, blend_plan, check_picks
 from pbrsr_core.prior.direct import bicubic_map, upscale_map
 from pbrsr_core.prior.guided import CHANNELS as GUIDED_CHANNELS
 from pbrsr_core.prior.guided import guided_check_upscale, guided_upscale
-from pbrsr_core.prior.selfcheck import prior_self_check
+from pbrsr_core.prior.selfcheck import offered, prior_self_check
 from pbrsr_core.prior.train.data import (
     Material,
     load_materials,
@@ -101,10 +101,11 @@ def score_crop(
         presets_low_res(packed, scale, jpeg, subsampled=subsampled),
     )
     c_check = prior_self_check(prior, lr_c, scale, "colour", stored=stored_c, store=store, **kw)
-    by_name = {p.name: p for p in prior.candidates("colour")}
+    colour_candidates = offered(prior, "colour", scale, max_prior_scale)
+    by_name = {p.name: p for p in colour_candidates}
     src = None
     if c_check is None or c_check["channels"][0]:
-        src = by_name[c_check["priors"][0]] if c_check else prior.candidates("colour")[0]
+        src = by_name[c_check["priors"][0]] if c_check else colour_candidates[0]
 
     def upscale_guide(px: np.ndarray, f: int) -> np.ndarray:
         if src is None:
@@ -124,7 +125,7 @@ def score_crop(
         up = guided_check_upscale(kept, lr_d.shape[:2], lr_c, upscale_guide, gc)
         guided_small = {c: up[..., m] for m, c in enumerate(gc)}
     # the real scale: every upscale a rule may weigh
-    candidates = prior.candidates("data")
+    candidates = offered(prior, "data", scale, max_prior_scale)
     real = {p.name: upscale_map(p, lr_d, "data", scale, **kw) for p in candidates}
     bic = bicubic_map(lr_d, "data", scale)
     if gc:

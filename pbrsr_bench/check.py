@@ -112,7 +112,7 @@ def score_map(
     lr, stored = presets_low_res(hr, scale, jpeg, deblock_jpeg, subsampled)
     store = storage_model(jpeg, subsampled, deblock_jpeg, storage)
     check = prior_self_check(prior, lr, scale, kind, stored=stored, store=store)
-    candidates = prior.candidates(kind)
+    candidates = prior.candidates(kind, scale)
     ups = {c.name: upscale_map(c, lr, kind, scale) for c in candidates}
     bic = bicubic_map(lr, kind, scale)
     shave = scale  # the SR protocol's border

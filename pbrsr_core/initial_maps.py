@@ -20,6 +20,7 @@ from .prior.guided import CHANNELS as GUIDED_CHANNELS
 from .prior.guided import guide_pairs, guided_check_upscale, guided_upscale
 from .prior.selfcheck import (
     chosen,
+    offered,
     prior_self_check,
     upscale_channels,
     upscale_each,
@@ -130,7 +131,14 @@ def prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, pr
         img.index: [
             p if use else None
             for p, use in zip(
-                chosen(prior, kind_of(img.roles), found.get(img.index), len(channels[img.index])),
+                chosen(
+                    prior,
+                    kind_of(img.roles),
+                    found.get(img.index),
+                    len(channels[img.index]),
+                    s,
+                    config.max_prior_scale,
+                ),  # fmt: skip
                 channels[img.index],
                 strict=True,
             )
@@ -140,8 +148,8 @@ def prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, pr
     return channels, checks, sources
 
 
-def blended_channels(asset, images, prior, channels, checks, sources, kept, lr_pixels, config,
-                      timer, unseen=None):  # fmt: skip
+def blended_channels(asset, images, prior, channels, checks, sources, kept, lr_pixels, s,
+                     config, timer, unseen=None):  # fmt: skip
     """With ``blend_data``: each checked data map's channels (those the preset lets a prior
     initialise, but the entries ``unseen`` names) as a blend of the prior's candidates,
     bicubic and, for the roughness and metallic of a metallic-roughness map, the upscale
@@ -202,7 +210,8 @@ def blended_channels(asset, images, prior, channels, checks, sources, kept, lr_p
             entry["channels"], entry["use_prior"] = use, any(use)
             channels[i], sources[i] = use, [None] * n
             if any(use):
-                by_name = {p.name: p for p in prior.candidates(kind_of(by_index[i].roles))}
+                kind = kind_of(by_index[i].roles)
+                by_name = {p.name: p for p in offered(prior, kind, s, config.max_prior_scale)}
                 blends[i] = ([by_name.get(m, "guided") for m in names], weights, guide)
     return blends
 

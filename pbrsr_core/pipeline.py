@@ -245,7 +245,7 @@ def _direct_maps(asset, images, prior, s, wraps, cutouts, unseen, timer, progres
     n = {i: len(r) for i, r in read.items()}  # channel entries
 
     def several(img) -> bool:
-        return len(prior.candidates(kind_of(img.roles))) > 1
+        return len(prior.candidates(kind_of(img.roles), s)) > 1
 
     offered = [
         img
@@ -257,7 +257,7 @@ def _direct_maps(asset, images, prior, s, wraps, cutouts, unseen, timer, progres
     found = self_checks(asset, offered, prior, lr_pixels, s, CHECK_PRIOR_CPU, None, timer,
                         progress, storage=BALANCED.check_storage)  # fmt: skip
     picks = {
-        img.index: _direct_picks(prior, img, found.get(img.index))
+        img.index: _direct_picks(prior, img, found.get(img.index), s)
         for img in offered
         if several(img)
     }
@@ -376,7 +376,7 @@ def _pbrsr_maps(asset, groups, static, prior, options, config, device, timer, pr
             asset, group, map_prior, px, s, config, timer, progress, blend_kept, unseen
         )
         blends = blended_channels(asset, group, map_prior, ch, found, sources, blend_kept, px,
-                                  config, timer, unseen)  # fmt: skip
+                                  s, config, timer, unseen)  # fmt: skip
         del blend_kept
         every = {i: sources.get(i) or [None] * len(c) for i, c in ch.items()}
         made_by.update(_made_by(group, every, blends, found, unseen))
@@ -412,13 +412,14 @@ def _pbrsr_maps(asset, groups, static, prior, options, config, device, timer, pr
     }
 
 
-def _direct_picks(prior: Prior, img: ImageData, check: dict | None) -> list[Prior | None]:
+def _direct_picks(prior: Prior, img: ImageData, check: dict | None, s: int) -> list[Prior | None]:
     """Per channel entry of a map (prior/selfcheck.py counts them), the candidate of
-    ``prior`` direct upscales it with: the one its self-check found closest one scale down,
-    or None (bicubic) where bicubic was closer or no material reads the channel."""
+    ``prior`` direct upscales it with by ``s``: the one its self-check found closest one
+    scale down, or None (bicubic) where bicubic was closer or no material reads the
+    channel."""
     from .optim.presets import BALANCED
 
-    picks: list[Prior | None] = list(chosen(prior, kind_of(img.roles), check, 1))
+    picks: list[Prior | None] = list(chosen(prior, kind_of(img.roles), check, 1, s))
     if check is not None:
         picks = [p if use else None for p, use in zip(picks, check["channels"], strict=True)]
     return read_channels_only(picks, prior_channels(img, BALANCED))

@@ -89,10 +89,12 @@ class Prior(ABC):
         holds a network per kind (:class:`~pbrsr_core.prior.texture.TexturePrior`)."""
         return self
 
-    def candidates(self, kind: str) -> list[Prior]:
-        """The priors that may upscale a map of ``kind``, best guess first: the self-check
+    def candidates(self, kind: str, scale: int) -> list[Prior]:
+        """The priors that may upscale a map of ``kind`` by ``scale`` (the factor the prior
+        may run at, :func:`~.selfcheck.offered`), best guess first: the self-check
         (prior/selfcheck.py) keeps, per map, the one that reconstructs it best from one scale
-        down. One, :meth:`for_kind`'s, unless a texture set also offers its fallback."""
+        down. One, :meth:`for_kind`'s, unless a texture set also offers its fallback (and at
+        x4 its x2 passes)."""
         return [self.for_kind(kind)]
 
     # -- the public call ---------------------------------------------------------------

@@ -65,10 +65,14 @@ def _build(name: str, device: torch.device) -> Prior:
 
         return Waifu2xPrior(device)
     if name in SHIPPED:
-        from .texture import X4_ONLY, TexturePrior, shipped_files
+        from .texture import X2_CANDIDATE, X4_ONLY, TexturePrior, shipped_files
 
         return TexturePrior(
-            shipped_files(name), device, name=name, x4_only=X4_ONLY.get(name, frozenset())
+            shipped_files(name),
+            device,
+            name=name,
+            x4_only=X4_ONLY.get(name, frozenset()),
+            x2_candidate=X2_CANDIDATE.get(name, frozenset()),
         )
     if name.startswith("texture:"):
         from .texture import TexturePrior

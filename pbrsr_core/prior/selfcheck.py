@@ -81,6 +81,13 @@ shared assets (x4, direct, 40 evaluation views) the fitted gain brought their no
 0.37, docs/METHOD.md, "The network's detail scaled by a gain fitted one scale down")."""
 
 
+def offered(prior: Prior, kind: str, scale: int, max_prior_scale: int | None = None) -> list[Prior]:
+    """``prior``'s candidates for a map of ``kind`` upscaled by ``scale`` with the prior
+    capped at ``max_prior_scale`` (:func:`~.direct.upscale_map`): those it offers at the
+    factor it may run at."""
+    return prior.candidates(kind, min(scale, max_prior_scale or scale))
+
+
 def check_factor(side: int, scale: int, priors: Sequence[Prior] = ()) -> int:
     """The factor a map of ``side`` texels (its shorter side, at most ``CROP``) is checked
     at: ``scale``, halved while the crop one scale down would hold fewer than ``MIN_SIDE``
@@ -182,11 +189,11 @@ def prior_self_check(
     on: the prior is used, as the paper does). The report's ``scale`` is the factor the map
     was checked at: ``scale``, or less for a small map (:func:`check_factor`).
 
-    Each of ``prior.candidates(kind)`` upscales the map from one scale down; ``candidates``
-    gives each one's PSNR by name, ``prior_db`` the best of them. ``kind`` is the map's
-    (prior/direct.py): colour and normal maps are decided as a whole; the channels of a data
-    map (occlusion, roughness, metallic packed in one image) are unrelated images, so each is
-    decided on its own: per colour channel (one entry for colour and normal maps),
+    Each of the prior's candidates (:func:`offered`) upscales the map from one scale down;
+    ``candidates`` gives each one's PSNR by name, ``prior_db`` the best of them. ``kind`` is
+    the map's (prior/direct.py): colour and normal maps are decided as a whole; the channels
+    of a data map (occlusion, roughness, metallic packed in one image) are unrelated images,
+    so each is decided on its own: per colour channel (one entry for colour and normal maps),
     ``priors`` names the candidate that reconstructs it best and ``channels`` says whether
     that one beats bicubic (the prior initialises it), ``margins`` by how many dB (negative:
     bicubic is closer), ``gains`` its :func:`detail_gain` (the scale of that candidate's
@@ -213,7 +220,7 @@ def prior_self_check(
     crop = _centre(a, CROP)
     if min(crop.shape[:2]) < 4 * scale:
         return None
-    candidates = prior.candidates(kind)
+    candidates = offered(prior, kind, scale, max_prior_scale)
     scale = check_factor(min(crop.shape[:2]), scale, candidates)
     if covered is not None and covered.shape != a.shape[:2]:
         raise ValueError(f"coverage mask {covered.shape} does not match the map {a.shape[:2]}")
@@ -288,10 +295,18 @@ def spread(texels: np.ndarray, floor: np.ndarray) -> tuple[bool, dict]:
     return bool((rms < floor).all() and peak <= FLAT_PEAK), levels
 
 
-def chosen(prior: Prior, kind: str, check: dict | None, n: int) -> list[Prior]:
+def chosen(
+    prior: Prior,
+    kind: str,
+    check: dict | None,
+    n: int,
+    scale: int,
+    max_prior_scale: int | None = None,
+) -> list[Prior]:
     """Per entry of a map's ``channels`` (``n`` of them), the candidate of ``prior`` that
-    ``check`` (a :func:`prior_self_check` report) chose; the first candidate without one."""
-    candidates = prior.candidates(kind)
+    ``check`` (a :func:`prior_self_check` report of the map at ``scale`` with the prior
+    capped at ``max_prior_scale``) chose; the first candidate without one."""
+    candidates = offered(prior, kind, scale, max_prior_scale)
     names = (check or {}).get("priors") or [candidates[0].name] * n
     by_name = {c.name: c for c in candidates}
     return [by_name.get(name, candidates[0]) for name in names]

@@ -96,9 +96,10 @@ class SelfEnsemble(Prior):
         n = self._copies(kind)
         return SelfEnsemble(inner, n, kind) if n > 1 else inner
 
-    def candidates(self, kind: str) -> list[Prior]:
+    def candidates(self, kind: str, scale: int) -> list[Prior]:
         n = self._copies(kind)
-        return [SelfEnsemble(c, n, kind) if n > 1 else c for c in self.inner.candidates(kind)]
+        inner = self.inner.candidates(kind, scale)
+        return [SelfEnsemble(c, n, kind) if n > 1 else c for c in inner]
 
     def int8_ready(self) -> bool:
         return self.inner.int8_ready()

@@ -61,6 +61,16 @@ X4_ONLY: dict[str, frozenset[str]] = {
 }
 """Shipped set name -> kinds whose x4 network runs for x4 only (their x8: x2 passes)."""
 
+X2_CANDIDATE: dict[str, frozenset[str]] = {
+    # at x4 the x2 passes lead on drawn maps, SRMD on photographic atlases: with both offered
+    # the self-check's pick gains +5.22 dB over bicubic on 30 real colour maps against +5.10,
+    # and the twelve WebXR assets' renders +3.87 against +3.82 (docs/METHOD.md); at x8 the
+    # pick among x8 chains came out worse, so it is offered at x4 only
+    "pbr-srmd": frozenset({"colour"}),
+}
+"""Shipped set name -> kinds whose x2 network's passes are a self-check candidate of their own
+at x4, beside the kind's stride-4 network (:meth:`TexturePrior.candidates`)."""
+
 
 def shipped_files(name: str) -> list[Path]:
     """The weights files of the shipped set ``name``."""
@@ -68,6 +78,8 @@ def shipped_files(name: str) -> list[Path]:
 
 
 KINDS = ("colour", "data", "normal")
+Strides = frozenset[int] | None
+"""The network strides a run may use: a subset of a kind's, or None for all of them."""
 
 
 Key = tuple[str, int, str]
@@ -166,6 +178,7 @@ class TexturePrior(Prior):
         name: str | None = None,
         fallback: str = "waifu2x-photo",
         x4_only: frozenset[str] = frozenset(),
+        x2_candidate: frozenset[str] = frozenset(),
     ) -> None:
         super().__init__()
         self.device = torch.device(device)
@@ -200,6 +213,10 @@ class TexturePrior(Prior):
         self.fallback = fallback
         self.x4_only = x4_only
         """Kinds whose x4 network makes x4 only; their other scales are x2 passes."""
+        self.x2_candidate = frozenset(
+            k for k in x2_candidate if {2, 4} <= set(self.nets.get(k, {}))
+        )
+        """Kinds whose x2 passes are a candidate of their own at x4 (:meth:`candidates`)."""
         self._views: dict[str, Prior] = {}
         self._lock = threading.Lock()
         # images of no stated kind (the optimiser's renders) are colour images: the colour
@@ -226,36 +243,49 @@ class TexturePrior(Prior):
                 self._views[kind] = view
             return view
 
-    def candidates(self, kind: str) -> list[Prior]:
+    def candidates(self, kind: str, scale: int) -> list[Prior]:
         """The kind's own network, then the fallback: a network trained on textures need not
         beat the photo prior on every map, so the self-check keeps whichever reconstructs
-        the map better (prior/selfcheck.py)."""
+        the map better (prior/selfcheck.py). At x4, an ``x2_candidate`` kind also offers its
+        x2 network's two passes (:meth:`x2_passes`)."""
         own = self.for_kind(kind)
         if kind not in self.nets:
             return [own]
         from .registry import load_prior
 
-        return [own, load_prior(self.fallback, self.device)]
+        out = [own, load_prior(self.fallback, self.device)]
+        if scale == 4 and kind in self.x2_candidate:
+            out.append(self.x2_passes(kind))
+        return out
+
+    def x2_passes(self, kind: str) -> Prior:
+        """The kind's x2 network alone, every scale made by its passes, as a prior of its own
+        (named ``<set>[<kind>/x2]``)."""
+        key = f"{kind}/x2"
+        with self._lock:
+            if key not in self._views:
+                self._views[key] = _KindView(self, kind, frozenset({2}))
+            return self._views[key]
 
     def num_parameters(self) -> int:
         if self.kind is None:
             return self.for_kind("colour").num_parameters()
         return _parameters(self.nets[self.kind], self.later.get(self.kind))
 
-    def _passes(self, kind: str, scale: int) -> list[int] | None:
-        strides = set(self.nets[kind])
+    def _passes(self, kind: str, scale: int, only: Strides = None) -> list[int] | None:
+        strides = set(self.nets[kind]) if only is None else set(only)
         if kind in self.x4_only and scale != 4:
             strides.discard(4)
         return passes(strides, scale)
 
-    def _scales(self, kind: str) -> tuple[int, ...]:
-        return tuple(s for s in (2, 4, 8) if self._passes(kind, s))
+    def _scales(self, kind: str, only: Strides = None) -> tuple[int, ...]:
+        return tuple(s for s in (2, 4, 8) if self._passes(kind, s, only))
 
-    def _tile_limits(self, kind: str, scale: int) -> tuple[float, int]:
+    def _tile_limits(self, kind: str, scale: int, only: Strides = None) -> tuple[float, int]:
         # one pass of a stride-4 network has every layer but its head at the LR size: the
         # overlap a tile recomputes costs more than the memory traffic of a larger tile (SRMD,
         # x4 of a 1024² input on a 2-core EPYC: 28.9 s untiled, 32.2 s in 9 tiles)
-        if self._passes(kind, scale) == [4] and not self.spandrel:
+        if self._passes(kind, scale, only) == [4] and not self.spandrel:
             return self.one_pass_bytes_per_pixel, 1024
         return self.bytes_per_pixel, self.cpu_tile_max
 
@@ -264,8 +294,10 @@ class TexturePrior(Prior):
             return self.for_kind("colour").tile_limits(scale)
         return self._tile_limits(self.kind, scale)
 
-    def _int8_ready(self, kind: str) -> bool:
+    def _int8_ready(self, kind: str, only: Strides = None) -> bool:
         nets = [*self.nets[kind].values(), self.later.get(kind)]
+        if only is not None:
+            nets = [self.nets[kind][s] for s in only]
         return any(net in self.calibrations for net in nets if net is not None)
 
     def int8_ready(self) -> bool:
@@ -273,10 +305,12 @@ class TexturePrior(Prior):
             return self.for_kind("colour").int8_ready()
         return self._int8_ready(self.kind)
 
-    def _run(self, kind: str, x: torch.Tensor, scale: int, int8: bool = False) -> torch.Tensor:
+    def _run(
+        self, kind: str, x: torch.Tensor, scale: int, int8: bool = False, only: Strides = None
+    ) -> torch.Tensor:
         nets, later = self.nets[kind], self.later.get(kind)
         with self._lock:
-            for i, stride in enumerate(self._passes(kind, scale) or []):
+            for i, stride in enumerate(self._passes(kind, scale, only) or []):
                 net = later if i and stride == 2 and later is not None else nets[stride]
                 if int8 and net in self.calibrations:
                     if net not in self._int8:
@@ -304,28 +338,36 @@ class TexturePrior(Prior):
 
 
 class _KindView(Prior):
-    """One kind's network of a :class:`TexturePrior`, as a prior of its own."""
+    """One kind's networks of a :class:`TexturePrior`, as a prior of its own; with ``only``,
+    those of these strides alone."""
 
-    def __init__(self, parent: TexturePrior, kind: str) -> None:
+    def __init__(self, parent: TexturePrior, kind: str, only: Strides = None) -> None:
         super().__init__()
-        self.parent, self.kind = parent, kind
-        self.name = f"{parent.name}[{kind}]"
-        self.scales, self.device = parent._scales(kind), parent.device
-        self.one_pass_scales = tuple(sorted(parent.nets[kind]))
+        self.parent, self.kind, self.only = parent, kind, only
+        strides = sorted(parent.nets[kind] if only is None else only)
+        part = kind if only is None else f"{kind}/x{strides[0]}"
+        self.name = f"{parent.name}[{part}]"
+        self.scales, self.device = parent._scales(kind, only), parent.device
+        self.one_pass_scales = tuple(strides)
         self.bytes_per_pixel = parent.bytes_per_pixel
         self.default_overlap = parent.default_overlap
 
+    def _nets(self) -> dict[int, Network]:
+        nets = self.parent.nets[self.kind]
+        return nets if self.only is None else {s: nets[s] for s in self.only}
+
     def num_parameters(self) -> int:
-        return _parameters(self.parent.nets[self.kind], self.parent.later.get(self.kind))
+        return _parameters(self._nets(), self.parent.later.get(self.kind))
 
     def tile_limits(self, scale: int) -> tuple[float, int]:
-        return self.parent._tile_limits(self.kind, scale)
+        return self.parent._tile_limits(self.kind, scale, self.only)
 
     def int8_ready(self) -> bool:
-        return self.parent._int8_ready(self.kind)
+        return self.parent._int8_ready(self.kind, self.only)
 
     def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:
-        return self.parent._run(self.kind, x, scale, self.precision_in_use() == "int8")
+        int8 = self.precision_in_use() == "int8"
+        return self.parent._run(self.kind, x, scale, int8, self.only)
 
 
 def _parameters(nets: dict[int, Network], later: Network | None = None) -> int:

@@ -44,7 +44,8 @@ def test_direct_names_each_maps_network(tmp_path):
     report = upscale_asset(src, tmp_path / "o", UpscaleOptions(method="direct"))
     by_index = {r["index"]: r["made_by"] for r in map_rows(report)}
     assert by_index[1] == ["pbr-srmd[normal]"]
-    assert by_index[0][0] in ("pbr-srmd", "waifu2x-photo", "bicubic", "bicubic (flat)")
+    colour = ("pbr-srmd", "pbr-srmd[colour/x2]", "waifu2x-photo", "bicubic", "bicubic (flat)")
+    assert by_index[0][0] in colour
     assert len(by_index[2]) == 3 and by_index[2][0] == "bicubic"
     assert all(m in ("pbr-srmd[data]", "waifu2x-photo", "bicubic") for m in by_index[2][1:])
 

@@ -336,7 +336,7 @@ class Offering(Prior):
         super().__init__()
         self.first, self.second = first, second
 
-    def candidates(self, kind: str) -> list[Prior]:
+    def candidates(self, kind: str, scale: int) -> list[Prior]:
         return [self.first, self.second]
 
     def _forward(self, x: torch.Tensor, scale: int) -> torch.Tensor:

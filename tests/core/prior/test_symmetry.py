@@ -141,8 +141,8 @@ def test_copies_per_kind_run_each_kind_on_its_own_number():
     net = Leaning()
     normal = averaged(net, 1, {"normal": 2})
     assert isinstance(normal, SelfEnsemble)
-    assert normal.for_kind("colour") is net and normal.candidates("data") == [net]
-    for made in (normal.for_kind("normal"), *normal.candidates("normal")):
+    assert normal.for_kind("colour") is net and normal.candidates("data", 2) == [net]
+    for made in (normal.for_kind("normal"), *normal.candidates("normal", 2)):
         assert isinstance(made, SelfEnsemble) and made.n == 2 and made.kind == "normal"
     x = _normal_map(6, 6, 3)
     net.calls = 0

@@ -488,7 +488,7 @@ def test_shipped_prior_loads_and_upscales_each_kind(capfd):
     assert prior.scales == (2, 4, 8)
     assert set(prior.nets) == {"colour", "data", "normal"} and prior.kind == "colour"
     for kind in ("colour", "data", "normal"):
-        own, photo = prior.candidates(kind)
+        own, photo = prior.candidates(kind, 4)
         assert own is prior.for_kind(kind) and photo.name == "waifu2x-photo"
         assert own.name == ("pbr-upconv7" if kind == "colour" else f"pbr-upconv7[{kind}]")
     x = torch.rand(1, 3, 24, 24)
@@ -571,6 +571,36 @@ def test_shipped_srmd_prior_makes_colour_and_normal_x4_in_one_srmd_pass(capfd):
         )
     code, err = run_cli(["priors", "install", "pbr-srmd"], capfd)
     assert code == 0, err
+
+
+def test_pbr_srmd_offers_its_colour_x2_passes_as_a_candidate_at_x4_only():
+    """At x4 (and only there, and not under a cap of x2) the self-check of a colour map also
+    weighs pbr-srmd's x2 colour network run twice: pbr-upconv7's x4, by a name of its own
+    that a check's pick resolves to."""
+    from pbrsr_core.prior.selfcheck import chosen, offered
+
+    base, prior = load_prior("pbr-upconv7"), load_prior("pbr-srmd")
+    names = [c.name for c in prior.candidates("colour", 4)]
+    assert names == ["pbr-srmd", "waifu2x-photo", "pbr-srmd[colour/x2]"]
+    for kind, scale in (("colour", 2), ("colour", 8), ("data", 4), ("normal", 4)):
+        assert len(prior.candidates(kind, scale)) == 2
+    assert len(offered(prior, "colour", 4, max_prior_scale=2)) == 2
+    assert len(offered(prior, "colour", 4, max_prior_scale=4)) == 3
+    passes = prior.x2_passes("colour")
+    assert passes is prior.candidates("colour", 4)[2]  # one view, made once
+    assert passes.scales == (2, 4, 8) and passes.one_pass_scales == (2,)
+    assert passes.tile_limits(4) == (prior.bytes_per_pixel, 512)
+    assert not passes.int8_ready()
+    assert passes.num_parameters() == base.for_kind("colour").num_parameters()
+    x = torch.rand(1, 3, 20, 20)
+    with torch.no_grad():
+        for s in (2, 4, 8):
+            assert torch.equal(passes._forward(x, s), base.for_kind("colour")._forward(x, s))
+        assert not torch.equal(passes._forward(x, 4), prior.for_kind("colour")._forward(x, 4))
+    check = {"priors": ["pbr-srmd[colour/x2]"]}
+    assert chosen(prior, "colour", check, 1, 4) == [passes]
+    assert chosen(prior, "colour", check, 1, 8) == [prior.for_kind("colour")]  # not offered
+    assert chosen(prior, "colour", check, 1, 4, max_prior_scale=2) == [prior.for_kind("colour")]
 
 
 def test_cli_trains_reports_and_the_result_is_a_prior(tmp_path, capfd):
