@@ -138,7 +138,7 @@ def prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, pr
                     len(channels[img.index]),
                     s,
                     config.max_prior_scale,
-                ),  # fmt: skip
+                ),
                 channels[img.index],
                 strict=True,
             )

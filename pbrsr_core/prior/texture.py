@@ -295,9 +295,8 @@ class TexturePrior(Prior):
         return self._tile_limits(self.kind, scale)
 
     def _int8_ready(self, kind: str, only: Strides = None) -> bool:
-        nets = [*self.nets[kind].values(), self.later.get(kind)]
-        if only is not None:
-            nets = [self.nets[kind][s] for s in only]
+        firsts = self.nets[kind] if only is None else {s: self.nets[kind][s] for s in only}
+        nets = [*firsts.values(), self.later.get(kind) if 2 in firsts else None]
         return any(net in self.calibrations for net in nets if net is not None)
 
     def int8_ready(self) -> bool:
