@@ -8,7 +8,6 @@ last run of the bench that owns KEY and nothing else edits them by hand.
 from __future__ import annotations
 
 import os
-import platform
 import re
 from pathlib import Path
 
@@ -43,18 +42,3 @@ def write_section(path: Path, key: str, text: str) -> None:
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(new, encoding="utf-8")
     os.replace(tmp, path)
-
-
-def machine() -> str:
-    """The CPU and core count the numbers were measured on (and torch's thread count)."""
-    import torch
-
-    model = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{model}, {os.cpu_count()} cores, {torch.get_num_threads()} torch threads"

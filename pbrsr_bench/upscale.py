@@ -34,7 +34,7 @@ from pbrsr_core.render.light import EnvLight
 from pbrsr_core.scene import procedural_light, rotated_procedural_light
 
 from . import closest
-from .docs import machine
+from .machine import machine
 from .shared import SHARED_ASSETS
 from .targets import targets_table, worst_map
 from .variants import BENCH_VARIANTS
