@@ -1,7 +1,7 @@
 """The machine a benchmark ran on, and how fast it computes.
 
 A CPU's name and core count do not fix its speed: on two 2-core machines that both report
-"AMD EPYC", the same network run took twice as long on one as on the other. So next to the
+"AMD EPYC", the same network run took 1.8 times as long on one as on the other. So next to the
 name, :func:`machine` states what a reference convolution computes per second there, on the
 torch threads the benchmark uses and on one, and run times from different machines can be
 set against each other.
@@ -60,7 +60,8 @@ def cpu_model() -> str:
 
 def machine() -> str:
     """The CPU, its cores, torch's thread count and the reference convolution's speed on those
-    threads and on one, measured now (about a second)."""
+    threads and on one, measured now (a second or two). The CPU's, also where the benchmark
+    runs on a GPU: its results name their device themselves."""
     import torch
 
     threads = torch.get_num_threads()

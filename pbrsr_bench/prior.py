@@ -29,6 +29,7 @@ from pbrsr_core.prior.base import Prior
 from pbrsr_core.prior.tiling import count_tiles
 from pbrsr_core.runtime import configured
 
+from .machine import machine
 from .results import pyplot
 from .shared import SHARED_ASSETS
 
@@ -204,6 +205,7 @@ def run(
     (a prior with no int8 network runs once for ``fp32`` and ``int8``)."""
     if threads:
         torch.set_num_threads(threads)
+    host = machine()  # before any prior runs, on the threads they run on
     dev = resolve_device(device)
     names = priors or default_priors()
     large = tuple(scales) if large_scales is None else tuple(large_scales)
@@ -258,6 +260,7 @@ def run(
     result = {
         "device": str(dev),
         "torch_threads": torch.get_num_threads(),
+        "machine": host,
         "crop": crop,
         "natural_images": list(natural),
         "texture_crops": list(textures),
@@ -299,7 +302,8 @@ def print_table(result: dict) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    t = Table(title=f"pbrsr bench prior ({result['device']}, {result['torch_threads']} threads)")
+    where = result.get("machine") or f"{result['torch_threads']} threads"
+    t = Table(title=f"pbrsr bench prior ({result['device']}; {where})")
     cols = (
         "prior",
         "precision",

@@ -55,6 +55,8 @@ def test_bench_runs_and_writes_outputs(tmp_path):
     assert row["s_per_256"] > 0 and row["s_per_1024"] is None
     saved = json.loads((tmp_path / "out" / "prior.json").read_text())
     assert saved["rows"][0]["psnr_texture"] == row["psnr_texture"]
+    assert f"{torch.get_num_threads()} torch threads" in saved["machine"]
+    assert "GFLOPS" in saved["machine"]
     assert (tmp_path / "out" / "prior.png").stat().st_size > 1000
 
 
