@@ -50,12 +50,30 @@ def deblocked_lr(images, config: PbrsrConfig, timer: StageTimer):
     return lr_pixels, deblocked
 
 
+def checked_kinds(prior, s: int, config: PbrsrConfig) -> tuple[set[str], set[str]]:
+    """(the map kinds checked at ``s``, those of them checked among the prior's candidates
+    alone): ``check_prior``'s, and normal maps picked between the prior's normal candidates
+    where ``normal_pick_max_scale`` reaches ``s`` and it offers several."""
+    kinds = set(config.check_prior)
+    top = config.normal_pick_max_scale
+    if (
+        "normal" not in kinds
+        and top is not None
+        and s <= top
+        and len(offered(prior, "normal", s, config.max_prior_scale)) > 1
+    ):
+        return kinds | {"normal"}, {"normal"}
+    return kinds, set()
+
+
 def self_checks(asset, images, prior, lr_pixels, s, kinds, max_prior_scale, timer, progress,
-                kept=None, storage=False):  # fmt: skip
+                kept=None, storage=False, picked=frozenset()):  # fmt: skip
     """The self-check (prior/selfcheck.py) of each image of a kind in ``kinds``, over the
     texels a viewer sees: {image index: report, or None for a map too small to check}.
     ``kept``: filled with {data image index: what its check compared}. ``storage``: a JPEG
-    map's check models its file one scale down (``PbrsrConfig.check_storage``)."""
+    map's check models its file one scale down (``PbrsrConfig.check_storage``). ``picked``:
+    the kinds checked among the prior's candidates alone (never bicubic,
+    :func:`checked_kinds`)."""
     from functools import partial
 
     from .asset.jpeg import stored_as
@@ -90,6 +108,7 @@ def self_checks(asset, images, prior, lr_pixels, s, kinds, max_prior_scale, time
                 store=partial(stored_as, quant=img.jpeg, deblocked=not as_read)
                 if storage and img.jpeg is not None
                 else None,
+                pick_only=kind_of(img.roles) in picked,
             )
     return checks
 
@@ -100,19 +119,20 @@ def prior_channels_checked(asset, images, prior, lr_pixels, s, config, timer, pr
     names in ``prior_maps``; an ORM image's channels one by one; bicubic the rest; not the
     entries ``unseen`` names, {image: entries}, render_reach.py), and with ``check_prior``
     only those where the prior beats bicubic one scale down (``kept``: as
-    :func:`self_checks` fills it). Returns
+    :func:`self_checks` fills it); the normal maps :func:`checked_kinds` picks take the
+    closest of the prior's candidates. Returns
     ({image: [bool per channel]}, the self-check reports or None when nothing was checked,
     {image: per channel, the prior's candidate the check chose, or None for bicubic})."""
     channels = {img.index: prior_channels(img, config) for img in images}
     for i, entries in (unseen or {}).items():
         if i in channels:
             channels[i] = [u and c not in entries for c, u in enumerate(channels[i])]
-    if not (config.check_prior and prior.name != "bicubic" and any(map(any, channels.values()))):
+    kinds, picked = checked_kinds(prior, s, config)
+    if not (kinds and prior.name != "bicubic" and any(map(any, channels.values()))):
         return channels, None, {i: [prior if c else None for c in ch] for i, ch in channels.items()}
     used = [img for img in images if any(channels[img.index])]
-    found = self_checks(asset, used, prior, lr_pixels, s, set(config.check_prior),
-                        config.max_prior_scale, timer, progress, kept,
-                        config.check_storage)  # fmt: skip
+    found = self_checks(asset, used, prior, lr_pixels, s, kinds, config.max_prior_scale, timer,
+                        progress, kept, config.check_storage, picked)  # fmt: skip
     checks: list[dict] = []
     for img in used:
         kind = kind_of(img.roles)

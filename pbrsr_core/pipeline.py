@@ -40,6 +40,7 @@ from .footprint import check_memory, estimate_peak_bytes
 from .initial_maps import (
     blended_channels,
     check_gains,
+    checked_kinds,
     deblocked_lr,
     initial_maps,
     prior_channels,
@@ -76,6 +77,7 @@ from .prior.direct import (
     restore_hidden,
 )
 from .prior.selfcheck import (
+    GAIN_KINDS,
     chosen,
     merge_channels,
     upscale_channels,
@@ -234,11 +236,13 @@ def _merge_report(into: dict, part: dict) -> None:
 def _direct_maps(asset, images, prior, s, wraps, cutouts, unseen, timer, progress):
     """The direct method on ``images`` at ``s``: JPEG maps deblocked with their own tables,
     as every preset does; where the prior offers candidates, the self-check picks one per
-    colour and data map; the entries ``unseen`` names ({image: entries}) keep bicubic. The
-    prior's detail in a checked map is scaled by balanced's share of its fitted gain
-    (``PbrsrConfig.detail_gain``; a prior of one candidate is checked for the gain alone).
+    colour and data map, and balanced's pick between candidates one per normal map
+    (``PbrsrConfig.normal_pick_max_scale``); the entries ``unseen`` names ({image: entries})
+    keep bicubic. The prior's detail in a checked map is scaled by balanced's share of its
+    fitted gain (``PbrsrConfig.detail_gain``; a prior of one candidate is checked for the gain
+    alone).
     Returns (HR maps, report fields)."""
-    from .optim.presets import BALANCED, CHECK_PRIOR_CPU
+    from .optim.presets import BALANCED
 
     lr_pixels, deblocked = deblocked_lr(images, BALANCED, timer)
     read = {img.index: prior_channels(img, BALANCED) for img in images}
@@ -254,8 +258,9 @@ def _direct_maps(asset, images, prior, s, wraps, cutouts, unseen, timer, progres
         and len(unseen.get(img.index, ())) < n[img.index]
         and any(read[img.index])
     ]
-    found = self_checks(asset, offered, prior, lr_pixels, s, CHECK_PRIOR_CPU, None, timer,
-                        progress, storage=BALANCED.check_storage)  # fmt: skip
+    kinds, picked = checked_kinds(prior, s, BALANCED)
+    found = self_checks(asset, offered, prior, lr_pixels, s, kinds, None, timer, progress,
+                        storage=BALANCED.check_storage, picked=picked)  # fmt: skip
     picks = {
         img.index: _direct_picks(prior, img, found.get(img.index), s)
         for img in offered
@@ -273,7 +278,8 @@ def _direct_maps(asset, images, prior, s, wraps, cutouts, unseen, timer, progres
             kind = kind_of(img.roles)
             sources = sources_of[img.index]
             px, wrap, cutout = lr_pixels[img.index], wraps[img.index], cutouts[img.index]
-            gain = gains.get(img.index) if BALANCED.detail_gain and any(sources) else None
+            takes_gain = BALANCED.detail_gain and kind in GAIN_KINDS and any(sources)
+            gain = gains.get(img.index) if takes_gain else None
             plain = gain is not None or not any(sources)
             base = bicubic_map(px, kind, s, wrap, cutout) if plain else None
             hr = upscale_channels(

@@ -60,6 +60,12 @@ class PbrsrConfig:
     scale down (prior/selfcheck.py) before it initialises a map of ``prior_maps``: a map (a
     data map's channel) where it loses starts from bicubic, and when it loses on every map the
     pseudo-GT uses bicubic too. Empty: never checked (the paper always uses its prior)."""
+    normal_pick_max_scale: int | None = None
+    """Normal maps upscaled by at most this factor, when the prior offers several candidates
+    for them and ``check_prior`` does not name normal maps, are checked one scale down among
+    those candidates alone (prior/selfcheck.py ``pick_only``): the closest upscales the map,
+    never bicubic, whatever the flat rule says. Larger factors, and None: the prior's first
+    candidate (its normal network) upscales every normal map."""
     prior_maps: tuple[str, ...] = ("base_color", "emissive")
     """Maps the prior initialises (names as in ``map_lr``; the paper: albedo and emissive);
     every other map, and every other channel of a packed ORM image, starts from bicubic
@@ -229,6 +235,10 @@ class PbrsrConfig:
                 self.self_ensemble_max_scale is None or self.self_ensemble_max_scale >= 2,
                 "self_ensemble_max_scale must be None or >= 2",
             ),
+            (
+                self.normal_pick_max_scale is None or self.normal_pick_max_scale >= 2,
+                "normal_pick_max_scale must be None or >= 2",
+            ),
             (self.reach_db is None or self.reach_db > 0, "reach_db must be None or > 0"),
             (
                 self.pseudo_gt_self_ensemble in (1, 2, 4, 8),
@@ -336,10 +346,20 @@ PROJECT_LR_CPU = ("colour", "data")
 #   goes to bicubic, whose one-scale-down score ties the networks' (27.26 dB, waifu2x-photo
 #   27.24, the network 27.16) where at the real scale they gain +2.6 to +3.3 dB, and the
 #   WaterBottle's, flat one scale down, where the network gains +0.6: direct's mean render
-#   gain over bicubic +2.46 against +2.63, balanced +2.50 against +2.69. A pick between the
-#   two networks alone (no bicubic, no flat rule) gains +0.01 dB at x2 and costs 0.11 at x8
-#   (docs/METHOD.md, "Colour and data maps only").
+#   gain over bicubic +2.46 against +2.63, balanced +2.50 against +2.69.
 CHECK_PRIOR_CPU = ("colour", "data")
+# * normal_pick_max_scale 4: at x2 and x4 a normal map takes whichever of the prior's normal
+#   candidates (pbr-srmd: its normal network, waifu2x-photo) reconstructs it best one scale
+#   down, never bicubic and with no flat rule (the check above without them). Published x4
+#   runs against the normal network on every normal map (40 evaluation views): on the twelve
+#   WebXR controllers the generic trigger's knurled normal map goes to waifu2x-photo (26.93 ->
+#   27.77 dB in direct, bicubic 27.62; render +0.09 in direct, fast and balanced), every other
+#   render the same to the hundredth; on the seven shared assets the ToyCar's (29.51 -> 29.61,
+#   render +0.02), means +2.31 / +2.50 / +2.41 dB over bicubic for direct / fast / balanced.
+#   At x8, where a normal map is three x2 passes, the pick hands waifu2x-photo maps that render
+#   further (cabinet -0.45 dB, mean -0.11): the normal network (docs/METHOD.md, "Colour and
+#   data maps checked, normal maps picked").
+NORMAL_PICK_MAX_SCALE_CPU = 4
 # * reach_db: None in every preset. At 25 dB (`+reach_db=25` in `pbrsr bench upscale`, x4, the
 #   seven shared assets, 40 evaluation views) the renders move by -0.01..0.00 dB per asset and
 #   balanced runs 5 % faster on average (ToyCar 23.8 -> 19.2 s, cabinet 10.4 -> 8.6, the rest
@@ -436,6 +456,7 @@ _CPU = PbrsrConfig(
     render_res=None,
     target="detail",
     check_prior=CHECK_PRIOR_CPU,
+    normal_pick_max_scale=NORMAL_PICK_MAX_SCALE_CPU,
     blend_data=True,
     deblock_jpeg=True,
     lr=2.5e-4,

@@ -182,6 +182,7 @@ def prior_self_check(
     keep: dict | None = None,
     stored: np.ndarray | None = None,
     store: Callable[[np.ndarray], np.ndarray] | None = None,
+    pick_only: bool = False,
 ) -> dict | None:
     """``{"priors", "prior_db", "bicubic_db", "candidates", "texels", "use_prior",
     "channels", "margins", "gains", "flat", "spread", "scale"}`` for one map (H, W, C) as
@@ -214,7 +215,9 @@ def prior_self_check(
     took out, its RMS per channel over the compared texels, raises the flat floor
     (:data:`FLAT_STD`). ``store``: the map's storage (an image -> as its file would hold it
     and the run reads it; asset/jpeg.py ``stored_as``), applied to the crop one scale down
-    before the candidates upscale it, as it was to the map itself."""
+    before the candidates upscale it, as it was to the map itself. ``pick_only``: the check
+    picks among the candidates alone: every entry takes its closest candidate (``channels``
+    all true), whatever its margin over bicubic and whether it is flat."""
     a = np.asarray(lr_map, dtype=np.float32)
     n_colour = 3 if a.shape[2] >= 3 else 1
     crop = _centre(a, CROP)
@@ -262,7 +265,7 @@ def prior_self_check(
         is_flat, levels = spread(seen[:, part], floor[part])
         flat.append(is_flat)
         spreads.append(levels)
-        channels.append(margin > 0 and not is_flat)
+        channels.append(pick_only or (margin > 0 and not is_flat))
     each = {c.name: round(db(up, whole), 3) for c, up in zip(candidates, ups, strict=True)}
     return {
         "priors": best,

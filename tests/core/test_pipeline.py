@@ -100,9 +100,10 @@ def test_gltf_keeps_form_and_direct_with_bicubic_prior(tmp_path: Path):
 
 def test_direct_inverts_the_lr_model_the_options_name(tmp_path: Path):
     """An asset whose maps were made smaller by the area kernel: with ``lr_kernel`` "area",
-    each map a network made in both runs, downsampled by that kernel, comes closer to its LR
-    map than with the protocol's model (back-projection inverts the model it is given); the
-    report records the option, and after the run the protocol's model holds again."""
+    each map a network made in both runs and left off its LR map, downsampled by that kernel,
+    comes closer to its LR map than with the protocol's model (back-projection inverts the
+    model it is given); the report records the option, and after the run the protocol's model
+    holds again."""
     from pbrsr_core.degrade import degrade_asset, degrade_image, run_kernel
 
     hr = make_test_asset(tmp_path / "hr.glb", size=64)
@@ -121,12 +122,15 @@ def test_direct_inverts_the_lr_model_the_options_name(tmp_path: Path):
             ).mean()
             for o, i in zip(out.images, lr.images, strict=True)
         ]
+    # each map a network made in both runs and left more than a level from its LR map under
+    # the protocol's model (waifu2x-photo's pick of the 16² normal map is within half a level
+    # under either model: nothing for the step to correct)
     networks = [
         i
         for i, (a, b) in enumerate(zip(made_by["gaussian"], made_by["area"], strict=True))
-        if "bicubic" not in a + b
+        if "bicubic" not in a + b and err["gaussian"][i] > 1 / 255
     ]
-    assert len(networks) >= 2, made_by  # the normal map and a data map at least
+    assert len(networks) >= 2, (made_by, err)  # the data maps at least
     for i in networks:
         assert err["area"][i] < 0.7 * err["gaussian"][i], (i, err)
 
