@@ -355,8 +355,9 @@ CHECK_PRIOR_CPU = ("colour", "data")
 #   WebXR controllers the generic trigger's knurled normal map goes to waifu2x-photo (26.93 ->
 #   27.77 dB in direct, bicubic 27.62; render +0.09 in direct, fast and balanced), every other
 #   render the same to the hundredth; on the seven shared assets the ToyCar's (29.51 -> 29.61,
-#   render +0.02), means +2.31 / +2.50 / +2.41 dB over bicubic for direct / fast / balanced.
-#   At x8, where a normal map is three x2 passes, the pick hands waifu2x-photo maps that render
+#   render +0.02), means +2.31 / +2.50 / +2.41 dB over bicubic for direct / fast / balanced;
+#   at x2 the ToyCar's (39.43 -> 40.20 dB in direct, render +0.04; balanced +0.01). At x8,
+#   where a normal map is three x2 passes, the pick hands waifu2x-photo maps that render
 #   further (cabinet -0.45 dB, mean -0.11): the normal network (docs/METHOD.md, "Colour and
 #   data maps checked, normal maps picked").
 NORMAL_PICK_MAX_SCALE_CPU = 4
