@@ -359,7 +359,8 @@ CHECK_PRIOR_CPU = ("colour", "data")
 #   at x2 the ToyCar's (39.43 -> 40.20 dB in direct, render +0.04; balanced +0.01). At x8,
 #   where a normal map is three x2 passes, the pick hands waifu2x-photo maps that render
 #   further (cabinet -0.45 dB, mean -0.11): the normal network (docs/METHOD.md, "Colour and
-#   data maps checked, normal maps picked").
+#   data maps checked, normal maps picked"). The pick costs 0.08-0.91 s a map on balanced's
+#   two copies, a sixth to a ninth of the map's own upscale on large maps, 3-4 % of a run.
 NORMAL_PICK_MAX_SCALE_CPU = 4
 # * reach_db: None in every preset. At 25 dB (`+reach_db=25` in `pbrsr bench upscale`, x4, the
 #   seven shared assets, 40 evaluation views) the renders move by -0.01..0.00 dB per asset and
