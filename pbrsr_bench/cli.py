@@ -376,6 +376,12 @@ def upscale_cmd(
         help="How the LR input is made (pbrsr degrade --kernel): gaussian (the protocol), "
         "area, bicubic, lanczos.",
     ),
+    store_like_gt: bool = typer.Option(
+        False,
+        "--store-like-gt",
+        help="Score each map whose ground truth is a JPEG file as stored with that file's "
+        "tables and chroma sampling (what the ground truth's files can hold).",
+    ),
     docs: list[Path] = typer.Option(  # noqa: B006
         [], "--docs", help="Markdown file whose --section gets the summary (repeatable)."
     ),
@@ -409,6 +415,7 @@ def upscale_cmd(
         lr_format=lr_format,
         kernel=kernel,
         assets_dir=assets_dir,
+        store_like_gt=store_like_gt,
     )
     _publish(out, docs, section)
 

@@ -28,7 +28,7 @@ from pbrsr_core.asset import load_asset, make_cutout_asset, make_demo_asset
 from pbrsr_core.asset.images import jpeg_request
 from pbrsr_core.asset.model import Asset
 from pbrsr_core.degrade import check_kernels, degrade_asset
-from pbrsr_core.metrics import RenderEvaluator, eval_cameras, map_metrics
+from pbrsr_core.metrics import RenderEvaluator, eval_cameras, map_metrics, stored_like
 from pbrsr_core.options import DEFAULT_PRIOR
 from pbrsr_core.render.light import EnvLight
 from pbrsr_core.scene import procedural_light, rotated_procedural_light
@@ -245,10 +245,16 @@ def _with_pixels(asset: Asset, pixels: dict[int, np.ndarray]) -> Asset:
     return dataclasses.replace(asset, images=images)
 
 
-def _score(pred: Asset, gt: Asset, evaluator: RenderEvaluator) -> dict[str, float]:
+def _score(
+    pred: Asset, gt: Asset, evaluator: RenderEvaluator, store_like_gt: bool = False
+) -> dict[str, float]:
     """Map PSNR/SSIM and render PSNR of ``pred``. The renders take its maps as they are; a
     map made smaller than the ground truth's (``max_size``) is compared as a bicubic upscale
-    of it to the ground truth's size, as a renderer magnifying it would see it."""
+    of it to the ground truth's size, as a renderer magnifying it would see it.
+    ``store_like_gt``: each map whose ground truth is a JPEG file scored as stored with that
+    file's tables and chroma sampling (metrics.stored_like)."""
+    if store_like_gt:
+        pred = stored_like(pred, gt)
     return {**map_metrics(at_gt_size(pred, gt), gt), **evaluator(pred)}
 
 
@@ -283,13 +289,15 @@ def run(
     kernel: str = "gaussian",
     shared: Path = SHARED_ASSETS,
     assets_dir: Path | None = None,
+    store_like_gt: bool = False,
     log=print,
 ) -> list[dict]:
     """Run the benchmark; write ``results.json``, ``results.md`` and ``speed_vs_error.png``.
 
     ``assets_dir``: a folder laid out as the shared one (a folder per asset, a glTF or GLB in
     each) whose assets run instead of the shared ones (no variants); the shared HDRs still
-    light the evaluation."""
+    light the evaluation. ``store_like_gt``: every method's maps are scored as stored the way
+    the ground truth's JPEG files are (:func:`_score`)."""
 
     check_methods(methods, prior)
     check_kernels((kernel,))
@@ -312,6 +320,7 @@ def run(
         "kernel": kernel,
         "machine": machine(),
         **({"assets_dir": str(assets_dir)} if assets_dir is not None else {}),
+        **({"store_like_gt": True} if store_like_gt else {}),
     }
     try:
         todo = bench_assets(
@@ -338,7 +347,9 @@ def run(
             made: dict[str, tuple[dict, Asset]] = {}  # what closest: methods pick from
             for method in methods:
                 if closest.parts(method) is not None:
-                    score = functools.partial(_score, gt=gt, evaluator=evaluator)
+                    score = functools.partial(
+                        _score, gt=gt, evaluator=evaluator, store_like_gt=store_like_gt
+                    )
                     row = closest.row_of(method, made, gt, score)
                     if row is None:
                         log(f"   {method}: a method it picks from has no run here")
@@ -364,13 +375,13 @@ def run(
                     log(f"   {method}: refused: {exc}")
                     continue
                 pred = load_asset(work / "out" / lr_path.name)
-                scores = _score(pred, gt, evaluator)
+                scores = _score(pred, gt, evaluator, store_like_gt)
                 curve = []
                 for snap in res.get("snapshots", []):
                     px = dict(np.load(work / snap["file"]))
                     # a snapshot holds the maps being optimised; the rest are the output's
                     snap_asset = _with_pixels(pred, {int(k): v for k, v in px.items()})
-                    s = _score(snap_asset, gt, evaluator)
+                    s = _score(snap_asset, gt, evaluator, store_like_gt)
                     curve.append({"it": snap["it"], "seconds": snap["seconds"], **s})
                 row = {
                     "asset": name,
@@ -581,6 +592,12 @@ def published_summary(out_dir: Path) -> str:
     if lr_format != "same":
         lr += f", LR maps stored as `{lr_format}` (`pbrsr degrade --format`)"
         command += f" --lr-format {lr_format}"
+    if data.get("store_like_gt"):
+        lr += (
+            ", each map whose ground truth is a JPEG file scored as stored with that file's "
+            "tables and chroma sampling"
+        )
+        command += " --store-like-gt"
     real = sorted({r["asset"] for r in rows} - {*PROCEDURAL_ASSETS, *BENCH_VARIANTS})
     where = "shared assets"
     if data.get("assets_dir"):

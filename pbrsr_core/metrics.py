@@ -1,10 +1,17 @@
 """Evaluation by the paper's protocol: PSNR of each map over the texels the mesh's UVs cover
 (SSIM over the whole map), and PSNR of renderings from the evaluation views (predicted maps
 against ground truth maps, same lighting). Keys: ``maps.<name>.psnr``, ``maps.<name>.ssim``,
-``render.psnr``, and with several lights ``render.<light>.psnr`` per light."""
+``render.psnr``, and with several lights ``render.<light>.psnr`` per light.
+
+A ground truth stored as JPEG has lost what its file drops (with 4:2:0, the chroma above half
+the resolution: in an occlusion-roughness-metallic map, most of a metallic mask's edges).
+:func:`stored_like` stores a prediction's maps the same way, so that the scores compare what
+the ground truth's files can hold (``pbrsr eval --store-like-gt``, ``pbrsr bench upscale
+--store-like-gt``)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -49,6 +56,22 @@ def ssim(pred: np.ndarray, gt: np.ndarray) -> float:
     p = torch.from_numpy(pred.astype(np.float64)).permute(2, 0, 1)[None]
     g = torch.from_numpy(gt.astype(np.float64)).permute(2, 0, 1)[None]
     return float(ssim_per_channel(p, g).mean())
+
+
+def stored_like(pred: Asset, gt: Asset) -> Asset:
+    """``pred`` with each map whose ground truth is a JPEG file (one that asset/jpeg.py
+    models: ``ImageData.jpeg``) stored as that file is, with its quantisation tables and
+    chroma sampling (``jpeg.stored_as``), where the two maps have one size; its other maps
+    as they are."""
+    from .asset.jpeg import stored_as
+
+    images = [
+        dataclasses.replace(im, pixels=stored_as(im.pixels, ref.jpeg, deblocked=False))
+        if ref.jpeg is not None and im.pixels.shape[:2] == ref.pixels.shape[:2]
+        else im
+        for im, ref in zip(pred.images, gt.images, strict=False)
+    ]
+    return dataclasses.replace(pred, images=images + list(pred.images[len(images) :]))
 
 
 def images_for(asset: Asset, role: str) -> list[int]:
@@ -177,9 +200,13 @@ def evaluate(
     envmaps: list[Path] | None = None,
     num_views: int | None = None,
     device: torch.device | None = None,
+    store_like_gt: bool = False,
 ) -> dict[str, float]:
-    """All metrics of a predicted asset against its ground truth."""
+    """All metrics of a predicted asset against its ground truth; with ``store_like_gt``,
+    of the prediction's maps stored as the ground truth's JPEG files are (:func:`stored_like`)."""
     pred, gt = load_asset(pred_path), load_asset(gt_path)
+    if store_like_gt:
+        pred = stored_like(pred, gt)
     out = map_metrics(pred, gt)
     lights = [EnvLight.from_file(p) for p in envmaps] if envmaps else [procedural_light()]
     evaluator = RenderEvaluator(

@@ -189,7 +189,7 @@ class ImageData:
     "image/x-exr", "image/tiff", "image/ktx2", "image/webp", "image/avif"); ``roles`` lists the
     material slots that use the image. ``name`` is a safe, asset-relative label for messages
     and output file names.
-    ``jpeg``: the quantisation tables of a 4:4:4 JPEG file (``asset.jpeg``), else None.
+    ``jpeg``: a JPEG file's quantisation tables and chroma sampling (``asset.jpeg``), else None.
     ``encoding``: how a KTX2 or WebP file is encoded (``asset.texture_codecs``), else None;
     a KTX2 image's pixels are in its role's colour space even where its DFD says otherwise.
     """

@@ -169,11 +169,26 @@ def register(app: typer.Typer) -> None:
         views: Annotated[int, typer.Option(help="evaluation views (paper: 240)")] = 240,
         envmap: Annotated[list[Path] | None, typer.Option(help="environment maps")] = None,
         json_out: Annotated[Path | None, typer.Option("--json", help="write JSON here")] = None,
+        store_like_gt: Annotated[
+            bool,
+            typer.Option(
+                "--store-like-gt",
+                help="score each map of PRED whose ground truth is a JPEG file as stored with "
+                "that file's tables and chroma sampling",
+            ),
+        ] = False,
     ) -> None:
         """Per-map PSNR/SSIM and render PSNR of PRED against GT."""
         from ..metrics import evaluate
 
-        res = evaluate(pred, gt, resolution=resolution, envmaps=envmap, num_views=views)
+        res = evaluate(
+            pred,
+            gt,
+            resolution=resolution,
+            envmaps=envmap,
+            num_views=views,
+            store_like_gt=store_like_gt,
+        )
         t = Table(title=f"{pred.name} vs {gt.name}")
         t.add_column("metric")
         t.add_column("value", justify="right")

@@ -251,6 +251,21 @@ def test_bench_assets_refuses_an_unknown_name(tmp_path: Path):
     assert [name for name, _ in only] == ["procedural", "procedural-cutout"] and said == []
 
 
+def _bicubic_on(folder: Path, out: Path, **options) -> list[dict]:
+    """The bench's bicubic rows on the assets of ``folder`` (2 views at 32²), no shared ones."""
+    return run(
+        out_dir=out,
+        methods=("bicubic",),
+        eval_res=32,
+        eval_views=2,
+        include_procedural=False,
+        shared=out / "no-shared-assets",
+        assets_dir=folder,
+        log=print,
+        **options,
+    )
+
+
 def test_an_assets_folder_runs_in_place_of_the_shared_assets(tmp_path: Path):
     """--assets-dir: each folder's glTF runs (no variants: a WaterBottle there is any asset),
     the summary names the folder and its command the option; a folder holding no asset is
@@ -262,16 +277,7 @@ def test_an_assets_folder_runs_in_place_of_the_shared_assets(tmp_path: Path):
     mine = tmp_path / "mine"
     (mine / "WaterBottle").mkdir(parents=True)
     make_test_asset(mine / "WaterBottle" / "left.glb", size=16)
-    rows = run(
-        out_dir=tmp_path / "out",
-        methods=("bicubic",),
-        eval_res=32,
-        eval_views=2,
-        include_procedural=False,
-        shared=tmp_path / "no-shared-assets",
-        assets_dir=mine,
-        log=print,
-    )
+    rows = _bicubic_on(mine, tmp_path / "out")
     assert [(r["asset"], r["method"]) for r in rows] == [("WaterBottle", "bicubic")]
     text = published_summary(tmp_path / "out")
     assert f"mean over 1 assets of `{mine}` (WaterBottle)" in text
@@ -289,6 +295,30 @@ def test_an_assets_folder_runs_in_place_of_the_shared_assets(tmp_path: Path):
         )
         assert res.exit_code == 2 and reason in res.output
         assert not out.exists()
+
+
+def test_store_like_gt_scores_the_maps_as_the_ground_truths_files_store_them(tmp_path: Path):
+    """--store-like-gt: with a ground truth stored as 4:2:0 JPEG, each method's maps are
+    scored as stored the same way (other numbers than without), and the summary and its
+    command say so."""
+    from pbrsr_bench.upscale import published_summary
+    from pbrsr_core.asset.gltf_write import save_asset
+
+    mine = tmp_path / "mine"
+    (mine / "jpeg").mkdir(parents=True)
+    asset = load_asset(make_test_asset(tmp_path / "src.glb", size=16))
+    every = {im.index: im.pixels for im in asset.images if im.pixels.shape[2] == 3}
+    save_asset(asset, mine / "jpeg" / "gt.glb", every, image_format="jpeg:80:420")
+    scored = {}
+    for flag in (False, True):
+        out = tmp_path / f"out-{flag}"
+        scored[flag] = _bicubic_on(mine, out, store_like_gt=flag)[0]
+        text = published_summary(out)
+        assert (" --store-like-gt" in text) is flag
+        assert ("scored as stored with that file's tables and chroma sampling" in text) is flag
+    assert scored[True]["maps.albedo.psnr"] == scored[False]["maps.albedo.psnr"]  # RGBA: PNG
+    assert scored[True]["maps.normal.psnr"] != scored[False]["maps.normal.psnr"]
+    assert scored[True]["render.psnr"] != scored[False]["render.psnr"]
 
 
 def test_bench_assets_adds_the_draco_variant_of_the_water_bottle(tmp_path: Path):

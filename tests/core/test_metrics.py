@@ -10,7 +10,15 @@ import numpy as np
 import pytest
 
 from pbrsr_core.asset import load_asset, make_demo_asset
-from pbrsr_core.metrics import RenderEvaluator, eval_cameras, map_metrics, psnr, ssim
+from pbrsr_core.metrics import (
+    RenderEvaluator,
+    eval_cameras,
+    images_for,
+    map_metrics,
+    psnr,
+    ssim,
+    stored_like,
+)
 from pbrsr_core.scene import procedural_light
 
 
@@ -85,3 +93,40 @@ def test_render_psnr_per_light_pools_to_the_whole(demo: Path):
 def test_eval_cameras_subset():
     assert len(eval_cameras(32)) == 240
     assert len(eval_cameras(32, 24)) == 24
+
+
+def _with_metal_mask(asset):
+    """``asset`` with a crisp metallic mask (blocks of 0 and 1) in its ORM map's blue channel:
+    detail that 4:2:0 storage keeps at half resolution."""
+    orm = images_for(asset, "metallic_roughness")[0]
+    px = asset.images[orm].pixels.copy()
+    yy, xx = np.mgrid[: px.shape[0], : px.shape[1]]
+    px[..., 2] = ((yy // 3 + xx // 5) % 2).astype(np.float32)
+    images = list(asset.images)
+    images[orm] = dataclasses.replace(images[orm], pixels=px)
+    return dataclasses.replace(asset, images=images), orm
+
+
+def test_stored_like_stores_the_maps_the_ground_truth_keeps_as_jpeg(demo: Path, tmp_path: Path):
+    """Each map whose ground truth is a JPEG file is stored with that file's tables and chroma
+    sampling; against a 4:2:0 ground truth the texture it was made from (lossless, crisp
+    chroma) scores higher so stored than as it is, and a PNG ground truth changes nothing."""
+    from pbrsr_core.asset.gltf_write import save_asset
+    from pbrsr_core.asset.jpeg import stored_as
+
+    source, orm = _with_metal_mask(load_asset(demo))
+    every = {im.index: im.pixels for im in source.images}
+    save_asset(source, tmp_path / "gt.glb", every, image_format="jpeg:90:420")
+    gt = load_asset(tmp_path / "gt.glb")
+    assert all(im.jpeg is not None and im.jpeg.full == (True, False, False) for im in gt.images)
+    stored = stored_like(source, gt)
+    for mine, ref, made in zip(source.images, gt.images, stored.images, strict=True):
+        assert np.array_equal(made.pixels, stored_as(mine.pixels, ref.jpeg, deblocked=False))
+    assert not np.array_equal(stored.images[orm].pixels, source.images[orm].pixels)
+    as_is, so = map_metrics(source, gt), map_metrics(stored, gt)
+    assert so["maps.metallic.psnr"] > as_is["maps.metallic.psnr"] + 3.0
+    ev = RenderEvaluator(gt, cameras=eval_cameras(48, 4), lights=[procedural_light()])
+    assert ev(stored)["render.psnr"] > ev(source)["render.psnr"]
+    png = load_asset(demo)
+    kept = stored_like(source, png)
+    assert all(a.pixels is b.pixels for a, b in zip(kept.images, source.images, strict=True))

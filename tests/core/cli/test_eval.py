@@ -54,3 +54,24 @@ def test_eval_refuses_an_environment_map_of_another_format(tmp_path, capfd):
     (tmp_path / "sky.png").write_bytes(b"\x89PNG")
     code, err = run_cli(args, capfd)
     assert code == 2 and "must be a .hdr or .exr file" in err
+
+
+def test_eval_stores_the_prediction_like_a_jpeg_ground_truth(tmp_path, capfd):
+    """--store-like-gt: against a ground truth stored as 4:2:0 JPEG, the lossless maps it was
+    made from score higher once stored the same way (what the file holds of them)."""
+    from pbrsr_core.asset import load_asset
+    from pbrsr_core.asset.gltf_write import save_asset
+
+    source = make_demo_asset(tmp_path / "source.glb", size=32)
+    asset = load_asset(source)
+    every = {im.index: im.pixels for im in asset.images}
+    save_asset(asset, tmp_path / "gt.glb", every, image_format="jpeg:80:420")
+    args = ["eval", str(source), str(tmp_path / "gt.glb"), "--views", "2", "--resolution", "32"]
+    scores = []
+    for extra in ([], ["--store-like-gt"]):
+        out = tmp_path / f"m{len(extra)}.json"
+        assert run_cli([*args, *extra, "--json", str(out)], capfd)[0] == 0
+        scores.append(json.loads(out.read_text()))
+    as_is, stored = scores
+    for key in ("maps.albedo.psnr", "maps.metallic.psnr", "render.psnr"):
+        assert stored[key] > as_is[key] + 1.0, key
